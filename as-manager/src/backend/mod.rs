@@ -1,0 +1,4 @@
+//! Backends: where BLAS/TLAS are really built.
+
+#[cfg(feature = "vulkan")]
+pub mod vulkan;

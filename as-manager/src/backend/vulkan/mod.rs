@@ -1,0 +1,1 @@
+//! The Vulkan backend (ash): context, acceleration structures, frames in flight.

@@ -1,0 +1,3 @@
+//! # rtstream-renderer
+//!
+//! A ray-query renderer that traces the manager's TLAS, and image-difference metrics.
