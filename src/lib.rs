@@ -13,3 +13,9 @@
 pub use rtstream_as_manager as as_manager;
 pub use rtstream_renderer as renderer;
 pub use rtstream_streaming as streaming;
+
+mod error;
+mod gltf_scene;
+
+pub use error::{Error, Result};
+pub use gltf_scene::{reference_scene, world_bounds, GpuGltfScene};

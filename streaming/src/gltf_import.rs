@@ -187,7 +187,10 @@ fn read_mesh(
             .read_positions()
             .ok_or_else(|| invalid(format!("primitive {} has no POSITION", prim.index())))?
             .collect();
-        if let Some(bad) = positions.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+        if let Some(bad) = positions
+            .iter()
+            .position(|p| !p.iter().all(|c| c.is_finite()))
+        {
             return Err(invalid(format!("vertex {bad} has a non-finite position")));
         }
         let base = u32::try_from(out.positions.len())

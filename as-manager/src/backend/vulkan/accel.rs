@@ -1,0 +1,423 @@
+//! Acceleration structures: size queries, creation, batched BLAS builds and TLAS builds.
+
+use ash::vk;
+
+use super::buffer::{BufferDesc, GpuBuffer, MemoryKind};
+use super::context::VulkanContext;
+use super::error::{VkResult, VulkanError};
+
+/// Usage of buffers read by acceleration-structure builds (vertices, indices, instances).
+pub const BUILD_INPUT_USAGE: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
+    vk::BufferUsageFlags::ACCELERATION_STRUCTURE_BUILD_INPUT_READ_ONLY_KHR.as_raw()
+        | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS.as_raw()
+        | vk::BufferUsageFlags::STORAGE_BUFFER.as_raw(),
+);
+
+/// Rounds `v` up to a multiple of `align` (a power of two or any positive number).
+pub fn align_up(v: u64, align: u64) -> u64 {
+    v.div_ceil(align) * align
+}
+
+/// One triangle geometry of a BLAS, by device address.
+#[derive(Debug, Clone, Copy)]
+pub struct TriangleGeometry {
+    /// Address of tightly packed `[f32; 3]` positions (or `vertex_stride` apart).
+    pub vertex_address: vk::DeviceAddress,
+    /// Bytes between consecutive positions.
+    pub vertex_stride: u64,
+    /// Highest vertex index referenced.
+    pub max_vertex: u32,
+    /// Address of `u32` triangle-list indices.
+    pub index_address: vk::DeviceAddress,
+    /// Number of triangles.
+    pub triangle_count: u32,
+    /// Mark the geometry opaque (no any-hit; what the seeds recommend for opaque materials).
+    pub opaque: bool,
+}
+
+/// The class of a BLAS, which decides its build flags.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BlasClass {
+    /// Static geometry: PREFER_FAST_TRACE + ALLOW_COMPACTION.
+    Static,
+    /// Deforming geometry: PREFER_FAST_BUILD + ALLOW_UPDATE (refit each frame).
+    Skinned,
+}
+
+impl BlasClass {
+    /// The build flags of this class.
+    pub fn flags(self) -> vk::BuildAccelerationStructureFlagsKHR {
+        match self {
+            Self::Static => {
+                vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
+                    | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
+            }
+            Self::Skinned => {
+                vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
+                    | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
+            }
+        }
+    }
+}
+
+/// Sizes reported by vkGetAccelerationStructureBuildSizesKHR.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct AsSizes {
+    /// Bytes of acceleration-structure storage.
+    pub storage: u64,
+    /// Scratch bytes for a build.
+    pub build_scratch: u64,
+    /// Scratch bytes for an update (refit).
+    pub update_scratch: u64,
+}
+
+/// An acceleration structure and its storage buffer.
+#[derive(Debug)]
+pub struct AccelStruct {
+    /// The `vk::AccelerationStructureKHR` handle.
+    pub raw: vk::AccelerationStructureKHR,
+    /// Its backing buffer.
+    pub buffer: GpuBuffer,
+    /// Device address (what TLAS instance records reference).
+    pub address: vk::DeviceAddress,
+    /// Storage size in bytes.
+    pub size: u64,
+}
+
+fn triangles(g: &TriangleGeometry) -> vk::AccelerationStructureGeometryKHR<'static> {
+    let data = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
+        .vertex_format(vk::Format::R32G32B32_SFLOAT)
+        .vertex_data(vk::DeviceOrHostAddressConstKHR {
+            device_address: g.vertex_address,
+        })
+        .vertex_stride(g.vertex_stride)
+        .max_vertex(g.max_vertex)
+        .index_type(vk::IndexType::UINT32)
+        .index_data(vk::DeviceOrHostAddressConstKHR {
+            device_address: g.index_address,
+        });
+    vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::TRIANGLES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR { triangles: data })
+        .flags(if g.opaque {
+            vk::GeometryFlagsKHR::OPAQUE
+        } else {
+            vk::GeometryFlagsKHR::NO_DUPLICATE_ANY_HIT_INVOCATION
+        })
+}
+
+fn instances_geometry(address: vk::DeviceAddress) -> vk::AccelerationStructureGeometryKHR<'static> {
+    vk::AccelerationStructureGeometryKHR::default()
+        .geometry_type(vk::GeometryTypeKHR::INSTANCES)
+        .geometry(vk::AccelerationStructureGeometryDataKHR {
+            instances: vk::AccelerationStructureGeometryInstancesDataKHR::default()
+                .array_of_pointers(false)
+                .data(vk::DeviceOrHostAddressConstKHR {
+                    device_address: address,
+                }),
+        })
+}
+
+/// One BLAS build (or refit) to record.
+#[derive(Debug, Clone, Copy)]
+pub struct BlasBuild<'a> {
+    /// The geometries (one BLAS can hold several).
+    pub geometries: &'a [TriangleGeometry],
+    /// Build flags.
+    pub flags: vk::BuildAccelerationStructureFlagsKHR,
+    /// Destination.
+    pub dst: vk::AccelerationStructureKHR,
+    /// `Some(src)` for an update (refit; src may equal dst), `None` for a build.
+    pub update_from: Option<vk::AccelerationStructureKHR>,
+    /// Scratch address (a multiple of `minAccelerationStructureScratchOffsetAlignment`).
+    pub scratch_address: vk::DeviceAddress,
+}
+
+impl VulkanContext {
+    /// Sizes of a BLAS over `geometries` with `flags`.
+    pub fn blas_sizes(
+        &self,
+        geometries: &[TriangleGeometry],
+        flags: vk::BuildAccelerationStructureFlagsKHR,
+    ) -> AsSizes {
+        let geoms: Vec<_> = geometries.iter().map(triangles).collect();
+        let counts: Vec<u32> = geometries.iter().map(|g| g.triangle_count).collect();
+        let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+            .ty(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL)
+            .flags(flags)
+            .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+            .geometries(&geoms);
+        self.sizes(&info, &counts)
+    }
+
+    /// Sizes of a TLAS over `instance_count` instances with `flags`.
+    pub fn tlas_sizes(
+        &self,
+        instance_count: u32,
+        flags: vk::BuildAccelerationStructureFlagsKHR,
+    ) -> AsSizes {
+        let geoms = [instances_geometry(0)];
+        let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+            .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+            .flags(flags)
+            .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+            .geometries(&geoms);
+        self.sizes(&info, &[instance_count])
+    }
+
+    fn sizes(
+        &self,
+        info: &vk::AccelerationStructureBuildGeometryInfoKHR<'_>,
+        counts: &[u32],
+    ) -> AsSizes {
+        let mut out = vk::AccelerationStructureBuildSizesInfoKHR::default();
+        // SAFETY: info's geometry array and counts have the same length and live through the call.
+        unsafe {
+            self.accel.get_acceleration_structure_build_sizes(
+                vk::AccelerationStructureBuildTypeKHR::DEVICE,
+                info,
+                counts,
+                &mut out,
+            )
+        };
+        AsSizes {
+            storage: out.acceleration_structure_size,
+            build_scratch: out.build_scratch_size,
+            update_scratch: out.update_scratch_size,
+        }
+    }
+
+    /// Creates an acceleration structure of `size` bytes in its own buffer.
+    pub fn create_accel(
+        &self,
+        ty: vk::AccelerationStructureTypeKHR,
+        size: u64,
+        name: &str,
+    ) -> VkResult<AccelStruct> {
+        let buffer = self.create_buffer(&BufferDesc {
+            name,
+            size,
+            usage: vk::BufferUsageFlags::ACCELERATION_STRUCTURE_STORAGE_KHR
+                | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+            memory: MemoryKind::DeviceLocal,
+        })?;
+        let info = vk::AccelerationStructureCreateInfoKHR::default()
+            .buffer(buffer.raw)
+            .offset(0)
+            .size(size)
+            .ty(ty);
+        // SAFETY: the buffer is bound, large enough, and has AS-storage usage.
+        let raw = match unsafe { self.accel.create_acceleration_structure(&info, None) } {
+            Ok(raw) => raw,
+            Err(e) => {
+                self.destroy_buffer(buffer);
+                return Err(VulkanError::from_vk("vkCreateAccelerationStructureKHR", e));
+            }
+        };
+        self.set_name(raw, name);
+        // SAFETY: raw is a valid acceleration structure of this device.
+        let address = unsafe {
+            self.accel.get_acceleration_structure_device_address(
+                &vk::AccelerationStructureDeviceAddressInfoKHR::default()
+                    .acceleration_structure(raw),
+            )
+        };
+        Ok(AccelStruct {
+            raw,
+            buffer,
+            address,
+            size,
+        })
+    }
+
+    /// Destroys an acceleration structure. The caller guarantees the GPU no longer uses it.
+    pub fn destroy_accel(&self, accel: AccelStruct) {
+        // SAFETY: by contract no pending GPU work references it.
+        unsafe { self.accel.destroy_acceleration_structure(accel.raw, None) };
+        self.destroy_buffer(accel.buffer);
+    }
+
+    /// Records every BLAS build of `builds` in ONE vkCmdBuildAccelerationStructuresKHR.
+    ///
+    /// # Safety
+    /// `cmd` is recording; every address and handle in `builds` is valid until the command
+    /// completes, and the scratch ranges do not overlap.
+    pub unsafe fn cmd_build_blases(&self, cmd: vk::CommandBuffer, builds: &[BlasBuild<'_>]) {
+        if builds.is_empty() {
+            return;
+        }
+        let geoms: Vec<Vec<vk::AccelerationStructureGeometryKHR<'static>>> = builds
+            .iter()
+            .map(|b| b.geometries.iter().map(triangles).collect())
+            .collect();
+        let infos: Vec<_> = builds
+            .iter()
+            .zip(&geoms)
+            .map(|(b, g)| {
+                let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+                    .ty(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL)
+                    .flags(b.flags)
+                    .dst_acceleration_structure(b.dst)
+                    .geometries(g)
+                    .scratch_data(vk::DeviceOrHostAddressKHR {
+                        device_address: b.scratch_address,
+                    });
+                match b.update_from {
+                    Some(src) => info
+                        .mode(vk::BuildAccelerationStructureModeKHR::UPDATE)
+                        .src_acceleration_structure(src),
+                    None => info.mode(vk::BuildAccelerationStructureModeKHR::BUILD),
+                }
+            })
+            .collect();
+        let ranges: Vec<Vec<vk::AccelerationStructureBuildRangeInfoKHR>> = builds
+            .iter()
+            .map(|b| {
+                b.geometries
+                    .iter()
+                    .map(|g| {
+                        vk::AccelerationStructureBuildRangeInfoKHR::default()
+                            .primitive_count(g.triangle_count)
+                    })
+                    .collect()
+            })
+            .collect();
+        let range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> =
+            ranges.iter().map(Vec::as_slice).collect();
+        // SAFETY: guaranteed by the caller; infos and ranges are parallel arrays.
+        unsafe {
+            self.accel
+                .cmd_build_acceleration_structures(cmd, &infos, &range_refs)
+        };
+    }
+
+    /// Records a TLAS build (or update) over `instance_count` records at `instances_address`.
+    ///
+    /// # Safety
+    /// As [`Self::cmd_build_blases`]; the instance buffer holds `instance_count` 64-byte records
+    /// whose BLAS references are built before this command executes.
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn cmd_build_tlas(
+        &self,
+        cmd: vk::CommandBuffer,
+        dst: vk::AccelerationStructureKHR,
+        update_from: Option<vk::AccelerationStructureKHR>,
+        flags: vk::BuildAccelerationStructureFlagsKHR,
+        instances_address: vk::DeviceAddress,
+        instance_count: u32,
+        scratch_address: vk::DeviceAddress,
+    ) {
+        let geoms = [instances_geometry(instances_address)];
+        let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
+            .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+            .flags(flags)
+            .dst_acceleration_structure(dst)
+            .geometries(&geoms)
+            .scratch_data(vk::DeviceOrHostAddressKHR {
+                device_address: scratch_address,
+            });
+        let info = match update_from {
+            Some(src) => info
+                .mode(vk::BuildAccelerationStructureModeKHR::UPDATE)
+                .src_acceleration_structure(src),
+            None => info.mode(vk::BuildAccelerationStructureModeKHR::BUILD),
+        };
+        let range = [
+            vk::AccelerationStructureBuildRangeInfoKHR::default().primitive_count(instance_count)
+        ];
+        // SAFETY: guaranteed by the caller.
+        unsafe {
+            self.accel
+                .cmd_build_acceleration_structures(cmd, &[info], &[&range[..]])
+        };
+    }
+
+    /// Records a barrier making AS writes (builds) visible to later AS builds and shader reads.
+    ///
+    /// # Safety
+    /// `cmd` is recording.
+    pub unsafe fn cmd_accel_barrier(&self, cmd: vk::CommandBuffer) {
+        let barrier = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR)
+            .src_access_mask(vk::AccessFlags2::ACCELERATION_STRUCTURE_WRITE_KHR)
+            .dst_stage_mask(
+                vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR
+                    | vk::PipelineStageFlags2::COMPUTE_SHADER
+                    | vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR,
+            )
+            .dst_access_mask(
+                vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR
+                    | vk::AccessFlags2::ACCELERATION_STRUCTURE_WRITE_KHR,
+            )];
+        // SAFETY: cmd is recording (caller).
+        unsafe {
+            self.device.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().memory_barriers(&barrier),
+            )
+        };
+    }
+
+    /// Creates a device-local scratch buffer of at least `bytes` usable from an address aligned to
+    /// `minAccelerationStructureScratchOffsetAlignment`; returns it and that aligned base address.
+    pub fn create_scratch(
+        &self,
+        name: &str,
+        bytes: u64,
+    ) -> VkResult<(GpuBuffer, vk::DeviceAddress)> {
+        let align = self.info().min_scratch_alignment;
+        let buffer = self.create_buffer(&BufferDesc {
+            name,
+            size: bytes.max(1) + align,
+            usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+            memory: MemoryKind::DeviceLocal,
+        })?;
+        let base = align_up(buffer.address, align);
+        Ok((buffer, base))
+    }
+}
+
+/// A 64-byte record in the layout of `VkAccelerationStructureInstanceKHR`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RawInstance {
+    /// Row-major 3x4 object-to-world transform.
+    pub transform: [f32; 12],
+    /// customIndex (low 24 bits) | mask << 24.
+    pub custom_index_and_mask: u32,
+    /// SBT record offset (low 24 bits) | flags << 24.
+    pub sbt_offset_and_flags: u32,
+    /// BLAS device address.
+    pub blas_address: u64,
+}
+
+const _: () = assert!(std::mem::size_of::<RawInstance>() == 64);
+
+impl RawInstance {
+    /// Builds a record from a column-major 4x4 transform (glam's `Mat4::to_cols_array`).
+    pub fn new(
+        cols: [f32; 16],
+        custom_index: u32,
+        mask: u8,
+        flags: vk::GeometryInstanceFlagsKHR,
+        blas_address: u64,
+    ) -> Self {
+        debug_assert!(
+            custom_index < (1 << 24),
+            "customIndex {custom_index} does not fit 24 bits"
+        );
+        let mut transform = [0.0; 12];
+        for row in 0..3 {
+            for col in 0..4 {
+                transform[row * 4 + col] = cols[col * 4 + row];
+            }
+        }
+        Self {
+            transform,
+            custom_index_and_mask: (custom_index & 0x00ff_ffff) | (u32::from(mask) << 24),
+            sbt_offset_and_flags: (flags.as_raw() & 0xff) << 24,
+            blas_address,
+        }
+    }
+}

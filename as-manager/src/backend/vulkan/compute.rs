@@ -1,0 +1,278 @@
+//! A small safe compute-pipeline wrapper, so crates that borrow the context (the renderer) need
+//! no `unsafe` of their own.
+
+use std::io::Cursor;
+use std::time::Instant;
+
+use ash::vk;
+
+use super::accel::AccelStruct;
+use super::buffer::GpuBuffer;
+use super::context::VulkanContext;
+use super::error::{VkResult, VkResultExt, VulkanError};
+
+/// What a descriptor binding holds (binding numbers are positions in the list, set 0).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BindingKind {
+    /// An acceleration structure (TLAS).
+    AccelStruct,
+    /// A storage buffer.
+    StorageBuffer,
+}
+
+/// A resource bound for one dispatch, in binding order.
+#[derive(Debug, Clone, Copy)]
+pub enum Bound<'a> {
+    /// A TLAS.
+    Accel(&'a AccelStruct),
+    /// A raw TLAS handle (e.g. the manager's current frame TLAS).
+    AccelRaw(vk::AccelerationStructureKHR),
+    /// A whole buffer.
+    Buffer(&'a GpuBuffer),
+}
+
+/// A compute pipeline with one descriptor set and push constants.
+#[derive(Debug)]
+pub struct ComputePipeline {
+    raw: vk::Pipeline,
+    layout: vk::PipelineLayout,
+    set_layout: vk::DescriptorSetLayout,
+    pool: vk::DescriptorPool,
+    set: vk::DescriptorSet,
+    bindings: Vec<BindingKind>,
+    push_size: u32,
+}
+
+impl ComputePipeline {
+    /// Creates the pipeline from SPIR-V bytes (entry point `main`).
+    pub fn new(
+        ctx: &VulkanContext,
+        name: &str,
+        spirv: &[u8],
+        bindings: &[BindingKind],
+        push_size: u32,
+    ) -> VkResult<Self> {
+        let code = ash::util::read_spv(&mut Cursor::new(spirv))
+            .map_err(|e| VulkanError::Unsupported(format!("{name}: bad SPIR-V: {e}")))?;
+        let dev = &ctx.device;
+        let layout_bindings: Vec<_> = bindings
+            .iter()
+            .enumerate()
+            .map(|(i, k)| {
+                vk::DescriptorSetLayoutBinding::default()
+                    .binding(i as u32)
+                    .descriptor_type(descriptor_type(*k))
+                    .descriptor_count(1)
+                    .stage_flags(vk::ShaderStageFlags::COMPUTE)
+            })
+            .collect();
+        // SAFETY: `dev` is a valid device; every create-info points to locals that outlive the
+        // call; objects are destroyed in `destroy` (same for the blocks below).
+        let set_layout = unsafe {
+            dev.create_descriptor_set_layout(
+                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&layout_bindings),
+                None,
+            )
+        }
+        .op("vkCreateDescriptorSetLayout")?;
+        let ranges = [vk::PushConstantRange::default()
+            .stage_flags(vk::ShaderStageFlags::COMPUTE)
+            .size(push_size)];
+        let set_layouts = [set_layout];
+        let mut pl_info = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+        if push_size > 0 {
+            pl_info = pl_info.push_constant_ranges(&ranges);
+        }
+        // SAFETY: see above.
+        let layout =
+            unsafe { dev.create_pipeline_layout(&pl_info, None) }.op("vkCreatePipelineLayout")?;
+        // SAFETY: see above.
+        let module = unsafe {
+            dev.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&code), None)
+        }
+        .op("vkCreateShaderModule")?;
+        let stage = vk::PipelineShaderStageCreateInfo::default()
+            .stage(vk::ShaderStageFlags::COMPUTE)
+            .module(module)
+            .name(c"main");
+        let info = [vk::ComputePipelineCreateInfo::default()
+            .stage(stage)
+            .layout(layout)];
+        // SAFETY: see above.
+        let raw = unsafe { dev.create_compute_pipelines(vk::PipelineCache::null(), &info, None) };
+        // SAFETY: the module is no longer needed once the pipeline exists (or failed).
+        unsafe { dev.destroy_shader_module(module, None) };
+        let raw = raw.map_err(|(_, e)| VulkanError::from_vk("vkCreateComputePipelines", e))?[0];
+        let mut sizes: Vec<vk::DescriptorPoolSize> = Vec::new();
+        for k in bindings {
+            let ty = descriptor_type(*k);
+            match sizes.iter_mut().find(|s| s.ty == ty) {
+                Some(s) => s.descriptor_count += 1,
+                None => sizes.push(vk::DescriptorPoolSize {
+                    ty,
+                    descriptor_count: 1,
+                }),
+            }
+        }
+        // SAFETY: see above.
+        let pool = unsafe {
+            dev.create_descriptor_pool(
+                &vk::DescriptorPoolCreateInfo::default()
+                    .max_sets(1)
+                    .pool_sizes(&sizes),
+                None,
+            )
+        }
+        .op("vkCreateDescriptorPool")?;
+        // SAFETY: see above.
+        let set = unsafe {
+            dev.allocate_descriptor_sets(
+                &vk::DescriptorSetAllocateInfo::default()
+                    .descriptor_pool(pool)
+                    .set_layouts(&set_layouts),
+            )
+        }
+        .op("vkAllocateDescriptorSets")?[0];
+        ctx.set_name(raw, name);
+        ctx.set_name(layout, &format!("{name} layout"));
+        ctx.set_name(set_layout, &format!("{name} set layout"));
+        ctx.set_name(pool, &format!("{name} descriptor pool"));
+        ctx.set_name(set, &format!("{name} set"));
+        Ok(Self {
+            raw,
+            layout,
+            set_layout,
+            pool,
+            set,
+            bindings: bindings.to_vec(),
+            push_size,
+        })
+    }
+
+    /// Binds `bound`, dispatches `groups` workgroups with `push` constants, and waits.
+    /// Returns the wall time in milliseconds (submit to completion).
+    ///
+    /// Shader writes are made visible to the host before this returns.
+    pub fn dispatch(
+        &mut self,
+        ctx: &VulkanContext,
+        bound: &[Bound<'_>],
+        push: &[u8],
+        groups: [u32; 3],
+    ) -> VkResult<f64> {
+        if bound.len() != self.bindings.len() || push.len() as u32 != self.push_size {
+            return Err(VulkanError::Unsupported(format!(
+                "dispatch with {} bindings / {} push bytes; the pipeline has {} / {}",
+                bound.len(),
+                push.len(),
+                self.bindings.len(),
+                self.push_size
+            )));
+        }
+        let handles: Vec<[vk::AccelerationStructureKHR; 1]> = bound
+            .iter()
+            .map(|b| match b {
+                Bound::Accel(a) => [a.raw],
+                Bound::AccelRaw(raw) => [*raw],
+                Bound::Buffer(_) => [vk::AccelerationStructureKHR::null()],
+            })
+            .collect();
+        let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = bound
+            .iter()
+            .map(|b| match b {
+                Bound::Buffer(buf) => [vk::DescriptorBufferInfo::default()
+                    .buffer(buf.raw)
+                    .offset(0)
+                    .range(vk::WHOLE_SIZE)],
+                _ => [vk::DescriptorBufferInfo::default()],
+            })
+            .collect();
+        let mut as_writes: Vec<vk::WriteDescriptorSetAccelerationStructureKHR<'_>> = handles
+            .iter()
+            .map(|h| {
+                vk::WriteDescriptorSetAccelerationStructureKHR::default().acceleration_structures(h)
+            })
+            .collect();
+        let mut writes = Vec::with_capacity(bound.len());
+        for (i, ((b, kind), as_write)) in bound
+            .iter()
+            .zip(&self.bindings)
+            .zip(as_writes.iter_mut())
+            .enumerate()
+        {
+            let w = vk::WriteDescriptorSet::default()
+                .dst_set(self.set)
+                .dst_binding(i as u32)
+                .descriptor_type(descriptor_type(*kind));
+            let w = match (b, kind) {
+                (Bound::Accel(_) | Bound::AccelRaw(_), BindingKind::AccelStruct) => {
+                    w.descriptor_count(1).push_next(as_write)
+                }
+                (Bound::Buffer(_), BindingKind::StorageBuffer) => w.buffer_info(&buffer_infos[i]),
+                _ => {
+                    return Err(VulkanError::Unsupported(format!(
+                        "binding {i}: {b:?} does not match {kind:?}"
+                    )))
+                }
+            };
+            writes.push(w);
+        }
+        // SAFETY: the set is not in use (every dispatch waits for completion before returning).
+        unsafe { ctx.device.update_descriptor_sets(&writes, &[]) };
+        let start = Instant::now();
+        ctx.submit_and_wait("compute dispatch", |dev, cmd| {
+            // SAFETY: cmd is recording; pipeline, layout and set are valid; the bound resources
+            // live until the wait returns (they are borrowed for this call).
+            unsafe {
+                dev.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, self.raw);
+                dev.cmd_bind_descriptor_sets(
+                    cmd,
+                    vk::PipelineBindPoint::COMPUTE,
+                    self.layout,
+                    0,
+                    &[self.set],
+                    &[],
+                );
+                if !push.is_empty() {
+                    dev.cmd_push_constants(
+                        cmd,
+                        self.layout,
+                        vk::ShaderStageFlags::COMPUTE,
+                        0,
+                        push,
+                    );
+                }
+                dev.cmd_dispatch(cmd, groups[0], groups[1], groups[2]);
+                let barrier = [vk::MemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
+                    .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+                    .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                    .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+                dev.cmd_pipeline_barrier2(
+                    cmd,
+                    &vk::DependencyInfo::default().memory_barriers(&barrier),
+                );
+            }
+        })?;
+        Ok(start.elapsed().as_secs_f64() * 1e3)
+    }
+
+    /// Destroys the pipeline. The caller guarantees no dispatch is pending (dispatch waits).
+    pub fn destroy(self, ctx: &VulkanContext) {
+        // SAFETY: no pending work uses these objects; each is destroyed once.
+        unsafe {
+            ctx.device.destroy_pipeline(self.raw, None);
+            ctx.device.destroy_pipeline_layout(self.layout, None);
+            ctx.device.destroy_descriptor_pool(self.pool, None);
+            ctx.device
+                .destroy_descriptor_set_layout(self.set_layout, None);
+        }
+    }
+}
+
+fn descriptor_type(k: BindingKind) -> vk::DescriptorType {
+    match k {
+        BindingKind::AccelStruct => vk::DescriptorType::ACCELERATION_STRUCTURE_KHR,
+        BindingKind::StorageBuffer => vk::DescriptorType::STORAGE_BUFFER,
+    }
+}

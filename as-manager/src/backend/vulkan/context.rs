@@ -1,0 +1,788 @@
+//! The Vulkan context: instance, validation, device selection, queue, allocator, one-shot submits.
+//!
+//! One context per process is the intended use; the renderer borrows it (`Arc<VulkanContext>`).
+//! Lock order, where more than one lock is held: `command_pool` before `queue`; the allocator lock
+//! is never held while either of the others is taken.
+
+use std::ffi::{c_void, CStr, CString};
+use std::mem::ManuallyDrop;
+use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
+
+use ash::{ext, khr, vk};
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+use parking_lot::Mutex;
+
+use super::error::{VkResult, VkResultExt, VulkanError};
+
+const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
+
+/// Whether to load the Khronos validation layer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Validation {
+    /// On in debug builds when the layer is installed; `RTSTREAM_VALIDATION=0|1` overrides.
+    #[default]
+    Auto,
+    /// On, and an error ([`VulkanError::NoValidationLayer`]) when the layer is missing. Tests use this.
+    Required,
+    /// Off.
+    Off,
+}
+
+/// Creation parameters of a [`VulkanContext`].
+#[derive(Debug, Clone)]
+pub struct ContextDesc {
+    /// Application name given to the driver.
+    pub app_name: String,
+    /// Validation-layer policy.
+    pub validation: Validation,
+    /// Refuse devices without VK_KHR_ray_query (otherwise a device with acceleration structures
+    /// and ray-tracing pipelines, such as the NVIDIA H100 driver here, is accepted).
+    pub require_ray_query: bool,
+}
+
+impl Default for ContextDesc {
+    fn default() -> Self {
+        Self {
+            app_name: "rtstream".into(),
+            validation: Validation::Auto,
+            require_ray_query: false,
+        }
+    }
+}
+
+/// What kind of device the context runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DeviceKind {
+    /// A discrete GPU.
+    Discrete,
+    /// An integrated GPU.
+    Integrated,
+    /// A virtual GPU.
+    Virtual,
+    /// A CPU implementation (lavapipe): its AS builder is single-threaded, compaction saves
+    /// nothing and an update costs a rebuild, so speed figures must come from a GPU.
+    Cpu,
+    /// Anything else.
+    Other,
+}
+
+/// The chosen device: identity, capabilities and the limits the backend must respect.
+#[derive(Debug, Clone)]
+pub struct DeviceInfo {
+    /// `deviceName`.
+    pub name: String,
+    /// `deviceType`.
+    pub kind: DeviceKind,
+    /// Driver name and info string (e.g. "llvmpipe", "Mesa 25.0.7").
+    pub driver: String,
+    /// Vulkan API version the device reports, as (major, minor, patch).
+    pub api_version: (u32, u32, u32),
+    /// VK_KHR_ray_query is available and enabled.
+    pub ray_query: bool,
+    /// VK_KHR_ray_tracing_pipeline is available and enabled.
+    pub ray_tracing_pipeline: bool,
+    /// VK_EXT_memory_budget is available and enabled.
+    pub memory_budget: bool,
+    /// `minAccelerationStructureScratchOffsetAlignment`: every scratch address is a multiple.
+    pub min_scratch_alignment: u64,
+    /// `maxPrimitiveCount` per BLAS.
+    pub max_primitive_count: u64,
+    /// `maxInstanceCount` per TLAS.
+    pub max_instance_count: u64,
+    /// `maxStorageBufferRange`.
+    pub max_storage_buffer_range: u64,
+    /// Nanoseconds per timestamp tick.
+    pub timestamp_period_ns: f32,
+    /// The queue writes timestamps (timestampValidBits > 0).
+    pub timestamps: bool,
+    /// Why this device was chosen, in words.
+    pub reason: String,
+}
+
+/// Messages the debug messenger received. Validation warnings and errors are counted as
+/// failures; the test suite asserts the count stays zero.
+#[derive(Debug, Default)]
+pub struct ValidationLog {
+    failures: AtomicU64,
+    messages: Mutex<Vec<String>>,
+}
+
+impl ValidationLog {
+    /// Number of validation warnings and errors so far.
+    pub fn failure_count(&self) -> u64 {
+        self.failures.load(Ordering::Relaxed)
+    }
+    /// The failure messages so far (at most the first 64 are kept).
+    pub fn messages(&self) -> Vec<String> {
+        self.messages.lock().clone()
+    }
+}
+
+/// The Vulkan context: instance, device, one queue, the device-memory allocator.
+pub struct VulkanContext {
+    _entry: ash::Entry,
+    pub(crate) instance: ash::Instance,
+    debug_instance: Option<(ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    debug_device: Option<ext::debug_utils::Device>,
+    log: Box<ValidationLog>,
+    validation: bool,
+    pub(crate) physical_device: vk::PhysicalDevice,
+    pub(crate) device: ash::Device,
+    pub(crate) accel: khr::acceleration_structure::Device,
+    pub(crate) rt_pipeline: Option<khr::ray_tracing_pipeline::Device>,
+    queue: Mutex<vk::Queue>,
+    queue_family: u32,
+    command_pool: Mutex<vk::CommandPool>,
+    pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
+    pub(crate) live_buffers: AtomicI64,
+    info: DeviceInfo,
+}
+
+impl std::fmt::Debug for VulkanContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VulkanContext")
+            .field("device", &self.info.name)
+            .field("validation", &self.validation)
+            .finish_non_exhaustive()
+    }
+}
+
+struct Candidate {
+    pd: vk::PhysicalDevice,
+    info: DeviceInfo,
+    queue_family: u32,
+    score: u32,
+}
+
+unsafe extern "system" fn debug_callback(
+    severity: vk::DebugUtilsMessageSeverityFlagsEXT,
+    types: vk::DebugUtilsMessageTypeFlagsEXT,
+    data: *const vk::DebugUtilsMessengerCallbackDataEXT<'_>,
+    user: *mut c_void,
+) -> vk::Bool32 {
+    // SAFETY: the loader passes a valid callback-data pointer (or null) for the call's duration.
+    let message = unsafe { data.as_ref() }
+        .filter(|d| !d.p_message.is_null())
+        .map(|d| {
+            // SAFETY: p_message is a NUL-terminated string owned by the loader for the call.
+            unsafe { CStr::from_ptr(d.p_message) }
+                .to_string_lossy()
+                .into_owned()
+        })
+        .unwrap_or_default();
+    let failure = types.intersects(
+        vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+            | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
+    ) && severity.intersects(
+        vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
+            | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
+    );
+    if failure {
+        tracing::error!(target: "vulkan", "{message}");
+        // SAFETY: `user` is the Box<ValidationLog> the context owns; it outlives the messenger.
+        if let Some(log) = unsafe { (user as *const ValidationLog).as_ref() } {
+            log.failures.fetch_add(1, Ordering::Relaxed);
+            let mut m = log.messages.lock();
+            if m.len() < 64 {
+                m.push(message);
+            }
+        }
+    } else if severity.contains(vk::DebugUtilsMessageSeverityFlagsEXT::WARNING) {
+        tracing::warn!(target: "vulkan", "{message}");
+    } else {
+        tracing::debug!(target: "vulkan", "{message}");
+    }
+    vk::FALSE
+}
+
+fn validation_wanted(v: Validation) -> bool {
+    match v {
+        Validation::Required => true,
+        Validation::Off => false,
+        Validation::Auto => match std::env::var("RTSTREAM_VALIDATION").as_deref() {
+            Ok("0") | Ok("false") | Ok("off") => false,
+            Ok(_) => true,
+            Err(_) => cfg!(debug_assertions),
+        },
+    }
+}
+
+fn cstr_array(bytes: &[std::ffi::c_char]) -> String {
+    // SAFETY: Vulkan fixed-size name arrays are NUL-terminated.
+    unsafe { CStr::from_ptr(bytes.as_ptr()) }
+        .to_string_lossy()
+        .into_owned()
+}
+
+impl VulkanContext {
+    /// Creates the instance and device, choosing the best device with acceleration structures.
+    ///
+    /// Prefers a device with VK_KHR_ray_query; takes one with only ray-tracing pipelines when
+    /// `desc.require_ray_query` is false; `RTSTREAM_DEVICE=<substring>` restricts the choice by name.
+    pub fn new(desc: &ContextDesc) -> VkResult<Self> {
+        // SAFETY: loading libvulkan runs its initialisers; we trust the system's loader.
+        let entry = unsafe { ash::Entry::load() }.map_err(|e| VulkanError::NoLoader {
+            reason: e.to_string(),
+        })?;
+
+        // SAFETY: entry is a loaded Vulkan entry.
+        let layers = unsafe { entry.enumerate_instance_layer_properties() }
+            .op("vkEnumerateInstanceLayerProperties")?;
+        let has_layer = layers
+            .iter()
+            .any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER));
+        let mut validation = validation_wanted(desc.validation);
+        if validation && !has_layer {
+            if desc.validation == Validation::Required {
+                return Err(VulkanError::NoValidationLayer);
+            }
+            tracing::warn!("validation layer not installed; continuing without it");
+            validation = false;
+        }
+        // SAFETY: as above.
+        let exts = unsafe { entry.enumerate_instance_extension_properties(None) }
+            .op("vkEnumerateInstanceExtensionProperties")?;
+        let has_debug_utils = exts
+            .iter()
+            .any(|e| e.extension_name_as_c_str() == Ok(ext::debug_utils::NAME));
+
+        let app_name = CString::new(desc.app_name.as_str()).unwrap_or_else(|_| c"rtstream".into());
+        let app = vk::ApplicationInfo::default()
+            .application_name(&app_name)
+            .engine_name(c"rtstream")
+            .api_version(vk::API_VERSION_1_3);
+        let layer_ptrs: Vec<*const std::ffi::c_char> = if validation {
+            vec![VALIDATION_LAYER.as_ptr()]
+        } else {
+            vec![]
+        };
+        let ext_ptrs: Vec<*const std::ffi::c_char> = if has_debug_utils {
+            vec![ext::debug_utils::NAME.as_ptr()]
+        } else {
+            vec![]
+        };
+        let instance_info = vk::InstanceCreateInfo::default()
+            .application_info(&app)
+            .enabled_layer_names(&layer_ptrs)
+            .enabled_extension_names(&ext_ptrs);
+        // SAFETY: all pointers in instance_info point to locals that outlive the call.
+        let instance = match unsafe { entry.create_instance(&instance_info, None) } {
+            Ok(i) => i,
+            // The loader found no driver (ICD) at all.
+            Err(vk::Result::ERROR_INCOMPATIBLE_DRIVER) => {
+                return Err(VulkanError::NoSuitableDevice { devices: vec![] })
+            }
+            Err(e) => return Err(VulkanError::from_vk("vkCreateInstance", e)),
+        };
+
+        let log = Box::<ValidationLog>::default();
+        let debug_instance = if has_debug_utils {
+            let du = ext::debug_utils::Instance::new(&entry, &instance);
+            let info = vk::DebugUtilsMessengerCreateInfoEXT::default()
+                .message_severity(
+                    vk::DebugUtilsMessageSeverityFlagsEXT::ERROR
+                        | vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
+                        | vk::DebugUtilsMessageSeverityFlagsEXT::INFO,
+                )
+                .message_type(
+                    vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
+                        | vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+                        | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
+                )
+                .pfn_user_callback(Some(debug_callback))
+                .user_data(&*log as *const ValidationLog as *mut c_void);
+            // SAFETY: the callback's user data is the boxed log, which lives as long as the context
+            // and is dropped only after the messenger is destroyed (see Drop).
+            let messenger = unsafe { du.create_debug_utils_messenger(&info, None) }
+                .op("vkCreateDebugUtilsMessengerEXT")?;
+            Some((du, messenger))
+        } else {
+            None
+        };
+
+        let chosen = match Self::choose_device(&instance, desc) {
+            Ok(c) => c,
+            Err(e) => {
+                // SAFETY: nothing else was created from the instance but the messenger.
+                unsafe {
+                    if let Some((du, m)) = &debug_instance {
+                        du.destroy_debug_utils_messenger(*m, None);
+                    }
+                    instance.destroy_instance(None);
+                }
+                return Err(e);
+            }
+        };
+        tracing::info!(
+            device = %chosen.info.name,
+            driver = %chosen.info.driver,
+            kind = ?chosen.info.kind,
+            validation,
+            "Vulkan device chosen: {}",
+            chosen.info.reason
+        );
+        Self::create_device(
+            entry,
+            instance,
+            debug_instance,
+            has_debug_utils,
+            log,
+            validation,
+            chosen,
+        )
+    }
+
+    fn choose_device(instance: &ash::Instance, desc: &ContextDesc) -> VkResult<Candidate> {
+        // SAFETY: instance is valid.
+        let pds =
+            unsafe { instance.enumerate_physical_devices() }.op("vkEnumeratePhysicalDevices")?;
+        let filter = std::env::var("RTSTREAM_DEVICE").ok();
+        let mut rejected = Vec::new();
+        let mut best: Option<Candidate> = None;
+        for pd in pds {
+            match Self::evaluate(instance, pd, desc) {
+                Ok(c) => {
+                    if let Some(f) = &filter {
+                        if !c.info.name.to_lowercase().contains(&f.to_lowercase()) {
+                            rejected
+                                .push((c.info.name, format!("excluded by RTSTREAM_DEVICE={f}")));
+                            continue;
+                        }
+                    }
+                    if best.as_ref().is_none_or(|b| c.score > b.score) {
+                        if let Some(b) = best.take() {
+                            rejected.push((b.info.name, "a better device was found".into()));
+                        }
+                        best = Some(c);
+                    } else {
+                        rejected.push((c.info.name, "a better device was found".into()));
+                    }
+                }
+                Err(why) => rejected.push(why),
+            }
+        }
+        match best {
+            Some(mut c) => {
+                if !rejected.is_empty() {
+                    let others: Vec<String> =
+                        rejected.iter().map(|(n, w)| format!("{n} ({w})")).collect();
+                    c.info
+                        .reason
+                        .push_str(&format!("; passed over: {}", others.join(", ")));
+                }
+                Ok(c)
+            }
+            None => Err(VulkanError::NoSuitableDevice { devices: rejected }),
+        }
+    }
+
+    fn evaluate(
+        instance: &ash::Instance,
+        pd: vk::PhysicalDevice,
+        desc: &ContextDesc,
+    ) -> Result<Candidate, (String, String)> {
+        let mut as_props = vk::PhysicalDeviceAccelerationStructurePropertiesKHR::default();
+        let mut driver_props = vk::PhysicalDeviceDriverProperties::default();
+        let mut props2 = vk::PhysicalDeviceProperties2::default()
+            .push_next(&mut as_props)
+            .push_next(&mut driver_props);
+        // SAFETY: pd comes from this instance; the chained structs are valid for the call.
+        unsafe { instance.get_physical_device_properties2(pd, &mut props2) };
+        let props = props2.properties;
+        let name = cstr_array(&props.device_name);
+        let reject = |why: &str| (name.clone(), why.to_owned());
+        let api = (
+            vk::api_version_major(props.api_version),
+            vk::api_version_minor(props.api_version),
+            vk::api_version_patch(props.api_version),
+        );
+        if (api.0, api.1) < (1, 3) {
+            return Err(reject(&format!("Vulkan {}.{} < 1.3", api.0, api.1)));
+        }
+        // SAFETY: as above.
+        let exts = unsafe { instance.enumerate_device_extension_properties(pd) }
+            .map_err(|e| reject(&format!("cannot list extensions: {e}")))?;
+        let has = |n: &CStr| exts.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
+        for required in [
+            khr::acceleration_structure::NAME,
+            khr::deferred_host_operations::NAME,
+        ] {
+            if !has(required) {
+                return Err(reject(&format!("no {}", required.to_string_lossy())));
+            }
+        }
+        let ray_query = has(khr::ray_query::NAME);
+        let rt_pipeline = has(khr::ray_tracing_pipeline::NAME);
+        if !ray_query && (desc.require_ray_query || !rt_pipeline) {
+            return Err(reject(if desc.require_ray_query {
+                "no VK_KHR_ray_query"
+            } else {
+                "neither VK_KHR_ray_query nor VK_KHR_ray_tracing_pipeline"
+            }));
+        }
+
+        let mut v12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut v13 = vk::PhysicalDeviceVulkan13Features::default();
+        let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
+        let mut feats2 = vk::PhysicalDeviceFeatures2::default()
+            .push_next(&mut v12)
+            .push_next(&mut v13)
+            .push_next(&mut asf);
+        // SAFETY: as above.
+        unsafe { instance.get_physical_device_features2(pd, &mut feats2) };
+        let core = feats2.features;
+        let missing: Vec<&str> = [
+            (v12.buffer_device_address, "bufferDeviceAddress"),
+            (v12.timeline_semaphore, "timelineSemaphore"),
+            (v12.host_query_reset, "hostQueryReset"),
+            (v13.synchronization2, "synchronization2"),
+            (v13.maintenance4, "maintenance4"),
+            (asf.acceleration_structure, "accelerationStructure"),
+            (core.shader_int64, "shaderInt64"),
+        ]
+        .iter()
+        .filter(|(v, _)| *v == vk::FALSE)
+        .map(|(_, n)| *n)
+        .collect();
+        if !missing.is_empty() {
+            return Err(reject(&format!("missing features: {}", missing.join(", "))));
+        }
+
+        // SAFETY: as above.
+        let families = unsafe { instance.get_physical_device_queue_family_properties(pd) };
+        let queue_family = families
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+            // Prefer a family that also has graphics (the universal queue) and timestamps.
+            .max_by_key(|(_, f)| {
+                (
+                    f.timestamp_valid_bits > 0,
+                    f.queue_flags.contains(vk::QueueFlags::GRAPHICS),
+                )
+            })
+            .map(|(i, _)| i as u32)
+            .ok_or_else(|| reject("no compute queue"))?;
+
+        let kind = match props.device_type {
+            vk::PhysicalDeviceType::DISCRETE_GPU => DeviceKind::Discrete,
+            vk::PhysicalDeviceType::INTEGRATED_GPU => DeviceKind::Integrated,
+            vk::PhysicalDeviceType::VIRTUAL_GPU => DeviceKind::Virtual,
+            vk::PhysicalDeviceType::CPU => DeviceKind::Cpu,
+            _ => DeviceKind::Other,
+        };
+        let score = u32::from(ray_query) * 8
+            + match kind {
+                DeviceKind::Discrete => 4,
+                DeviceKind::Integrated => 3,
+                DeviceKind::Virtual => 2,
+                DeviceKind::Cpu | DeviceKind::Other => 1,
+            };
+        let reason = format!(
+            "{kind:?} device with acceleration structures{}{}",
+            if ray_query {
+                " and ray queries"
+            } else {
+                " and ray-tracing pipelines (no ray queries)"
+            },
+            if kind == DeviceKind::Cpu {
+                " — a CPU implementation: correct but slow; GPU figures need a GPU"
+            } else {
+                ""
+            }
+        );
+        let fam = families[queue_family as usize];
+        Ok(Candidate {
+            pd,
+            queue_family,
+            score,
+            info: DeviceInfo {
+                name,
+                kind,
+                driver: format!(
+                    "{} {}",
+                    cstr_array(&driver_props.driver_name),
+                    cstr_array(&driver_props.driver_info)
+                ),
+                api_version: api,
+                ray_query,
+                ray_tracing_pipeline: rt_pipeline,
+                memory_budget: has(ext::memory_budget::NAME),
+                min_scratch_alignment: u64::from(
+                    as_props.min_acceleration_structure_scratch_offset_alignment,
+                )
+                .max(1),
+                max_primitive_count: as_props.max_primitive_count,
+                max_instance_count: as_props.max_instance_count,
+                max_storage_buffer_range: u64::from(props.limits.max_storage_buffer_range),
+                timestamp_period_ns: props.limits.timestamp_period,
+                timestamps: fam.timestamp_valid_bits > 0,
+                reason,
+            },
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn create_device(
+        entry: ash::Entry,
+        instance: ash::Instance,
+        debug_instance: Option<(ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+        has_debug_utils: bool,
+        log: Box<ValidationLog>,
+        validation: bool,
+        c: Candidate,
+    ) -> VkResult<Self> {
+        let mut ext_names = vec![
+            khr::acceleration_structure::NAME.as_ptr(),
+            khr::deferred_host_operations::NAME.as_ptr(),
+        ];
+        if c.info.ray_query {
+            ext_names.push(khr::ray_query::NAME.as_ptr());
+        }
+        if c.info.ray_tracing_pipeline {
+            ext_names.push(khr::ray_tracing_pipeline::NAME.as_ptr());
+        }
+        if c.info.memory_budget {
+            ext_names.push(ext::memory_budget::NAME.as_ptr());
+        }
+        let priorities = [1.0f32];
+        let queue_infos = [vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(c.queue_family)
+            .queue_priorities(&priorities)];
+        let core = vk::PhysicalDeviceFeatures::default().shader_int64(true);
+        let mut v12 = vk::PhysicalDeviceVulkan12Features::default()
+            .buffer_device_address(true)
+            .timeline_semaphore(true)
+            .host_query_reset(true);
+        let mut v13 = vk::PhysicalDeviceVulkan13Features::default()
+            .synchronization2(true)
+            .maintenance4(true);
+        let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default()
+            .acceleration_structure(true);
+        let mut rqf = vk::PhysicalDeviceRayQueryFeaturesKHR::default().ray_query(true);
+        let mut rtf =
+            vk::PhysicalDeviceRayTracingPipelineFeaturesKHR::default().ray_tracing_pipeline(true);
+        let mut feats2 = vk::PhysicalDeviceFeatures2::default()
+            .features(core)
+            .push_next(&mut v12)
+            .push_next(&mut v13)
+            .push_next(&mut asf);
+        if c.info.ray_query {
+            feats2 = feats2.push_next(&mut rqf);
+        }
+        if c.info.ray_tracing_pipeline {
+            feats2 = feats2.push_next(&mut rtf);
+        }
+        let device_info = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queue_infos)
+            .enabled_extension_names(&ext_names)
+            .push_next(&mut feats2);
+        // SAFETY: the physical device belongs to `instance`; every chained struct lives through the call.
+        let device =
+            unsafe { instance.create_device(c.pd, &device_info, None) }.op("vkCreateDevice")?;
+        // SAFETY: queue family and index 0 were requested above.
+        let queue = unsafe { device.get_device_queue(c.queue_family, 0) };
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(c.queue_family)
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        // SAFETY: device is valid.
+        let command_pool =
+            unsafe { device.create_command_pool(&pool_info, None) }.op("vkCreateCommandPool")?;
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.clone(),
+            device: device.clone(),
+            physical_device: c.pd,
+            debug_settings: Default::default(),
+            buffer_device_address: true,
+            allocation_sizes: Default::default(),
+        })
+        .map_err(|e| VulkanError::from_alloc("allocator creation", e))?;
+        let accel = khr::acceleration_structure::Device::new(&instance, &device);
+        let rt_pipeline = c
+            .info
+            .ray_tracing_pipeline
+            .then(|| khr::ray_tracing_pipeline::Device::new(&instance, &device));
+        let debug_device =
+            has_debug_utils.then(|| ext::debug_utils::Device::new(&instance, &device));
+        let ctx = Self {
+            _entry: entry,
+            instance,
+            debug_instance,
+            debug_device,
+            log,
+            validation,
+            physical_device: c.pd,
+            device,
+            accel,
+            rt_pipeline,
+            queue: Mutex::new(queue),
+            queue_family: c.queue_family,
+            command_pool: Mutex::new(command_pool),
+            allocator: ManuallyDrop::new(Mutex::new(allocator)),
+            live_buffers: AtomicI64::new(0),
+            info: c.info,
+        };
+        ctx.set_name(queue, "rtstream queue");
+        ctx.set_name(command_pool, "rtstream one-shot pool");
+        Ok(ctx)
+    }
+
+    /// The chosen device.
+    pub fn info(&self) -> &DeviceInfo {
+        &self.info
+    }
+
+    /// Whether the validation layer is loaded.
+    pub fn validation_enabled(&self) -> bool {
+        self.validation
+    }
+
+    /// Validation messages received so far.
+    pub fn validation_log(&self) -> &ValidationLog {
+        &self.log
+    }
+
+    /// The raw `ash` device, for crates that record their own commands (the renderer).
+    pub fn device(&self) -> &ash::Device {
+        &self.device
+    }
+
+    /// The ray-tracing-pipeline extension functions, when the device has them.
+    pub fn ray_tracing_pipeline(&self) -> Option<&khr::ray_tracing_pipeline::Device> {
+        self.rt_pipeline.as_ref()
+    }
+
+    /// The queue family of the context's queue.
+    pub fn queue_family(&self) -> u32 {
+        self.queue_family
+    }
+
+    /// Gives a Vulkan object a debug name (shown by validation messages and capture tools).
+    pub fn set_name<H: vk::Handle>(&self, handle: H, name: &str) {
+        let Some(du) = &self.debug_device else { return };
+        let Ok(name) = CString::new(name) else { return };
+        let info = vk::DebugUtilsObjectNameInfoEXT::default()
+            .object_handle(handle)
+            .object_name(&name);
+        // SAFETY: the handle belongs to this device; naming is externally synchronised per
+        // object, and names are set right after creation by the creating thread.
+        if let Err(e) = unsafe { du.set_debug_utils_object_name(&info) } {
+            tracing::debug!("naming {name:?} failed: {e}");
+        }
+    }
+
+    /// Records commands with `record`, submits them, and waits for completion.
+    ///
+    /// For set-up work and tests; per-frame work goes through the frame timeline instead.
+    pub fn submit_and_wait<R>(
+        &self,
+        name: &str,
+        record: impl FnOnce(&ash::Device, vk::CommandBuffer) -> R,
+    ) -> VkResult<R> {
+        let pool = self.command_pool.lock();
+        let alloc = vk::CommandBufferAllocateInfo::default()
+            .command_pool(*pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        // SAFETY: the pool is locked for the whole recording (external synchronisation).
+        let cmd = unsafe { self.device.allocate_command_buffers(&alloc) }
+            .op("vkAllocateCommandBuffers")?[0];
+        self.set_name(cmd, name);
+        let result = (|| {
+            let begin = vk::CommandBufferBeginInfo::default()
+                .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+            // SAFETY: cmd is a fresh primary command buffer from the locked pool.
+            unsafe { self.device.begin_command_buffer(cmd, &begin) }.op("vkBeginCommandBuffer")?;
+            let out = record(&self.device, cmd);
+            // SAFETY: cmd is in the recording state.
+            unsafe { self.device.end_command_buffer(cmd) }.op("vkEndCommandBuffer")?;
+            // SAFETY: device is valid.
+            let fence = unsafe {
+                self.device
+                    .create_fence(&vk::FenceCreateInfo::default(), None)
+            }
+            .op("vkCreateFence")?;
+            let cmd_infos = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmd_infos)];
+            let submitted = {
+                let queue = self.queue.lock();
+                // SAFETY: the queue is locked; cmd is executable; fence is unsignalled.
+                unsafe { self.device.queue_submit2(*queue, &submit, fence) }.op("vkQueueSubmit2")
+            };
+            let waited = submitted.and_then(|()| {
+                // SAFETY: fence was submitted above.
+                unsafe { self.device.wait_for_fences(&[fence], true, u64::MAX) }
+                    .op("vkWaitForFences")
+            });
+            // SAFETY: the fence is signalled or was never submitted; no one else uses it.
+            unsafe { self.device.destroy_fence(fence, None) };
+            waited.map(|()| out)
+        })();
+        // SAFETY: the command buffer is no longer pending (waited, or never submitted).
+        unsafe { self.device.free_command_buffers(*pool, &[cmd]) };
+        result
+    }
+
+    /// Submits already-recorded work with timeline-semaphore waits/signals (frames in flight).
+    #[allow(dead_code)] // used by the frame timeline (frames in flight)
+    pub(crate) fn submit(&self, submit: &[vk::SubmitInfo2<'_>]) -> VkResult<()> {
+        let queue = self.queue.lock();
+        // SAFETY: the queue is locked; the caller guarantees the submit infos are valid.
+        unsafe { self.device.queue_submit2(*queue, submit, vk::Fence::null()) }.op("vkQueueSubmit2")
+    }
+
+    /// Waits until the device is idle.
+    pub fn wait_idle(&self) -> VkResult<()> {
+        let _queue = self.queue.lock();
+        // SAFETY: device is valid; holding the queue lock keeps other submits out.
+        unsafe { self.device.device_wait_idle() }.op("vkDeviceWaitIdle")
+    }
+
+    /// Device-local heap usage and budget in bytes (VK_EXT_memory_budget), when available.
+    pub fn memory_budget(&self) -> Option<(u64, u64)> {
+        if !self.info.memory_budget {
+            return None;
+        }
+        let mut budget = vk::PhysicalDeviceMemoryBudgetPropertiesEXT::default();
+        let mut props = vk::PhysicalDeviceMemoryProperties2::default().push_next(&mut budget);
+        // SAFETY: physical device is valid; the chain lives through the call.
+        unsafe {
+            self.instance
+                .get_physical_device_memory_properties2(self.physical_device, &mut props)
+        };
+        let mp = props.memory_properties;
+        let (mut usage, mut limit) = (0, 0);
+        for (i, heap) in mp.memory_heaps[..mp.memory_heap_count as usize]
+            .iter()
+            .enumerate()
+        {
+            if heap.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL) {
+                usage += budget.heap_usage[i];
+                limit += budget.heap_budget[i];
+            }
+        }
+        Some((usage, limit))
+    }
+}
+
+impl Drop for VulkanContext {
+    fn drop(&mut self) {
+        // SAFETY: we own every object below and destroy them children-first after the device is
+        // idle; the allocator is dropped before the device it allocates from.
+        unsafe {
+            let _ = self.device.device_wait_idle();
+            let leaked = self.live_buffers.load(Ordering::Relaxed);
+            if leaked != 0 {
+                tracing::error!("{leaked} GPU buffers were not destroyed before the context");
+            }
+            ManuallyDrop::drop(&mut self.allocator);
+            self.device
+                .destroy_command_pool(*self.command_pool.get_mut(), None);
+            self.device.destroy_device(None);
+            if let Some((du, m)) = self.debug_instance.take() {
+                du.destroy_debug_utils_messenger(m, None);
+            }
+            self.instance.destroy_instance(None);
+        }
+    }
+}

@@ -1,0 +1,95 @@
+//! Errors of the Vulkan backend.
+
+use ash::vk;
+
+/// How to get a Vulkan driver with ray tracing on a Debian 12 machine; quoted in errors.
+pub const INSTALL_HINT: &str = "install a Vulkan driver with ray tracing: on Debian 12 run \
+`scripts/setup.sh` (it installs mesa-vulkan-drivers 25.x from bookworm-backports, whose lavapipe \
+has VK_KHR_acceleration_structure and VK_KHR_ray_query; bookworm's own 22.3 has neither)";
+
+/// Everything the Vulkan backend can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum VulkanError {
+    /// libvulkan could not be loaded.
+    #[error("no Vulkan loader (libvulkan.so.1) could be loaded: {reason}; {hint}", hint = INSTALL_HINT)]
+    NoLoader { reason: String },
+    /// The validation layer was required but is not installed.
+    #[error("validation was required but VK_LAYER_KHRONOS_validation is not installed (apt-get install vulkan-validationlayers)")]
+    NoValidationLayer,
+    /// No physical device offers what rtstream needs. `devices` says what each one lacked.
+    #[error("no suitable Vulkan device: {}; {hint}", describe_devices(.devices), hint = INSTALL_HINT)]
+    NoSuitableDevice { devices: Vec<(String, String)> },
+    /// The device ran out of memory (VK_ERROR_OUT_OF_DEVICE_MEMORY or an allocator failure
+    /// for lack of memory). Callers may free something and retry.
+    #[error("out of device memory during {op}")]
+    OutOfDeviceMemory { op: &'static str },
+    /// The device was lost (driver crash, GPU reset, or a hang the driver gave up on).
+    #[error("device lost during {op}")]
+    DeviceLost { op: &'static str },
+    /// Any other Vulkan error code.
+    #[error("{op} failed: {result}")]
+    Vk {
+        op: &'static str,
+        result: vk::Result,
+    },
+    /// gpu-allocator failed for a reason other than lack of memory.
+    #[error("device-memory allocation for {op} failed: {source}")]
+    Allocation {
+        op: &'static str,
+        #[source]
+        source: gpu_allocator::AllocationError,
+    },
+    /// A request the device cannot satisfy (a size over a device limit, ...).
+    #[error("{0}")]
+    Unsupported(String),
+}
+
+fn describe_devices(devices: &[(String, String)]) -> String {
+    if devices.is_empty() {
+        return "the Vulkan loader found no physical device".into();
+    }
+    devices
+        .iter()
+        .map(|(name, why)| format!("{name}: {why}"))
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// The backend's result alias.
+pub type VkResult<T> = std::result::Result<T, VulkanError>;
+
+/// Extension trait mapping `ash`'s results to [`VulkanError`], naming the operation.
+pub(crate) trait VkResultExt<T> {
+    fn op(self, op: &'static str) -> VkResult<T>;
+}
+
+impl<T> VkResultExt<T> for Result<T, vk::Result> {
+    fn op(self, op: &'static str) -> VkResult<T> {
+        self.map_err(|result| VulkanError::from_vk(op, result))
+    }
+}
+
+impl VulkanError {
+    /// Classifies a raw `vk::Result`.
+    pub fn from_vk(op: &'static str, result: vk::Result) -> Self {
+        match result {
+            vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
+                Self::OutOfDeviceMemory { op }
+            }
+            vk::Result::ERROR_DEVICE_LOST => Self::DeviceLost { op },
+            result => Self::Vk { op, result },
+        }
+    }
+
+    pub(crate) fn from_alloc(op: &'static str, source: gpu_allocator::AllocationError) -> Self {
+        match source {
+            gpu_allocator::AllocationError::OutOfMemory => Self::OutOfDeviceMemory { op },
+            source => Self::Allocation { op, source },
+        }
+    }
+
+    /// Whether freeing memory and retrying could help.
+    pub fn is_out_of_memory(&self) -> bool {
+        matches!(self, Self::OutOfDeviceMemory { .. })
+    }
+}

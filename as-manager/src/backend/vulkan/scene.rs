@@ -1,0 +1,309 @@
+//! A static scene: every mesh's BLAS built in one batch, and a TLAS over given instances.
+//!
+//! This is the "build everything" path: the thin slice, and the renderer's reference mode (every
+//! instance, finest LOD, no culling). The managed path goes through the manager's backend trait.
+
+use std::time::Instant;
+
+use ash::vk;
+
+use super::accel::{
+    align_up, AccelStruct, BlasBuild, BlasClass, RawInstance, TriangleGeometry, BUILD_INPUT_USAGE,
+};
+use super::buffer::GpuBuffer;
+use super::context::VulkanContext;
+use super::error::{VkResult, VulkanError};
+
+/// A triangle mesh to upload.
+#[derive(Debug, Clone, Copy)]
+pub struct MeshDesc<'a> {
+    /// Debug name.
+    pub name: &'a str,
+    /// Positions.
+    pub positions: &'a [[f32; 3]],
+    /// Triangle-list indices into `positions`.
+    pub indices: &'a [u32],
+    /// Opaque material (the BLAS geometry gets the OPAQUE flag).
+    pub opaque: bool,
+}
+
+/// A placement of a mesh.
+#[derive(Debug, Clone, Copy)]
+pub struct InstanceDesc {
+    /// Index into the scene's meshes.
+    pub mesh: u32,
+    /// Column-major object-to-world transform.
+    pub transform: [f32; 16],
+    /// customIndex (24 bits): what shaders use to find per-instance data.
+    pub custom_index: u32,
+    /// Visibility mask.
+    pub mask: u8,
+}
+
+/// A mesh on the GPU: its buffers and its BLAS.
+#[derive(Debug)]
+pub struct GpuMesh {
+    /// Positions (`[f32; 3]`, tightly packed), with a device address.
+    pub vertices: GpuBuffer,
+    /// `u32` triangle-list indices, with a device address.
+    pub indices: GpuBuffer,
+    /// Triangle count.
+    pub triangle_count: u32,
+    /// The BLAS.
+    pub blas: AccelStruct,
+}
+
+/// Sizes and time of a static scene build.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SceneBuildStats {
+    /// BLAS count.
+    pub blas_count: u32,
+    /// Triangles over all BLASes.
+    pub triangles: u64,
+    /// Sum of BLAS storage sizes (vkGetAccelerationStructureBuildSizesKHR).
+    pub blas_bytes: u64,
+    /// Sum of BLAS build scratch sizes.
+    pub blas_scratch_bytes: u64,
+    /// TLAS storage size.
+    pub tlas_bytes: u64,
+    /// TLAS build scratch size.
+    pub tlas_scratch_bytes: u64,
+    /// Wall time of the whole build (upload, BLAS batch, TLAS), milliseconds.
+    pub build_ms: f64,
+}
+
+/// Every mesh with its BLAS, and a TLAS over the instances.
+#[derive(Debug)]
+pub struct StaticScene {
+    /// The meshes, in the order given.
+    pub meshes: Vec<GpuMesh>,
+    /// The TLAS.
+    pub tlas: AccelStruct,
+    instance_buffer: GpuBuffer,
+    /// What the build took.
+    pub stats: SceneBuildStats,
+}
+
+impl StaticScene {
+    /// Uploads the meshes, builds all BLASes in one command (PREFER_FAST_TRACE, opaque where
+    /// marked) and a TLAS over `instances` (opaque instances get FORCE_OPAQUE).
+    pub fn build(
+        ctx: &VulkanContext,
+        meshes: &[MeshDesc<'_>],
+        instances: &[InstanceDesc],
+    ) -> VkResult<Self> {
+        let start = Instant::now();
+        let mut built: Vec<GpuMesh> = Vec::with_capacity(meshes.len());
+        let result = Self::build_inner(ctx, meshes, instances, &mut built);
+        match result {
+            Ok((tlas, instance_buffer, mut stats)) => {
+                stats.build_ms = start.elapsed().as_secs_f64() * 1e3;
+                tracing::debug!(?stats, "static scene built");
+                Ok(Self {
+                    meshes: built,
+                    tlas,
+                    instance_buffer,
+                    stats,
+                })
+            }
+            Err(e) => {
+                for m in built {
+                    destroy_mesh(ctx, m);
+                }
+                Err(e)
+            }
+        }
+    }
+
+    fn build_inner(
+        ctx: &VulkanContext,
+        meshes: &[MeshDesc<'_>],
+        instances: &[InstanceDesc],
+        built: &mut Vec<GpuMesh>,
+    ) -> VkResult<(AccelStruct, GpuBuffer, SceneBuildStats)> {
+        let flags = BlasClass::Static.flags();
+        let align = ctx.info().min_scratch_alignment;
+        let mut stats = SceneBuildStats::default();
+        let mut geoms = Vec::with_capacity(meshes.len());
+        let mut scratch_offsets = Vec::with_capacity(meshes.len());
+        let mut scratch_total = 0u64;
+        for m in meshes {
+            if m.indices.is_empty() || m.indices.len() % 3 != 0 {
+                return Err(VulkanError::Unsupported(format!(
+                    "mesh {:?}: {} indices is not a non-empty triangle list",
+                    m.name,
+                    m.indices.len()
+                )));
+            }
+            let max_vertex = m.positions.len().saturating_sub(1) as u32;
+            if let Some(bad) = m.indices.iter().find(|&&i| i > max_vertex) {
+                return Err(VulkanError::Unsupported(format!(
+                    "mesh {:?}: index {bad} out of range ({} vertices)",
+                    m.name,
+                    m.positions.len()
+                )));
+            }
+            let vertices = ctx.create_buffer_with_data(
+                &format!("{} vertices", m.name),
+                BUILD_INPUT_USAGE,
+                bytemuck::cast_slice(m.positions),
+            )?;
+            let indices = match ctx.create_buffer_with_data(
+                &format!("{} indices", m.name),
+                BUILD_INPUT_USAGE,
+                bytemuck::cast_slice(m.indices),
+            ) {
+                Ok(b) => b,
+                Err(e) => {
+                    ctx.destroy_buffer(vertices);
+                    return Err(e);
+                }
+            };
+            let geom = TriangleGeometry {
+                vertex_address: vertices.address,
+                vertex_stride: 12,
+                max_vertex,
+                index_address: indices.address,
+                triangle_count: (m.indices.len() / 3) as u32,
+                opaque: m.opaque,
+            };
+            let sizes = ctx.blas_sizes(&[geom], flags);
+            let blas = match ctx.create_accel(
+                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+                sizes.storage,
+                &format!("{} BLAS", m.name),
+            ) {
+                Ok(b) => b,
+                Err(e) => {
+                    ctx.destroy_buffer(vertices);
+                    ctx.destroy_buffer(indices);
+                    return Err(e);
+                }
+            };
+            stats.blas_count += 1;
+            stats.triangles += u64::from(geom.triangle_count);
+            stats.blas_bytes += sizes.storage;
+            stats.blas_scratch_bytes += sizes.build_scratch;
+            scratch_offsets.push(scratch_total);
+            scratch_total += align_up(sizes.build_scratch, align);
+            geoms.push(geom);
+            built.push(GpuMesh {
+                vertices,
+                indices,
+                triangle_count: geom.triangle_count,
+                blas,
+            });
+        }
+
+        let mut records = Vec::with_capacity(instances.len());
+        for (i, inst) in instances.iter().enumerate() {
+            let mesh = built.get(inst.mesh as usize).ok_or_else(|| {
+                VulkanError::Unsupported(format!(
+                    "instance {i} names mesh {} of {}",
+                    inst.mesh,
+                    built.len()
+                ))
+            })?;
+            if !inst.transform.iter().all(|v| v.is_finite()) {
+                return Err(VulkanError::Unsupported(format!(
+                    "instance {i} has a non-finite transform"
+                )));
+            }
+            let opaque = meshes[inst.mesh as usize].opaque;
+            let flags = if opaque {
+                vk::GeometryInstanceFlagsKHR::FORCE_OPAQUE
+            } else {
+                vk::GeometryInstanceFlagsKHR::empty()
+            };
+            records.push(RawInstance::new(
+                inst.transform,
+                inst.custom_index,
+                inst.mask,
+                flags,
+                mesh.blas.address,
+            ));
+        }
+        let tlas_flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
+        let tlas_sizes = ctx.tlas_sizes(records.len() as u32, tlas_flags);
+        stats.tlas_bytes = tlas_sizes.storage;
+        stats.tlas_scratch_bytes = tlas_sizes.build_scratch;
+        let instance_buffer = ctx.create_buffer_with_data(
+            "static scene instances",
+            BUILD_INPUT_USAGE,
+            bytemuck::cast_slice(&records),
+        )?;
+        let tlas = match ctx.create_accel(
+            vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+            tlas_sizes.storage,
+            "static scene TLAS",
+        ) {
+            Ok(t) => t,
+            Err(e) => {
+                ctx.destroy_buffer(instance_buffer);
+                return Err(e);
+            }
+        };
+        let tlas_scratch_offset = scratch_total;
+        scratch_total += align_up(tlas_sizes.build_scratch, align);
+        let (scratch, base) = match ctx.create_scratch("static scene scratch", scratch_total) {
+            Ok(s) => s,
+            Err(e) => {
+                ctx.destroy_accel(tlas);
+                ctx.destroy_buffer(instance_buffer);
+                return Err(e);
+            }
+        };
+        let builds: Vec<BlasBuild<'_>> = geoms
+            .iter()
+            .zip(built.iter())
+            .zip(&scratch_offsets)
+            .map(|((g, m), off)| BlasBuild {
+                geometries: std::slice::from_ref(g),
+                flags,
+                dst: m.blas.raw,
+                update_from: None,
+                scratch_address: base + off,
+            })
+            .collect();
+        let recorded = ctx.submit_and_wait("static scene build", |_, cmd| {
+            // SAFETY: every buffer referenced lives until submit_and_wait returns; scratch ranges
+            // are disjoint and aligned; the barrier orders BLAS writes before the TLAS build.
+            unsafe {
+                ctx.cmd_build_blases(cmd, &builds);
+                ctx.cmd_accel_barrier(cmd);
+                ctx.cmd_build_tlas(
+                    cmd,
+                    tlas.raw,
+                    None,
+                    tlas_flags,
+                    instance_buffer.address,
+                    records.len() as u32,
+                    base + tlas_scratch_offset,
+                );
+                ctx.cmd_accel_barrier(cmd);
+            }
+        });
+        ctx.destroy_buffer(scratch);
+        if let Err(e) = recorded {
+            ctx.destroy_accel(tlas);
+            ctx.destroy_buffer(instance_buffer);
+            return Err(e);
+        }
+        Ok((tlas, instance_buffer, stats))
+    }
+
+    /// Destroys every GPU object of the scene. The caller guarantees the GPU is done with it.
+    pub fn destroy(self, ctx: &VulkanContext) {
+        for m in self.meshes {
+            destroy_mesh(ctx, m);
+        }
+        ctx.destroy_accel(self.tlas);
+        ctx.destroy_buffer(self.instance_buffer);
+    }
+}
+
+fn destroy_mesh(ctx: &VulkanContext, m: GpuMesh) {
+    ctx.destroy_accel(m.blas);
+    ctx.destroy_buffer(m.vertices);
+    ctx.destroy_buffer(m.indices);
+}

@@ -1,0 +1,29 @@
+//! The renderer's error type.
+
+use std::path::PathBuf;
+
+use rtstream_as_manager::backend::vulkan::VulkanError;
+
+/// Everything rendering can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    /// A Vulkan failure (device lost, out of memory, ...).
+    #[error(transparent)]
+    Vulkan(#[from] VulkanError),
+    /// The device has no VK_KHR_ray_query (this path needs it).
+    #[error("device {0:?} has no VK_KHR_ray_query")]
+    NoRayQuery(String),
+    /// A render request that cannot be satisfied.
+    #[error("invalid render request: {0}")]
+    InvalidRequest(String),
+    /// Writing an image failed.
+    #[error("{path}: cannot write image: {source}")]
+    Image {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+}
+
+/// The renderer's result alias.
+pub type Result<T, E = RenderError> = std::result::Result<T, E>;

@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# All tests: installs what is missing (scripts/setup.sh), then runs every test of the workspace
+# with the Vulkan validation layer on (a validation message fails a test).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scripts/setup.sh
+export RTSTREAM_VALIDATION=1
+start=$(date +%s)
+cargo test --workspace --all-targets "$@"
+cargo test --workspace --doc
+echo "tests: wall time $(( $(date +%s) - start )) s"
