@@ -48,7 +48,7 @@ impl GpuGltfScene {
             .instances
             .iter()
             .map(|inst| {
-                let gm = &accel.meshes[inst.mesh];
+                let gm = &accel.meshes[inst.mesh].geometry;
                 InstanceShading {
                     vertices: gm.vertices.address,
                     indices: gm.indices.address,

@@ -8,6 +8,9 @@ mod buffer;
 mod compute;
 mod context;
 mod error;
+mod geometry;
+mod measure;
+mod query;
 mod scene;
 
 pub use accel::{
@@ -18,6 +21,12 @@ pub use buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use compute::{BindingKind, Bound, ComputePipeline};
 pub use context::{ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog, VulkanContext};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
-pub use scene::{GpuMesh, InstanceDesc, MeshDesc, SceneBuildStats, StaticScene};
+pub use geometry::{GpuGeometry, MeshDesc};
+pub use measure::{
+    build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
+    CompactionResult,
+};
+pub use query::{QueryKind, QueryPool};
+pub use scene::{GpuMesh, InstanceDesc, SceneBuildStats, StaticScene};
 
 pub use ash;

@@ -7,25 +7,11 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::accel::{
-    align_up, AccelStruct, BlasBuild, BlasClass, RawInstance, TriangleGeometry, BUILD_INPUT_USAGE,
-};
+use super::accel::{align_up, AccelStruct, BlasBuild, BlasClass, RawInstance, BUILD_INPUT_USAGE};
 use super::buffer::GpuBuffer;
 use super::context::VulkanContext;
 use super::error::{VkResult, VulkanError};
-
-/// A triangle mesh to upload.
-#[derive(Debug, Clone, Copy)]
-pub struct MeshDesc<'a> {
-    /// Debug name.
-    pub name: &'a str,
-    /// Positions.
-    pub positions: &'a [[f32; 3]],
-    /// Triangle-list indices into `positions`.
-    pub indices: &'a [u32],
-    /// Opaque material (the BLAS geometry gets the OPAQUE flag).
-    pub opaque: bool,
-}
+use super::geometry::{GpuGeometry, MeshDesc};
 
 /// A placement of a mesh.
 #[derive(Debug, Clone, Copy)]
@@ -43,12 +29,8 @@ pub struct InstanceDesc {
 /// A mesh on the GPU: its buffers and its BLAS.
 #[derive(Debug)]
 pub struct GpuMesh {
-    /// Positions (`[f32; 3]`, tightly packed), with a device address.
-    pub vertices: GpuBuffer,
-    /// `u32` triangle-list indices, with a device address.
-    pub indices: GpuBuffer,
-    /// Triangle count.
-    pub triangle_count: u32,
+    /// Vertex and index buffers.
+    pub geometry: GpuGeometry,
     /// The BLAS.
     pub blas: AccelStruct,
 }
@@ -128,45 +110,8 @@ impl StaticScene {
         let mut scratch_offsets = Vec::with_capacity(meshes.len());
         let mut scratch_total = 0u64;
         for m in meshes {
-            if m.indices.is_empty() || m.indices.len() % 3 != 0 {
-                return Err(VulkanError::Unsupported(format!(
-                    "mesh {:?}: {} indices is not a non-empty triangle list",
-                    m.name,
-                    m.indices.len()
-                )));
-            }
-            let max_vertex = m.positions.len().saturating_sub(1) as u32;
-            if let Some(bad) = m.indices.iter().find(|&&i| i > max_vertex) {
-                return Err(VulkanError::Unsupported(format!(
-                    "mesh {:?}: index {bad} out of range ({} vertices)",
-                    m.name,
-                    m.positions.len()
-                )));
-            }
-            let vertices = ctx.create_buffer_with_data(
-                &format!("{} vertices", m.name),
-                BUILD_INPUT_USAGE,
-                bytemuck::cast_slice(m.positions),
-            )?;
-            let indices = match ctx.create_buffer_with_data(
-                &format!("{} indices", m.name),
-                BUILD_INPUT_USAGE,
-                bytemuck::cast_slice(m.indices),
-            ) {
-                Ok(b) => b,
-                Err(e) => {
-                    ctx.destroy_buffer(vertices);
-                    return Err(e);
-                }
-            };
-            let geom = TriangleGeometry {
-                vertex_address: vertices.address,
-                vertex_stride: 12,
-                max_vertex,
-                index_address: indices.address,
-                triangle_count: (m.indices.len() / 3) as u32,
-                opaque: m.opaque,
-            };
+            let gg = GpuGeometry::upload(ctx, m)?;
+            let geom = gg.geometry;
             let sizes = ctx.blas_sizes(&[geom], flags);
             let blas = match ctx.create_accel(
                 vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
@@ -175,8 +120,7 @@ impl StaticScene {
             ) {
                 Ok(b) => b,
                 Err(e) => {
-                    ctx.destroy_buffer(vertices);
-                    ctx.destroy_buffer(indices);
+                    gg.destroy(ctx);
                     return Err(e);
                 }
             };
@@ -187,12 +131,7 @@ impl StaticScene {
             scratch_offsets.push(scratch_total);
             scratch_total += align_up(sizes.build_scratch, align);
             geoms.push(geom);
-            built.push(GpuMesh {
-                vertices,
-                indices,
-                triangle_count: geom.triangle_count,
-                blas,
-            });
+            built.push(GpuMesh { geometry: gg, blas });
         }
 
         let mut records = Vec::with_capacity(instances.len());
@@ -304,6 +243,5 @@ impl StaticScene {
 
 fn destroy_mesh(ctx: &VulkanContext, m: GpuMesh) {
     ctx.destroy_accel(m.blas);
-    ctx.destroy_buffer(m.vertices);
-    ctx.destroy_buffer(m.indices);
+    m.geometry.destroy(ctx);
 }

@@ -1,0 +1,361 @@
+//! GPU measurements of acceleration-structure work (benchmarks and the cost-model fit), as safe
+//! functions over owned objects: every timing comes from GPU timestamps around the commands.
+
+use ash::vk;
+
+use super::accel::{align_up, AccelStruct, BlasBuild, RawInstance, BUILD_INPUT_USAGE};
+use super::context::VulkanContext;
+use super::error::VkResult;
+use super::geometry::GpuGeometry;
+use super::query::{QueryKind, QueryPool};
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// Runs `record` between two timestamps in one submit and returns the GPU milliseconds.
+fn timed(
+    ctx: &VulkanContext,
+    ts: &QueryPool,
+    name: &str,
+    record: impl FnOnce(vk::CommandBuffer),
+) -> VkResult<f64> {
+    ts.reset(ctx);
+    ctx.submit_and_wait(name, |_, cmd| {
+        // SAFETY: cmd is recording; the pool was reset above and holds 2 queries.
+        unsafe { ts.cmd_timestamp(ctx, cmd, 0) };
+        record(cmd);
+        // SAFETY: as above.
+        unsafe { ts.cmd_timestamp(ctx, cmd, 1) };
+    })?;
+    let t = ts.read(ctx, 0, 2)?;
+    Ok(ts.ticks_to_ms(t[1].saturating_sub(t[0])))
+}
+
+/// Builds one BLAS over `geom` now (one submit, waited) and returns it.
+pub fn build_blas_now(
+    ctx: &VulkanContext,
+    geom: &GpuGeometry,
+    flags: vk::BuildAccelerationStructureFlagsKHR,
+    name: &str,
+) -> VkResult<AccelStruct> {
+    let s = ctx.blas_sizes(std::slice::from_ref(&geom.geometry), flags);
+    let blas = ctx.create_accel(
+        vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+        s.storage,
+        name,
+    )?;
+    let (scratch, base) = ctx.create_scratch("build_blas_now scratch", s.build_scratch)?;
+    let b = BlasBuild {
+        geometries: std::slice::from_ref(&geom.geometry),
+        flags,
+        dst: blas.raw,
+        update_from: None,
+        scratch_address: base,
+    };
+    let r = ctx.submit_and_wait(name, |_, cmd| {
+        // SAFETY: geometry, BLAS and scratch live until the wait returns.
+        unsafe { ctx.cmd_build_blases(cmd, std::slice::from_ref(&b)) }
+    });
+    ctx.destroy_buffer(scratch);
+    match r {
+        Ok(()) => Ok(blas),
+        Err(e) => {
+            ctx.destroy_accel(blas);
+            Err(e)
+        }
+    }
+}
+
+/// Builds `count` BLASes over the same geometry with `flags` — all in one
+/// vkCmdBuildAccelerationStructuresKHR (`batched`) or one call each — `reps` times after a
+/// warm-up. Returns (median GPU ms, bytes per BLAS).
+pub fn time_blas_builds(
+    ctx: &VulkanContext,
+    geom: &GpuGeometry,
+    count: usize,
+    flags: vk::BuildAccelerationStructureFlagsKHR,
+    batched: bool,
+    reps: usize,
+) -> VkResult<(f64, u64)> {
+    let sizes = ctx.blas_sizes(std::slice::from_ref(&geom.geometry), flags);
+    let stride = align_up(sizes.build_scratch, ctx.info().min_scratch_alignment);
+    let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "time_blas_builds")?;
+    let (scratch, base) = ctx.create_scratch("time_blas_builds scratch", stride * count as u64)?;
+    let mut accels = Vec::with_capacity(count);
+    let mut result = Ok(());
+    for i in 0..count {
+        match ctx.create_accel(
+            vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+            sizes.storage,
+            &format!("bench blas {i}"),
+        ) {
+            Ok(a) => accels.push(a),
+            Err(e) => {
+                result = Err(e);
+                break;
+            }
+        }
+    }
+    let mut times = Vec::with_capacity(reps);
+    if result.is_ok() {
+        let builds: Vec<BlasBuild<'_>> = accels
+            .iter()
+            .enumerate()
+            .map(|(i, a)| BlasBuild {
+                geometries: std::slice::from_ref(&geom.geometry),
+                flags,
+                dst: a.raw,
+                update_from: None,
+                scratch_address: base + stride * i as u64,
+            })
+            .collect();
+        for rep in 0..=reps {
+            let ms = timed(ctx, &ts, "time_blas_builds", |cmd| {
+                // SAFETY: everything referenced lives until the wait; scratch ranges are disjoint,
+                // so the unbatched calls need no barrier between them.
+                unsafe {
+                    if batched {
+                        ctx.cmd_build_blases(cmd, &builds);
+                    } else {
+                        for b in &builds {
+                            ctx.cmd_build_blases(cmd, std::slice::from_ref(b));
+                        }
+                    }
+                }
+            });
+            match ms {
+                Ok(ms) if rep > 0 => times.push(ms),
+                Ok(_) => {}
+                Err(e) => {
+                    result = Err(e);
+                    break;
+                }
+            }
+        }
+    }
+    for a in accels {
+        ctx.destroy_accel(a);
+    }
+    ctx.destroy_buffer(scratch);
+    ts.destroy(ctx);
+    result.map(|()| (median(times), sizes.storage))
+}
+
+/// Result of [`compaction_sizes`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompactionResult {
+    /// (original bytes, compacted bytes) per geometry, in order.
+    pub sizes: Vec<(u64, u64)>,
+    /// GPU ms of all the compacting copies (one submit).
+    pub copy_gpu_ms: f64,
+}
+
+/// Builds a FAST_TRACE + ALLOW_COMPACTION BLAS per geometry (one batched build), queries the
+/// compacted sizes, compacts every one into a new structure and times the copies.
+pub fn compaction_sizes(ctx: &VulkanContext, geoms: &[GpuGeometry]) -> VkResult<CompactionResult> {
+    let flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
+        | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION;
+    let align = ctx.info().min_scratch_alignment;
+    let pool = QueryPool::new(
+        ctx,
+        QueryKind::CompactedSize,
+        geoms.len() as u32,
+        "compacted sizes",
+    )?;
+    let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "compaction timestamps")?;
+    let mut accels = Vec::new();
+    let mut dsts = Vec::new();
+    let mut scratch = None;
+    let result = (|| {
+        let mut offsets = Vec::new();
+        let mut total = 0;
+        for g in geoms {
+            let s = ctx.blas_sizes(std::slice::from_ref(&g.geometry), flags);
+            accels.push(ctx.create_accel(
+                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+                s.storage,
+                "compaction source",
+            )?);
+            offsets.push(total);
+            total += align_up(s.build_scratch, align);
+        }
+        let (buf, base) = ctx.create_scratch("compaction scratch", total)?;
+        scratch = Some(buf);
+        let builds: Vec<BlasBuild<'_>> = geoms
+            .iter()
+            .zip(&accels)
+            .zip(&offsets)
+            .map(|((g, a), o)| BlasBuild {
+                geometries: std::slice::from_ref(&g.geometry),
+                flags,
+                dst: a.raw,
+                update_from: None,
+                scratch_address: base + o,
+            })
+            .collect();
+        let raws: Vec<_> = accels.iter().map(|a: &AccelStruct| a.raw).collect();
+        ctx.submit_and_wait("compaction build", |_, cmd| {
+            // SAFETY: everything referenced lives until the wait; the barrier orders the builds
+            // before the size queries; the query pool was reset at creation.
+            unsafe {
+                ctx.cmd_build_blases(cmd, &builds);
+                ctx.cmd_accel_barrier(cmd);
+                pool.cmd_compacted_sizes(ctx, cmd, &raws, 0);
+            }
+        })?;
+        let compacted = pool.read(ctx, 0, geoms.len() as u32)?;
+        for &c in &compacted {
+            dsts.push(ctx.create_accel(
+                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+                c.max(256),
+                "compacted",
+            )?);
+        }
+        let copy_gpu_ms = timed(ctx, &ts, "compaction copy", |cmd| {
+            for (a, d) in accels.iter().zip(&dsts) {
+                // SAFETY: sources were built and queried by the completed submit above; each
+                // destination is at least the queried compacted size.
+                unsafe { ctx.cmd_compact(cmd, a.raw, d.raw) };
+            }
+        })?;
+        let sizes = accels
+            .iter()
+            .zip(&compacted)
+            .map(|(a, &c)| (a.size, c))
+            .collect();
+        Ok(CompactionResult { sizes, copy_gpu_ms })
+    })();
+    for a in accels.into_iter().chain(dsts) {
+        ctx.destroy_accel(a);
+    }
+    if let Some(s) = scratch {
+        ctx.destroy_buffer(s);
+    }
+    pool.destroy(ctx);
+    ts.destroy(ctx);
+    result
+}
+
+/// A deforming (skinned) mesh: builds it once with FAST_BUILD + ALLOW_UPDATE, then for each of
+/// `reps` new poses (from `pose(rep)`) times a refit (UPDATE, src = dst) and a full rebuild.
+/// Returns (median refit GPU ms, median rebuild GPU ms).
+pub fn time_refit_vs_rebuild(
+    ctx: &VulkanContext,
+    geom: &mut GpuGeometry,
+    pose: &mut dyn FnMut(usize) -> Vec<[f32; 3]>,
+    reps: usize,
+) -> VkResult<(f64, f64)> {
+    let flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
+        | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE;
+    let s = ctx.blas_sizes(std::slice::from_ref(&geom.geometry), flags);
+    let blas = build_blas_now(ctx, geom, flags, "refit bench")?;
+    let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "refit timestamps")?;
+    let (scratch, base) =
+        ctx.create_scratch("refit scratch", s.build_scratch.max(s.update_scratch))?;
+    let mut refits = Vec::new();
+    let mut rebuilds = Vec::new();
+    let mut result = Ok(());
+    'outer: for rep in 0..=reps {
+        for update in [true, false] {
+            geom.write_positions(&pose(rep * 2 + usize::from(update)));
+            let b = BlasBuild {
+                geometries: std::slice::from_ref(&geom.geometry),
+                flags,
+                dst: blas.raw,
+                update_from: update.then_some(blas.raw),
+                scratch_address: base,
+            };
+            let ms = timed(ctx, &ts, "refit bench", |cmd| {
+                // SAFETY: BLAS, geometry and scratch live until the wait; src == dst is allowed
+                // for updates; the BLAS was built with ALLOW_UPDATE.
+                unsafe { ctx.cmd_build_blases(cmd, std::slice::from_ref(&b)) }
+            });
+            match ms {
+                Ok(ms) if rep > 0 => {
+                    if update {
+                        refits.push(ms)
+                    } else {
+                        rebuilds.push(ms)
+                    }
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    result = Err(e);
+                    break 'outer;
+                }
+            }
+        }
+    }
+    ctx.destroy_accel(blas);
+    ctx.destroy_buffer(scratch);
+    ts.destroy(ctx);
+    result.map(|()| (median(refits), median(rebuilds)))
+}
+
+/// Builds a TLAS over one record per transform (all referencing `blas`) with `flags`, `reps`
+/// times after a warm-up. Returns (median GPU ms, TLAS bytes).
+pub fn time_tlas_build(
+    ctx: &VulkanContext,
+    blas: &AccelStruct,
+    transforms: &[[f32; 16]],
+    flags: vk::BuildAccelerationStructureFlagsKHR,
+    reps: usize,
+) -> VkResult<(f64, u64)> {
+    let n = transforms.len() as u32;
+    let records: Vec<RawInstance> = transforms
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            RawInstance::new(
+                *t,
+                (i as u32) & 0xff_ffff,
+                0xff,
+                vk::GeometryInstanceFlagsKHR::FORCE_OPAQUE,
+                blas.address,
+            )
+        })
+        .collect();
+    let s = ctx.tlas_sizes(n, flags);
+    let ibuf = ctx.create_buffer_with_data(
+        "tlas bench instances",
+        BUILD_INPUT_USAGE,
+        bytemuck::cast_slice(&records),
+    )?;
+    let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "tlas timestamps")?;
+    let mut tlas = None;
+    let mut scratch = None;
+    let result = (|| {
+        let t = ctx.create_accel(
+            vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+            s.storage,
+            "bench tlas",
+        )?;
+        let raw = t.raw;
+        tlas = Some(t);
+        let (buf, base) = ctx.create_scratch("bench tlas scratch", s.build_scratch)?;
+        scratch = Some(buf);
+        let mut times = Vec::new();
+        for rep in 0..=reps {
+            let ms = timed(ctx, &ts, "tlas bench", |cmd| {
+                // SAFETY: the BLAS is built (the caller's contract), the instance buffer, TLAS and
+                // scratch live until the wait.
+                unsafe { ctx.cmd_build_tlas(cmd, raw, None, flags, ibuf.address, n, base) }
+            })?;
+            if rep > 0 {
+                times.push(ms);
+            }
+        }
+        Ok((median(times), s.storage))
+    })();
+    if let Some(t) = tlas {
+        ctx.destroy_accel(t);
+    }
+    if let Some(b) = scratch {
+        ctx.destroy_buffer(b);
+    }
+    ctx.destroy_buffer(ibuf);
+    ts.destroy(ctx);
+    result
+}

@@ -1,0 +1,150 @@
+//! Query pools: GPU timestamps (measured costs) and compacted AS sizes (compaction).
+
+use ash::vk;
+
+use super::context::VulkanContext;
+use super::error::{VkResult, VkResultExt};
+
+/// What a [`QueryPool`] measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum QueryKind {
+    /// GPU timestamps (ticks; see [`QueryPool::ticks_to_ms`]).
+    Timestamp,
+    /// Compacted sizes of acceleration structures built with ALLOW_COMPACTION (bytes).
+    CompactedSize,
+}
+
+/// A query pool. Destroy it with [`QueryPool::destroy`].
+#[derive(Debug)]
+pub struct QueryPool {
+    /// The `vk::QueryPool` handle.
+    pub raw: vk::QueryPool,
+    /// Number of queries.
+    pub count: u32,
+    kind: QueryKind,
+    period_ns: f64,
+}
+
+impl QueryPool {
+    /// Creates a pool of `count` queries, reset and ready to be written.
+    pub fn new(ctx: &VulkanContext, kind: QueryKind, count: u32, name: &str) -> VkResult<Self> {
+        let ty = match kind {
+            QueryKind::Timestamp => vk::QueryType::TIMESTAMP,
+            QueryKind::CompactedSize => vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
+        };
+        let info = vk::QueryPoolCreateInfo::default()
+            .query_type(ty)
+            .query_count(count.max(1));
+        // SAFETY: the device is valid; info is well-formed.
+        let raw = unsafe { ctx.device.create_query_pool(&info, None) }.op("vkCreateQueryPool")?;
+        ctx.set_name(raw, name);
+        let pool = Self {
+            raw,
+            count: count.max(1),
+            kind,
+            period_ns: f64::from(ctx.info().timestamp_period_ns),
+        };
+        pool.reset(ctx);
+        Ok(pool)
+    }
+
+    /// Resets every query from the host (hostQueryReset is enabled by the context).
+    /// The caller guarantees no pending GPU work uses the pool.
+    pub fn reset(&self, ctx: &VulkanContext) {
+        // SAFETY: by contract the pool is not in use by pending work.
+        unsafe { ctx.device.reset_query_pool(self.raw, 0, self.count) };
+    }
+
+    /// Records a timestamp after all previous commands complete.
+    ///
+    /// # Safety
+    /// `cmd` is recording; query `index` is reset and not written since.
+    pub unsafe fn cmd_timestamp(&self, ctx: &VulkanContext, cmd: vk::CommandBuffer, index: u32) {
+        debug_assert_eq!(self.kind, QueryKind::Timestamp);
+        // SAFETY: guaranteed by the caller.
+        unsafe {
+            ctx.device.cmd_write_timestamp2(
+                cmd,
+                vk::PipelineStageFlags2::ALL_COMMANDS,
+                self.raw,
+                index,
+            )
+        };
+    }
+
+    /// Records queries of the compacted sizes of `accels`, starting at query `first`.
+    ///
+    /// # Safety
+    /// `cmd` is recording; the structures were built with ALLOW_COMPACTION and their builds are
+    /// ordered before this command by a barrier; the queries are reset.
+    pub unsafe fn cmd_compacted_sizes(
+        &self,
+        ctx: &VulkanContext,
+        cmd: vk::CommandBuffer,
+        accels: &[vk::AccelerationStructureKHR],
+        first: u32,
+    ) {
+        debug_assert_eq!(self.kind, QueryKind::CompactedSize);
+        // SAFETY: guaranteed by the caller.
+        unsafe {
+            ctx.accel.cmd_write_acceleration_structures_properties(
+                cmd,
+                accels,
+                vk::QueryType::ACCELERATION_STRUCTURE_COMPACTED_SIZE_KHR,
+                self.raw,
+                first,
+            )
+        };
+    }
+
+    /// Reads `n` results starting at `first`, waiting for them to be available.
+    pub fn read(&self, ctx: &VulkanContext, first: u32, n: u32) -> VkResult<Vec<u64>> {
+        let mut out = vec![0u64; n as usize];
+        if n == 0 {
+            return Ok(out);
+        }
+        // SAFETY: the range is within the pool; WAIT makes the call block until results exist.
+        unsafe {
+            ctx.device.get_query_pool_results(
+                self.raw,
+                first,
+                &mut out,
+                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+            )
+        }
+        .op("vkGetQueryPoolResults")?;
+        Ok(out)
+    }
+
+    /// Converts a tick difference to milliseconds.
+    pub fn ticks_to_ms(&self, ticks: u64) -> f64 {
+        ticks as f64 * self.period_ns * 1e-6
+    }
+
+    /// Destroys the pool. The caller guarantees no pending GPU work uses it.
+    pub fn destroy(self, ctx: &VulkanContext) {
+        // SAFETY: by contract the pool is not in use.
+        unsafe { ctx.device.destroy_query_pool(self.raw, None) };
+    }
+}
+
+impl VulkanContext {
+    /// Records a compacting copy of `src` into `dst` (sized from a compacted-size query).
+    ///
+    /// # Safety
+    /// `cmd` is recording; `src` was built with ALLOW_COMPACTION and its build is ordered before
+    /// this command; `dst` is at least the queried compacted size.
+    pub unsafe fn cmd_compact(
+        &self,
+        cmd: vk::CommandBuffer,
+        src: vk::AccelerationStructureKHR,
+        dst: vk::AccelerationStructureKHR,
+    ) {
+        let info = vk::CopyAccelerationStructureInfoKHR::default()
+            .src(src)
+            .dst(dst)
+            .mode(vk::CopyAccelerationStructureModeKHR::COMPACT);
+        // SAFETY: guaranteed by the caller.
+        unsafe { self.accel.cmd_copy_acceleration_structure(cmd, &info) };
+    }
+}
