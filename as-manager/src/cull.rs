@@ -67,12 +67,21 @@ mod tests {
 
     #[test]
     fn hysteresis_band_prevents_flicker() {
-        let c = InstanceCuller::new(&CullConfig::default());
-        // just beyond 300 m: culled; coming back at 290 m needs < 270 m
+        let c = InstanceCuller::new(&CullConfig {
+            mode: CullMode::Far,
+            ..CullConfig::default()
+        });
+        // just beyond 300 m: culled; coming back needs < 270 m
         assert!(c.cull(1.0, 302.0, false));
         assert!(c.cull(1.0, 290.0, true));
         assert!(!c.cull(1.0, 290.0, false));
         assert!(!c.cull(1.0, 260.0, true));
+        let s = InstanceCuller::new(&CullConfig::default());
+        // angular radius 1 degree at 57.3 m for r = 1: band up to 1.1 degrees
+        assert!(s.cull(1.0, 60.0, false));
+        assert!(s.cull(1.0, 55.0, true));
+        assert!(!s.cull(1.0, 55.0, false));
+        assert!(!s.cull(1.0, 50.0, true));
         let and = InstanceCuller::new(&CullConfig {
             mode: CullMode::FarAndSmall,
             ..CullConfig::default()

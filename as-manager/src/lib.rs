@@ -44,7 +44,6 @@ mod mesh;
 pub mod quality;
 pub mod record;
 pub mod spatial;
-#[cfg(any(test, feature = "synth"))]
 pub mod synth;
 
 pub use config::{AssemblyConfig, BuildBudget, Config, CullConfig, CullMode, LodConfig, MemoryBudget, PolicyKind, ResidencyConfig};
