@@ -4,7 +4,50 @@
 //! hands a culled top-level acceleration structure (TLAS) to the renderer each frame.
 //!
 //! Design choices:
-//! - The policy core is plain Rust behind a narrow backend trait; only [`backend::vulkan`]
-//!   (cargo feature `vulkan`, on by default) touches ash.
+//! - The policy core is plain Rust behind a narrow backend trait ([`backend::AsBackend`]);
+//!   only [`backend::vulkan`] (cargo feature `vulkan`, on by default) touches ash. The
+//!   [`backend::model::ModelBackend`] accounts sizes and costs from a fitted model
+//!   ([`backend::model::SizeModel`], [`backend::model::CostModel`]) so million-instance worlds
+//!   run without a GPU.
+//! - A static BLAS belongs to a (mesh, LOD) pair and is shared by every instance of it; a
+//!   skinned instance owns its BLAS. Residency, budgets and eviction count BLASes and bytes;
+//!   culling and assembly count instances.
+//! - Residency queries a uniform hash grid ([`spatial::GridIndex`]) around the cameras, so a
+//!   frame's cost follows what is near the cameras, not the world's size. Only instances
+//!   within r2 of a camera can be in the TLAS. Cameras share one TLAS and one query (cells
+//!   deduplicated); distances are to the nearest camera.
+//! - Registration is queued ([`Registrar`], one mutex, the only lock) and applied at the start
+//!   of `update` in call order, so a frame is deterministic for a given command order.
+//! - One frame: apply → residency (request within r1, keep within r2, create after
+//!   CreateThreshold consecutive requested frames, release after ReleaseThreshold unkept
+//!   frames and a minimum life) → LOD (projected geometric error, hysteresis, finer LOD shown
+//!   only once built) → schedule (priority = distance − in-view bonus − aging; per-frame
+//!   primitive and GPU-ms budget; an oversized item alone; compaction within its own budget;
+//!   skinned refits oldest first, rebuilt when measured refit quality passes the bound) →
+//!   memory (budget counts built, compaction copies and freed-but-in-flight bytes; coarser
+//!   LOD first, then evict the farthest / least recently traced) → cull (distance and
+//!   projected angle, AND/OR, near distance, hysteresis) → assemble (64-byte records, crossbeam
+//!   scoped threads when many) → backend (one batched build, refits, TLAS).
+//! - Backend OOM caps the budget at what fitted and evicts; device lost is returned.
+//! - Baselines `Naive` and `SeedR1R2` ([`PolicyKind`]) run behind the same API.
+//! - tracing: a span per frame phase (`apply`, `residency`, `schedule`, `cull`, `assemble`,
+//!   `record`); BLAS lifecycle events at `trace`.
 
 pub mod backend;
+pub mod config;
+pub mod cull;
+mod error;
+mod ids;
+pub mod lod;
+mod manager;
+mod mesh;
+pub mod quality;
+pub mod record;
+pub mod spatial;
+pub mod synth;
+
+pub use config::{AssemblyConfig, BuildBudget, Config, CullConfig, CullMode, LodConfig, MemoryBudget, PolicyKind, ResidencyConfig};
+pub use error::{AsError, Result};
+pub use ids::{InstanceId, MeshId};
+pub use manager::{AsManager, Camera, FrameInput, FrameOutput, FrameStats, InstanceDesc, Registrar};
+pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind, MAX_LODS};

@@ -1,4 +1,179 @@
 //! Backends: where BLAS/TLAS are really built.
+//!
+//! The manager decides *what* to build, refit, compact and free; an [`AsBackend`] does it. The
+//! trait is narrow on purpose: a Vulkan backend (`vulkan`, feature `vulkan`) records it into
+//! command buffers, the [`model::ModelBackend`] only accounts sizes and costs.
+//!
+//! # Contract, in frame order
+//! One frame is `begin_frame(n)`, then any of `blas_sizes`, `build_blases` (at most one call:
+//! one batched build), `refit_blases` (at most one call), `compacted_size`/`compact_blas`,
+//! `free_blas`, then `build_tlas` (once), then `end_frame(n)`.
+//! - Sizes: [`AsBackend::blas_sizes`] answers like `vkGetAccelerationStructureBuildSizesKHR`
+//!   for a geometry and class before anything is allocated; the manager budgets with it.
+//! - Builds/refits recorded in frame `n` are visible to frame `n`'s TLAS (the backend puts the
+//!   barrier between them). A BLAS handle may go into frame `n`'s instance records as soon as
+//!   `build_blases` returned it.
+//! - [`AsBackend::free_blas`] says "no TLAS after `last_used_frame` references it"; the backend
+//!   destroys it once the GPU finished that frame (timeline value). The manager keeps counting
+//!   its bytes until [`AsBackend::completed_frame`] passes `last_used_frame`.
+//! - Compaction: after a static build, [`AsBackend::compacted_size`] returns `Some` once the
+//!   size query is readable (frames later on a GPU). [`AsBackend::compact_blas`] allocates the
+//!   compacted copy and records the copy; the manager then frees the original with `free_blas`.
+//!   Both copies count against the memory budget until the original is retired.
+//! - Measured GPU costs arrive late (timestamps of finished frames) through
+//!   [`AsBackend::take_measurements`]; the manager refines its cost model with them.
+//! - Errors: [`BackendError::OutOfDeviceMemory`] fails the whole call and leaves nothing
+//!   allocated; the manager evicts, shrinks its effective budget and retries on a later frame.
+//!   [`BackendError::DeviceLost`] is returned to the caller of `update`.
+
+use crate::record::TlasInstance;
+
+pub mod model;
 
 #[cfg(feature = "vulkan")]
 pub mod vulkan;
+
+/// A backend's BLAS (opaque; the Vulkan backend maps it to its slot of `vk::AccelerationStructureKHR`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct BlasHandle(pub u64);
+
+/// The frame's TLAS as the backend built it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct TlasHandle(pub u64);
+
+/// Build flags per class.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum BlasClass {
+    /// PREFER_FAST_TRACE | ALLOW_COMPACTION.
+    Static,
+    /// PREFER_FAST_BUILD | ALLOW_UPDATE.
+    Skinned,
+}
+
+/// One triangle geometry to size or build. `positions`/`indices` are `None` when the mesh was
+/// registered with counts only (enough for the model backend; a Vulkan backend returns
+/// [`BackendError::MissingGeometry`]).
+#[derive(Debug, Clone, Copy)]
+pub struct GeometryRef<'a> {
+    /// Vertex count (= `positions.len()` when present).
+    pub vertex_count: u32,
+    /// Triangle count (= `indices.len() / 3` when present).
+    pub triangle_count: u32,
+    /// `[f32; 3]` positions (R32G32B32_SFLOAT, stride 12).
+    pub positions: Option<&'a [[f32; 3]]>,
+    /// `u32` triangle-list indices.
+    pub indices: Option<&'a [u32]>,
+    /// Sets VK_GEOMETRY_OPAQUE_BIT_KHR.
+    pub opaque: bool,
+}
+
+/// What `vkGetAccelerationStructureBuildSizesKHR` reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct BlasSizes {
+    /// accelerationStructureSize.
+    pub as_bytes: u64,
+    /// buildScratchSize.
+    pub build_scratch: u64,
+    /// updateScratchSize (0 for a class without ALLOW_UPDATE).
+    pub update_scratch: u64,
+}
+
+/// One BLAS to build in this frame's batch.
+#[derive(Debug, Clone, Copy)]
+pub struct BlasBuild<'a> {
+    /// The geometry.
+    pub geometry: GeometryRef<'a>,
+    /// Flags.
+    pub class: BlasClass,
+    /// Sizes from [`AsBackend::blas_sizes`] for the same geometry and class.
+    pub sizes: BlasSizes,
+}
+
+/// Refit (UPDATE mode, src = dst) or rebuild in place of a skinned BLAS.
+#[derive(Debug, Clone, Copy)]
+pub struct BlasRefit<'a> {
+    /// The skinned BLAS.
+    pub blas: BlasHandle,
+    /// Its topology with this frame's positions (`None` with counts-only meshes).
+    pub geometry: GeometryRef<'a>,
+    /// `true`: full rebuild into the same storage (refits degraded it); `false`: update.
+    pub rebuild: bool,
+}
+
+/// Kind of a measured GPU operation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum CostOp {
+    /// Static BLAS build.
+    BuildStatic,
+    /// Skinned BLAS build or rebuild.
+    BuildSkinned,
+    /// Skinned refit.
+    Refit,
+    /// Compaction copy (`units` = source bytes).
+    Compact,
+    /// TLAS build (`units` = instances).
+    Tlas,
+}
+
+/// A GPU timing the backend measured (timestamps), for a batch of `units` (triangles, bytes or
+/// instances, see [`CostOp`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measurement {
+    /// What was timed.
+    pub op: CostOp,
+    /// Triangles, bytes or instances in the timed batch.
+    pub units: u64,
+    /// Measured GPU milliseconds.
+    pub gpu_ms: f64,
+}
+
+/// Backend failures the manager reacts to.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BackendError {
+    /// VK_ERROR_OUT_OF_DEVICE_MEMORY (or host memory) on an allocation; nothing was allocated.
+    #[error("out of device memory")]
+    OutOfDeviceMemory,
+    /// VK_ERROR_DEVICE_LOST: fatal for this backend.
+    #[error("device lost")]
+    DeviceLost,
+    /// A real build needs vertex/index data but the mesh was registered with counts only.
+    #[error("geometry data missing (mesh registered with counts only)")]
+    MissingGeometry,
+    /// Anything else, with the backend's words.
+    #[error("{0}")]
+    Other(String),
+}
+
+/// `Result` for backend calls.
+pub type BackendResult<T> = std::result::Result<T, BackendError>;
+
+/// What the manager needs from a GPU (or a model of one). See the module docs for the frame
+/// contract. Only the thread that owns the manager calls it.
+pub trait AsBackend: Send {
+    /// Starts frame `frame` (waits for the frame-in-flight slot it reuses; retires what the
+    /// GPU has finished with).
+    fn begin_frame(&mut self, frame: u64) -> BackendResult<()>;
+    /// The newest frame whose GPU work has completed, if any.
+    fn completed_frame(&self) -> Option<u64>;
+    /// Sizes of a BLAS for this geometry and class, before building.
+    fn blas_sizes(&self, geometry: &GeometryRef<'_>, class: BlasClass) -> BlasSizes;
+    /// Records one batched build of `builds`; returns their handles in order. All or nothing.
+    fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>>;
+    /// Records one batch of skinned refits/rebuilds (in place).
+    fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()>;
+    /// The compacted size of a static BLAS once its post-build query is readable.
+    fn compacted_size(&mut self, blas: BlasHandle) -> Option<u64>;
+    /// Allocates the compacted copy of `blas` and records the copy; returns the new handle.
+    /// The caller frees the original with [`AsBackend::free_blas`].
+    fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle>;
+    /// No TLAS after `last_used_frame` references `blas`: destroy it once the GPU is done.
+    fn free_blas(&mut self, blas: BlasHandle, last_used_frame: u64);
+    /// The BLAS device address for `accelerationStructureReference`.
+    fn blas_address(&self, blas: BlasHandle) -> u64;
+    /// Records the frame's TLAS build from its 64-byte instance records.
+    fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle>;
+    /// Submits frame `frame`.
+    fn end_frame(&mut self, frame: u64) -> BackendResult<()>;
+    /// GPU timings measured since the last call (from completed frames).
+    fn take_measurements(&mut self) -> Vec<Measurement>;
+}

@@ -1,0 +1,162 @@
+//! `update` cost on the synthetic worlds: Managed vs the SeedR1R2 and Naive baselines, one and
+//! four cameras, the default world and the 1M-instance world at the same density; and the
+//! residency query itself: the manager's hash grid vs an rstar R*-tree (the peer design).
+//!
+//! Run: `cargo bench -p rtstream-as-manager --no-default-features --bench update`
+//! (pin to one core with `taskset -c 0` for the single-core figure).
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use glam::Vec3;
+use rstar::primitives::GeomWithData;
+use rstar::RTree;
+use rtstream_as_manager::backend::model::ModelBackend;
+use rtstream_as_manager::spatial::GridIndex;
+use rtstream_as_manager::synth::{SynthParams, SynthWorld};
+use rtstream_as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
+
+/// Camera speed along the path: 0.5 m per frame (30 m/s at 60 fps).
+const SPEED: f32 = 0.5;
+/// Frames run before measuring, so residency is in its steady state.
+const WARMUP_FRAMES: u64 = 300;
+
+/// Four cameras: a squad around the lead camera (split-screen co-op / nearby probes), within
+/// 60 m of it.
+fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
+    let lead = world.camera_on_path(frame, SPEED);
+    let offsets = [Vec3::ZERO, Vec3::new(40.0, 0.0, 0.0), Vec3::new(0.0, 0.0, 40.0), Vec3::new(-30.0, 0.0, -30.0)];
+    (0..n).map(|i| Camera::new(lead.position + offsets[i % 4], lead.forward)).collect()
+}
+
+struct Run {
+    world: SynthWorld,
+    manager: AsManager<ModelBackend>,
+    frame: u64,
+    cams: usize,
+}
+
+impl Run {
+    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize) -> Self {
+        let config = Config {
+            policy,
+            ..Config::default()
+        };
+        let manager = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
+        world.populate(&manager).unwrap();
+        let mut r = Run {
+            world: world.clone(),
+            manager,
+            frame: 0,
+            cams,
+        };
+        for _ in 0..WARMUP_FRAMES {
+            r.step();
+        }
+        r
+    }
+
+    fn step(&mut self) -> usize {
+        let cams = cameras(&self.world, self.frame, self.cams);
+        let out = self.manager.update(FrameInput { frame: self.frame, cameras: &cams }).unwrap();
+        self.frame += 1;
+        out.instances.len()
+    }
+}
+
+fn config(c: &mut Criterion) -> &mut Criterion {
+    c
+}
+
+fn bench_update(c: &mut Criterion) {
+    let default = SynthWorld::generate(SynthParams::default_world());
+    let million = SynthWorld::generate(SynthParams::million());
+    let mut g = config(c).benchmark_group("update");
+    g.sample_size(20).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    for (wname, world) in [("default", &default), ("million", &million)] {
+        for (pname, policy) in [("managed", PolicyKind::Managed), ("seed_r1r2", PolicyKind::SeedR1R2)] {
+            for cams in [1usize, 4] {
+                if wname == "million" && cams == 4 {
+                    continue;
+                }
+                let mut run = Run::new(world, policy, cams);
+                let stats = run.manager.stats().clone();
+                eprintln!(
+                    "[{wname}/{pname}/{cams}cam] instances {} visited {} tlas {} blas {} bytes {:.1} MiB",
+                    stats.instances,
+                    stats.instances_visited,
+                    stats.tlas_instances,
+                    stats.blas_count,
+                    stats.memory_in_use() as f64 / (1 << 20) as f64
+                );
+                g.bench_function(BenchmarkId::new(format!("{wname}/{pname}"), format!("{cams}cam")), |b| b.iter(|| black_box(run.step())));
+            }
+        }
+    }
+    let mut naive = Run::new(&default, PolicyKind::Naive, 1);
+    g.bench_function(BenchmarkId::new("default/naive", "1cam"), |b| b.iter(|| black_box(naive.step())));
+    g.finish();
+}
+
+/// The residency query alone: instances within r2 of the camera, exact sphere test.
+fn bench_query(c: &mut Criterion) {
+    let world = SynthWorld::generate(SynthParams::default_world());
+    let cfg = Config::default();
+    let r2 = cfg.residency.r2;
+    let spheres: Vec<(Vec3, f32)> = world
+        .instances
+        .iter()
+        .map(|(m, t)| {
+            let d = &world.meshes[*m];
+            let s = t.matrix3.x_axis.length();
+            (t.transform_point3(Vec3::from(d.bounds_center)), d.bounds_radius * s)
+        })
+        .collect();
+    let max_r = spheres.iter().map(|s| s.1).fold(0.0f32, f32::max);
+    let mut grid = GridIndex::new(cfg.residency.cell_size);
+    for (i, (c, r)) in spheres.iter().enumerate() {
+        grid.insert(i as u32, *c, *r);
+    }
+    let tree: RTree<GeomWithData<[f32; 3], u32>> =
+        RTree::bulk_load(spheres.iter().enumerate().map(|(i, (c, _))| GeomWithData::new(c.to_array(), i as u32)).collect());
+    let mut g = c.benchmark_group("residency_query");
+    g.sample_size(30).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(2));
+    let mut frame = 0u64;
+    let mut out: Vec<(u32, f32)> = Vec::with_capacity(4096);
+    g.bench_function("grid", |b| {
+        b.iter(|| {
+            let cam = world.camera_on_path(frame, SPEED).position;
+            frame += 1;
+            out.clear();
+            grid.query(&[cam], r2, |e| {
+                let d = (cam.distance(Vec3::from(e.center)) - e.radius).max(0.0);
+                if d <= r2 {
+                    out.push((e.slot, d));
+                }
+            });
+            black_box(out.len())
+        })
+    });
+    let mut frame = 0u64;
+    g.bench_function("rstar", |b| {
+        b.iter(|| {
+            let cam = world.camera_on_path(frame, SPEED).position;
+            frame += 1;
+            out.clear();
+            let reach = r2 + max_r;
+            for p in tree.locate_within_distance(cam.to_array(), reach * reach) {
+                let (c, r) = spheres[p.data as usize];
+                let d = (cam.distance(c) - r).max(0.0);
+                if d <= r2 {
+                    out.push((p.data, d));
+                }
+            }
+            black_box(out.len())
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_query, bench_update);
+criterion_main!(benches);

@@ -1,0 +1,515 @@
+//! A backend without a GPU: sizes and costs from a fitted model, frames in flight simulated.
+//!
+//! The coefficients are plain structs ([`SizeModel`], [`CostModel`]) so each driver gets its
+//! own preset. `lavapipe()` holds what the lead measured on Mesa lavapipe (2 cores, 2026-11);
+//! `nvidia_placeholder()` holds rough numbers to be replaced by the GPU runs (issue 5).
+//!
+//! ```
+//! use rtstream_as_manager::backend::{AsBackend, BlasClass, GeometryRef};
+//! use rtstream_as_manager::backend::model::ModelBackend;
+//! let b = ModelBackend::lavapipe();
+//! let g = GeometryRef { vertex_count: 600, triangle_count: 1000, positions: None, indices: None, opaque: true };
+//! let s = b.blas_sizes(&g, BlasClass::Static);
+//! assert!(s.as_bytes >= 100_000);
+//! ```
+
+use std::collections::{HashMap, VecDeque};
+
+use super::{
+    AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
+    CostOp, GeometryRef, Measurement, TlasHandle,
+};
+use crate::record::TlasInstance;
+use crate::{AsError, Result};
+
+/// Size coefficients: `bytes = fixed + per_triangle * t + per_vertex * v`, rounded up to `align`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SizeModel {
+    /// BLAS constant bytes.
+    pub blas_fixed: f64,
+    /// BLAS bytes per triangle.
+    pub blas_per_triangle: f64,
+    /// BLAS bytes per vertex.
+    pub blas_per_vertex: f64,
+    /// Build scratch constant bytes.
+    pub scratch_fixed: f64,
+    /// Build scratch bytes per triangle.
+    pub scratch_per_triangle: f64,
+    /// Update scratch bytes per triangle (skinned only).
+    pub update_scratch_per_triangle: f64,
+    /// Skinned (fast-build) size relative to static (fast-trace).
+    pub skinned_factor: f64,
+    /// Compacted / original bytes for static BLASes.
+    pub compaction_ratio: f64,
+    /// TLAS bytes per instance.
+    pub tlas_per_instance: f64,
+    /// Allocation alignment (bytes).
+    pub align: u64,
+}
+
+/// GPU time coefficients (milliseconds).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CostModel {
+    /// Per build call (batch) overhead.
+    pub batch_fixed_ms: f64,
+    /// Static build, per million triangles.
+    pub build_static_ms_per_mtri: f64,
+    /// Skinned build, per million triangles.
+    pub build_skinned_ms_per_mtri: f64,
+    /// Refit, per million triangles.
+    pub refit_ms_per_mtri: f64,
+    /// Compaction copy, per MiB of source.
+    pub compact_ms_per_mib: f64,
+    /// TLAS build, per thousand instances.
+    pub tlas_ms_per_kinst: f64,
+}
+
+impl SizeModel {
+    /// Mesa lavapipe (measured: ~104 B per triangle, 176 B per TLAS instance, 64 B scratch,
+    /// compaction saves nothing).
+    pub fn lavapipe() -> Self {
+        Self {
+            blas_fixed: 256.0,
+            blas_per_triangle: 104.0,
+            blas_per_vertex: 0.0,
+            scratch_fixed: 64.0,
+            scratch_per_triangle: 0.0,
+            update_scratch_per_triangle: 0.0,
+            skinned_factor: 1.0,
+            compaction_ratio: 1.0,
+            tlas_per_instance: 176.0,
+            align: 256,
+        }
+    }
+
+    /// PLACEHOLDER for NVIDIA H100/H200 (driver 580) until issue 5's runs fill it in.
+    pub fn nvidia_placeholder() -> Self {
+        Self {
+            blas_fixed: 1024.0,
+            blas_per_triangle: 64.0,
+            blas_per_vertex: 0.0,
+            scratch_fixed: 4096.0,
+            scratch_per_triangle: 64.0,
+            update_scratch_per_triangle: 8.0,
+            skinned_factor: 1.25,
+            compaction_ratio: 0.55,
+            tlas_per_instance: 128.0,
+            align: 256,
+        }
+    }
+
+    fn round(&self, v: f64) -> u64 {
+        let a = self.align.max(1);
+        (v.max(0.0).ceil() as u64).div_ceil(a) * a
+    }
+
+    /// Predicted sizes for a geometry and class.
+    pub fn blas_sizes(&self, vertices: u32, triangles: u32, class: BlasClass) -> BlasSizes {
+        let (t, v) = (triangles as f64, vertices as f64);
+        let base = self.blas_fixed + self.blas_per_triangle * t + self.blas_per_vertex * v;
+        let factor = if class == BlasClass::Skinned { self.skinned_factor } else { 1.0 };
+        BlasSizes {
+            as_bytes: self.round(base * factor),
+            build_scratch: self.round(self.scratch_fixed + self.scratch_per_triangle * t),
+            update_scratch: match class {
+                BlasClass::Skinned => self.round(self.scratch_fixed + self.update_scratch_per_triangle * t),
+                BlasClass::Static => 0,
+            },
+        }
+    }
+}
+
+impl Default for SizeModel {
+    fn default() -> Self {
+        Self::lavapipe()
+    }
+}
+
+impl CostModel {
+    /// Mesa lavapipe: ~150 ms per million triangles single-threaded; an update costs a rebuild;
+    /// TLAS of 100k instances ~20 ms.
+    pub fn lavapipe() -> Self {
+        Self {
+            batch_fixed_ms: 0.05,
+            build_static_ms_per_mtri: 150.0,
+            build_skinned_ms_per_mtri: 150.0,
+            refit_ms_per_mtri: 150.0,
+            compact_ms_per_mib: 0.5,
+            tlas_ms_per_kinst: 0.2,
+        }
+    }
+
+    /// PLACEHOLDER for NVIDIA H100/H200 until issue 5's runs fill it in.
+    pub fn nvidia_placeholder() -> Self {
+        Self {
+            batch_fixed_ms: 0.01,
+            build_static_ms_per_mtri: 2.5,
+            build_skinned_ms_per_mtri: 1.5,
+            refit_ms_per_mtri: 0.4,
+            compact_ms_per_mib: 0.01,
+            tlas_ms_per_kinst: 0.002,
+        }
+    }
+
+    /// Estimated GPU ms for `units` of `op` (without the batch constant).
+    pub fn estimate(&self, op: CostOp, units: u64) -> f64 {
+        let u = units as f64;
+        match op {
+            CostOp::BuildStatic => self.build_static_ms_per_mtri * u / 1e6,
+            CostOp::BuildSkinned => self.build_skinned_ms_per_mtri * u / 1e6,
+            CostOp::Refit => self.refit_ms_per_mtri * u / 1e6,
+            CostOp::Compact => self.compact_ms_per_mib * u / (1u64 << 20) as f64,
+            CostOp::Tlas => self.tlas_ms_per_kinst * u / 1e3,
+        }
+    }
+
+    /// Coefficient for `op` (per its unit scale).
+    pub fn coefficient_mut(&mut self, op: CostOp) -> &mut f64 {
+        match op {
+            CostOp::BuildStatic => &mut self.build_static_ms_per_mtri,
+            CostOp::BuildSkinned => &mut self.build_skinned_ms_per_mtri,
+            CostOp::Refit => &mut self.refit_ms_per_mtri,
+            CostOp::Compact => &mut self.compact_ms_per_mib,
+            CostOp::Tlas => &mut self.tlas_ms_per_kinst,
+        }
+    }
+
+    /// All coefficients finite and >= 0.
+    pub fn validate(&self) -> Result<()> {
+        let all = [
+            self.batch_fixed_ms,
+            self.build_static_ms_per_mtri,
+            self.build_skinned_ms_per_mtri,
+            self.refit_ms_per_mtri,
+            self.compact_ms_per_mib,
+            self.tlas_ms_per_kinst,
+        ];
+        if all.iter().all(|v| v.is_finite() && *v >= 0.0) {
+            Ok(())
+        } else {
+            Err(AsError::InvalidConfig("cost model coefficients must be finite and >= 0".into()))
+        }
+    }
+}
+
+impl Default for CostModel {
+    fn default() -> Self {
+        Self::lavapipe()
+    }
+}
+
+#[derive(Debug, Clone)]
+struct ModelBlas {
+    bytes: u64,
+    class: BlasClass,
+    triangles: u32,
+    built_frame: u64,
+}
+
+/// Counters the model backend keeps (for tests and examples).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ModelCounters {
+    /// BLAS builds recorded.
+    pub builds: u64,
+    /// Refits recorded.
+    pub refits: u64,
+    /// Rebuilds in place recorded.
+    pub rebuilds: u64,
+    /// Compactions recorded.
+    pub compactions: u64,
+    /// BLASes destroyed (retired after their last frame completed).
+    pub destroyed: u64,
+    /// `build_blases` calls.
+    pub build_calls: u64,
+    /// Peak of live + retiring BLAS bytes.
+    pub peak_bytes: u64,
+    /// Simulated OOM failures returned.
+    pub oom_failures: u64,
+}
+
+/// The GPU-less backend.
+#[derive(Debug)]
+pub struct ModelBackend {
+    /// Sizes it reports.
+    pub sizes: SizeModel,
+    /// Costs it "measures".
+    pub costs: CostModel,
+    /// Frames in flight: frame `n` completes when frame `n + frames_in_flight` begins.
+    pub frames_in_flight: u64,
+    /// Simulated device memory for BLASes: allocations beyond it fail with OOM.
+    pub device_bytes: Option<u64>,
+    /// Report lost device on the next call.
+    pub lose_device: bool,
+    blases: HashMap<BlasHandle, ModelBlas>,
+    retiring: VecDeque<(u64, BlasHandle)>,
+    next_handle: u64,
+    frame: u64,
+    completed: Option<u64>,
+    live_bytes: u64,
+    retiring_bytes: u64,
+    measurements: Vec<Measurement>,
+    counters: ModelCounters,
+    tlas_instances: usize,
+}
+
+impl ModelBackend {
+    /// A backend with the given models and 2 frames in flight.
+    pub fn new(sizes: SizeModel, costs: CostModel) -> Self {
+        Self {
+            sizes,
+            costs,
+            frames_in_flight: 2,
+            device_bytes: None,
+            lose_device: false,
+            blases: HashMap::new(),
+            retiring: VecDeque::new(),
+            next_handle: 1,
+            frame: 0,
+            completed: None,
+            live_bytes: 0,
+            retiring_bytes: 0,
+            measurements: Vec::new(),
+            counters: ModelCounters::default(),
+            tlas_instances: 0,
+        }
+    }
+
+    /// Lavapipe presets.
+    pub fn lavapipe() -> Self {
+        Self::new(SizeModel::lavapipe(), CostModel::lavapipe())
+    }
+
+    /// Counters so far.
+    pub fn counters(&self) -> &ModelCounters {
+        &self.counters
+    }
+
+    /// BLASes alive (not yet destroyed), including retiring ones.
+    pub fn live_blas_count(&self) -> usize {
+        self.blases.len()
+    }
+
+    /// Bytes of BLASes not yet destroyed.
+    pub fn allocated_bytes(&self) -> u64 {
+        self.live_bytes + self.retiring_bytes
+    }
+
+    /// Whether a handle is alive (built and not destroyed).
+    pub fn is_live(&self, h: BlasHandle) -> bool {
+        self.blases.contains_key(&h)
+    }
+
+    /// Whether a device address from [`AsBackend::blas_address`] names a live BLAS.
+    pub fn is_live_address(&self, address: u64) -> bool {
+        address & 0xff == 0 && self.blases.contains_key(&BlasHandle(address >> 8))
+    }
+
+    /// Instances in the last TLAS.
+    pub fn tlas_instances(&self) -> usize {
+        self.tlas_instances
+    }
+
+    fn lost(&self) -> BackendResult<()> {
+        if self.lose_device {
+            Err(BackendError::DeviceLost)
+        } else {
+            Ok(())
+        }
+    }
+
+    fn fits(&self, extra: u64) -> bool {
+        self.device_bytes.is_none_or(|cap| self.allocated_bytes() + extra <= cap)
+    }
+
+    fn alloc(&mut self, b: ModelBlas) -> BlasHandle {
+        let h = BlasHandle(self.next_handle);
+        self.next_handle += 1;
+        self.live_bytes += b.bytes;
+        self.blases.insert(h, b);
+        self.counters.peak_bytes = self.counters.peak_bytes.max(self.allocated_bytes());
+        h
+    }
+}
+
+impl AsBackend for ModelBackend {
+    fn begin_frame(&mut self, frame: u64) -> BackendResult<()> {
+        self.lost()?;
+        self.frame = frame;
+        if frame >= self.frames_in_flight {
+            let done = frame - self.frames_in_flight;
+            self.completed = Some(self.completed.map_or(done, |c| c.max(done)));
+        }
+        while let Some(&(last, h)) = self.retiring.front() {
+            if self.completed.is_some_and(|c| c >= last) {
+                self.retiring.pop_front();
+                if let Some(b) = self.blases.remove(&h) {
+                    self.retiring_bytes -= b.bytes;
+                    self.counters.destroyed += 1;
+                }
+            } else {
+                break;
+            }
+        }
+        Ok(())
+    }
+
+    fn completed_frame(&self) -> Option<u64> {
+        self.completed
+    }
+
+    fn blas_sizes(&self, g: &GeometryRef<'_>, class: BlasClass) -> BlasSizes {
+        self.sizes.blas_sizes(g.vertex_count, g.triangle_count, class)
+    }
+
+    fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
+        self.lost()?;
+        let total: u64 = builds.iter().map(|b| b.sizes.as_bytes).sum();
+        if !self.fits(total) {
+            self.counters.oom_failures += 1;
+            return Err(BackendError::OutOfDeviceMemory);
+        }
+        self.counters.build_calls += 1;
+        let mut out = Vec::with_capacity(builds.len());
+        let (mut st, mut sk) = (0u64, 0u64);
+        for b in builds {
+            let t = b.geometry.triangle_count;
+            match b.class {
+                BlasClass::Static => st += t as u64,
+                BlasClass::Skinned => sk += t as u64,
+            }
+            let frame = self.frame;
+            out.push(self.alloc(ModelBlas {
+                bytes: b.sizes.as_bytes,
+                class: b.class,
+                triangles: t,
+                built_frame: frame,
+            }));
+            self.counters.builds += 1;
+        }
+        for (op, units) in [(CostOp::BuildStatic, st), (CostOp::BuildSkinned, sk)] {
+            if units > 0 {
+                let gpu_ms = self.costs.estimate(op, units);
+                self.measurements.push(Measurement { op, units, gpu_ms });
+            }
+        }
+        Ok(out)
+    }
+
+    fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
+        self.lost()?;
+        let (mut rf, mut rb) = (0u64, 0u64);
+        for r in refits {
+            let b = self.blases.get(&r.blas).ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+            debug_assert_eq!(b.class, BlasClass::Skinned);
+            if r.rebuild {
+                rb += b.triangles as u64;
+                self.counters.rebuilds += 1;
+            } else {
+                rf += b.triangles as u64;
+                self.counters.refits += 1;
+            }
+        }
+        for (op, units) in [(CostOp::Refit, rf), (CostOp::BuildSkinned, rb)] {
+            if units > 0 {
+                let gpu_ms = self.costs.estimate(op, units);
+                self.measurements.push(Measurement { op, units, gpu_ms });
+            }
+        }
+        Ok(())
+    }
+
+    fn compacted_size(&mut self, blas: BlasHandle) -> Option<u64> {
+        let b = self.blases.get(&blas)?;
+        if b.class != BlasClass::Static || self.completed.is_none_or(|c| c < b.built_frame) {
+            return None;
+        }
+        Some(self.sizes.round(b.bytes as f64 * self.sizes.compaction_ratio).min(b.bytes))
+    }
+
+    fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
+        self.lost()?;
+        let size = self.compacted_size(blas).ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
+        if !self.fits(size) {
+            self.counters.oom_failures += 1;
+            return Err(BackendError::OutOfDeviceMemory);
+        }
+        let src = self.blases[&blas].clone();
+        let frame = self.frame;
+        let h = self.alloc(ModelBlas {
+            bytes: size,
+            built_frame: frame,
+            ..src
+        });
+        self.counters.compactions += 1;
+        let gpu_ms = self.costs.estimate(CostOp::Compact, src.bytes);
+        self.measurements.push(Measurement {
+            op: CostOp::Compact,
+            units: src.bytes,
+            gpu_ms,
+        });
+        Ok(h)
+    }
+
+    fn free_blas(&mut self, blas: BlasHandle, last_used_frame: u64) {
+        if let Some(b) = self.blases.get(&blas) {
+            self.live_bytes -= b.bytes;
+            self.retiring_bytes += b.bytes;
+            self.retiring.push_back((last_used_frame, blas));
+        }
+    }
+
+    fn blas_address(&self, blas: BlasHandle) -> u64 {
+        // Device addresses are 256-byte aligned and never 0 for a live BLAS.
+        blas.0 << 8
+    }
+
+    fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+        self.lost()?;
+        self.tlas_instances = instances.len();
+        let units = instances.len() as u64;
+        let gpu_ms = self.costs.estimate(CostOp::Tlas, units);
+        self.measurements.push(Measurement {
+            op: CostOp::Tlas,
+            units,
+            gpu_ms,
+        });
+        Ok(TlasHandle(self.frame))
+    }
+
+    fn end_frame(&mut self, _frame: u64) -> BackendResult<()> {
+        self.lost()
+    }
+
+    fn take_measurements(&mut self) -> Vec<Measurement> {
+        std::mem::take(&mut self.measurements)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lavapipe_sizes_and_retirement() {
+        let mut b = ModelBackend::lavapipe();
+        let g = GeometryRef {
+            vertex_count: 10,
+            triangle_count: 10_000,
+            positions: None,
+            indices: None,
+            opaque: true,
+        };
+        let s = b.blas_sizes(&g, BlasClass::Static);
+        assert!((s.as_bytes as f64 - 1_040_256.0).abs() < 512.0);
+        b.begin_frame(0).unwrap();
+        let h = b.build_blases(&[BlasBuild { geometry: g, class: BlasClass::Static, sizes: s }]).unwrap();
+        b.end_frame(0).unwrap();
+        b.free_blas(h[0], 0);
+        assert_eq!(b.allocated_bytes(), s.as_bytes, "still in flight");
+        b.begin_frame(1).unwrap();
+        assert!(b.is_live(h[0]));
+        b.begin_frame(2).unwrap();
+        assert!(!b.is_live(h[0]));
+        assert_eq!(b.allocated_bytes(), 0);
+    }
+}

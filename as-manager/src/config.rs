@@ -1,0 +1,293 @@
+//! Validated configuration: one sub-struct per policy.
+
+use crate::backend::model::CostModel;
+use crate::{AsError, Result};
+
+/// Which policy drives `update`. The baselines run behind the same API for comparisons.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum PolicyKind {
+    /// The manager's policies: spatial-index residency, LOD, budgets, culling with hysteresis.
+    #[default]
+    Managed,
+    /// A BLAS for every registered LOD, built at once, no budget, no culling (what crashed the
+    /// shipped game).
+    Naive,
+    /// The seeds' published loop: two passes over every instance per camera with r1/r2 and the
+    /// create/release thresholds, no budgets, UE-style OR culling over every instance.
+    SeedR1R2,
+}
+
+/// Residency radii (world units, distance from a camera to an instance's bounding sphere) and
+/// frame thresholds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResidencyConfig {
+    /// Within r1 an instance requests its BLAS.
+    pub r1: f32,
+    /// Within r2 an instance keeps its BLAS (r1 <= r2). Only instances within r2 of a camera
+    /// can be in the TLAS.
+    pub r2: f32,
+    /// A BLAS is created after being requested on this many consecutive frames.
+    pub create_threshold: u32,
+    /// A BLAS is released once nothing kept it for more than this many frames.
+    pub release_threshold: u32,
+    /// Managed only: a built BLAS lives at least this many frames (no thrashing even when
+    /// r1 == r2 and the thresholds are zero).
+    pub min_resident_frames: u32,
+    /// Spatial index cell size (world units).
+    pub cell_size: f32,
+}
+
+impl Default for ResidencyConfig {
+    fn default() -> Self {
+        Self {
+            r1: 200.0,
+            r2: 250.0,
+            create_threshold: 2,
+            release_threshold: 30,
+            min_resident_frames: 8,
+            cell_size: 64.0,
+        }
+    }
+}
+
+/// LOD selection by projected geometric error.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LodConfig {
+    /// The coarsest LOD whose error projects to at most this many pixels is chosen.
+    pub max_pixel_error: f32,
+    /// Vertical resolution the error is projected to.
+    pub screen_height_px: f32,
+    /// Vertical field of view, radians.
+    pub vertical_fov: f32,
+    /// Relative band: switch to a coarser LOD only when its error is below
+    /// `max_pixel_error / (1 + hysteresis)`, to a finer one when the current is above
+    /// `max_pixel_error * (1 + hysteresis)`.
+    pub hysteresis: f32,
+}
+
+impl Default for LodConfig {
+    fn default() -> Self {
+        Self {
+            max_pixel_error: 1.0,
+            screen_height_px: 1080.0,
+            vertical_fov: 60f32.to_radians(),
+            hysteresis: 0.25,
+        }
+    }
+}
+
+/// Per-frame build, compaction and refit budgets.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BuildBudget {
+    /// Triangles admitted for BLAS builds per frame.
+    pub max_primitives: u64,
+    /// Estimated GPU milliseconds of BLAS builds per frame.
+    pub max_gpu_ms: f32,
+    /// Priority gained per frame of waiting (world units of distance), so nothing starves.
+    pub aging_per_frame: f32,
+    /// Priority bonus (world units) for an item some camera looks towards.
+    pub in_view_bonus: f32,
+    /// Compactions per frame.
+    pub max_compactions: u32,
+    /// Estimated GPU milliseconds of compaction copies per frame.
+    pub max_compaction_ms: f32,
+    /// Triangles refitted per frame (skinned), oldest first.
+    pub max_refit_primitives: u64,
+    /// Rebuild a skinned BLAS when its refit quality ratio (summed leaf/node surface area
+    /// relative to the root, against the last build) exceeds this.
+    pub rebuild_quality_bound: f32,
+}
+
+impl Default for BuildBudget {
+    fn default() -> Self {
+        Self {
+            max_primitives: 200_000,
+            max_gpu_ms: 0.5,
+            aging_per_frame: 2.0,
+            in_view_bonus: 50.0,
+            max_compactions: 8,
+            max_compaction_ms: 0.25,
+            max_refit_primitives: 200_000,
+            rebuild_quality_bound: 1.5,
+        }
+    }
+}
+
+/// BLAS memory budget.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MemoryBudget {
+    /// Bytes of BLAS storage (including compaction copies and freed-but-in-flight BLASes).
+    pub blas_bytes: u64,
+}
+
+impl Default for MemoryBudget {
+    fn default() -> Self {
+        Self {
+            blas_bytes: 512 << 20,
+        }
+    }
+}
+
+/// How distance and angle culling combine (like UE5's modes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum CullMode {
+    /// Cull if far OR small (UE's default).
+    #[default]
+    FarOrSmall,
+    /// Cull only if far AND small.
+    FarAndSmall,
+    /// Distance only.
+    Far,
+    /// Projected angle only.
+    Small,
+    /// No culling.
+    Off,
+}
+
+/// Instance culling for the TLAS.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CullConfig {
+    /// Combination of the two tests.
+    pub mode: CullMode,
+    /// "Far": distance from the camera to the bounding sphere beyond this.
+    pub far_distance: f32,
+    /// "Small": angular radius of the bounding sphere below this (radians).
+    pub min_angle: f32,
+    /// Nothing within this distance is culled.
+    pub near_distance: f32,
+    /// Relative margin: a culled instance comes back only once it passes the thresholds
+    /// tightened by this fraction (no flicker).
+    pub hysteresis: f32,
+}
+
+impl Default for CullConfig {
+    fn default() -> Self {
+        Self {
+            mode: CullMode::FarOrSmall,
+            far_distance: 300.0,
+            min_angle: 1f32.to_radians(),
+            near_distance: 10.0,
+            hysteresis: 0.1,
+        }
+    }
+}
+
+/// TLAS record assembly.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AssemblyConfig {
+    /// Records are written by several threads at and above this count.
+    pub parallel_threshold: usize,
+    /// Threads for parallel assembly (>= 1).
+    pub threads: usize,
+}
+
+impl Default for AssemblyConfig {
+    fn default() -> Self {
+        Self {
+            parallel_threshold: 32_768,
+            threads: std::thread::available_parallelism().map_or(2, |n| n.get().min(8)),
+        }
+    }
+}
+
+/// The manager's configuration; [`Config::validate`] runs in [`crate::AsManager::new`].
+///
+/// ```
+/// use rtstream_as_manager::Config;
+/// let mut c = Config::default();
+/// assert!(c.validate().is_ok());
+/// c.residency.r1 = 500.0; // r1 > r2
+/// assert!(c.validate().is_err());
+/// ```
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Config {
+    /// Policy driving `update`.
+    pub policy: PolicyKind,
+    /// Residency radii and thresholds.
+    pub residency: ResidencyConfig,
+    /// LOD selection.
+    pub lod: LodConfig,
+    /// Build/compaction/refit budgets.
+    pub build: BuildBudget,
+    /// Memory budget.
+    pub memory: MemoryBudget,
+    /// Instance culling.
+    pub cull: CullConfig,
+    /// Assembly.
+    pub assembly: AssemblyConfig,
+    /// Prior GPU cost model; measured timings refine it.
+    pub cost_prior: CostModel,
+}
+
+fn check(ok: bool, what: &str) -> Result<()> {
+    if ok {
+        Ok(())
+    } else {
+        Err(AsError::InvalidConfig(what.to_string()))
+    }
+}
+
+fn pos(v: f32) -> bool {
+    v.is_finite() && v > 0.0
+}
+
+fn nonneg(v: f32) -> bool {
+    v.is_finite() && v >= 0.0
+}
+
+impl Config {
+    /// Checks ranges: finite values, 0 < r1 <= r2, positive budgets, 0 < fov < pi, ...
+    pub fn validate(&self) -> Result<()> {
+        let r = &self.residency;
+        check(pos(r.r1) && pos(r.r2), "residency.r1/r2 must be finite and > 0")?;
+        check(r.r1 <= r.r2, "residency.r1 must be <= r2")?;
+        check(pos(r.cell_size), "residency.cell_size must be finite and > 0")?;
+        check(r.create_threshold <= 1_000_000 && r.release_threshold <= 1_000_000, "thresholds must be <= 1e6 frames")?;
+        let l = &self.lod;
+        check(pos(l.max_pixel_error), "lod.max_pixel_error must be > 0")?;
+        check(pos(l.screen_height_px), "lod.screen_height_px must be > 0")?;
+        check(pos(l.vertical_fov) && l.vertical_fov < std::f32::consts::PI, "lod.vertical_fov must be in (0, pi)")?;
+        check(nonneg(l.hysteresis), "lod.hysteresis must be >= 0")?;
+        let b = &self.build;
+        check(b.max_primitives > 0, "build.max_primitives must be > 0")?;
+        check(pos(b.max_gpu_ms), "build.max_gpu_ms must be > 0")?;
+        check(nonneg(b.aging_per_frame) && nonneg(b.in_view_bonus), "build.aging/in_view_bonus must be >= 0")?;
+        check(nonneg(b.max_compaction_ms), "build.max_compaction_ms must be >= 0")?;
+        check(b.rebuild_quality_bound.is_finite() && b.rebuild_quality_bound >= 1.0, "build.rebuild_quality_bound must be >= 1")?;
+        check(self.memory.blas_bytes > 0, "memory.blas_bytes must be > 0")?;
+        let c = &self.cull;
+        check(pos(c.far_distance), "cull.far_distance must be > 0")?;
+        check(nonneg(c.min_angle) && c.min_angle < std::f32::consts::FRAC_PI_2, "cull.min_angle must be in [0, pi/2)")?;
+        check(nonneg(c.near_distance), "cull.near_distance must be >= 0")?;
+        check(nonneg(c.hysteresis) && c.hysteresis < 1.0, "cull.hysteresis must be in [0, 1)")?;
+        check(self.assembly.threads >= 1, "assembly.threads must be >= 1")?;
+        self.cost_prior.validate()
+    }
+
+    /// The seeds' parameters for the `SeedR1R2` baseline.
+    pub fn seed_r1r2() -> Self {
+        Self {
+            policy: PolicyKind::SeedR1R2,
+            ..Self::default()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_valid_and_bad_values_rejected() {
+        assert!(Config::default().validate().is_ok());
+        let mut c = Config::default();
+        c.residency.r2 = f32::NAN;
+        assert!(matches!(c.validate(), Err(AsError::InvalidConfig(_))));
+        let mut c = Config::default();
+        c.build.max_primitives = 0;
+        assert!(c.validate().is_err());
+        let mut c = Config::default();
+        c.residency.r1 = c.residency.r2;
+        assert!(c.validate().is_ok(), "r1 == r2 is allowed");
+    }
+}

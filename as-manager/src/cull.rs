@@ -1,0 +1,92 @@
+//! `InstanceCuller`: TLAS instance culling by distance and projected angle, with hysteresis.
+//!
+//! Instances behind the camera are not culled for being behind: they cast shadows and show in
+//! reflections. Only distance and angular size count, measured from the nearest camera.
+
+use crate::config::{CullConfig, CullMode};
+
+/// Precomputed culling thresholds.
+#[derive(Debug, Clone, Copy)]
+pub struct InstanceCuller {
+    mode: CullMode,
+    near: f32,
+    far: f32,
+    far_back: f32,
+    tan2: f32,
+    tan2_back: f32,
+}
+
+impl InstanceCuller {
+    /// From a validated config.
+    pub fn new(c: &CullConfig) -> Self {
+        let t = c.min_angle.tan();
+        let tb = (c.min_angle * (1.0 + c.hysteresis)).min(1.5).tan();
+        Self {
+            mode: c.mode,
+            near: c.near_distance,
+            far: c.far_distance,
+            far_back: c.far_distance * (1.0 - c.hysteresis),
+            tan2: t * t,
+            tan2_back: tb * tb,
+        }
+    }
+
+    /// Whether to cull an instance of bounding `radius` whose centre is `center_dist` from the
+    /// nearest camera; `was_culled` applies the hysteresis (a culled instance needs to be
+    /// clearly inside the thresholds to come back).
+    ///
+    /// ```
+    /// use rtstream_as_manager::{config::CullConfig, cull::InstanceCuller};
+    /// let c = InstanceCuller::new(&CullConfig::default());
+    /// assert!(!c.cull(1.0, 50.0, false));
+    /// assert!(c.cull(1.0, 400.0, false));   // far
+    /// assert!(c.cull(0.1, 100.0, false));   // small: 0.06 degrees
+    /// assert!(!c.cull(0.1, 5.0, false));    // within the near distance
+    /// ```
+    pub fn cull(&self, radius: f32, center_dist: f32, was_culled: bool) -> bool {
+        let surface = (center_dist - radius).max(0.0);
+        if surface <= self.near {
+            return false;
+        }
+        let (far_d, tan2) = if was_culled { (self.far_back, self.tan2_back) } else { (self.far, self.tan2) };
+        let far = surface > far_d;
+        let small = radius * radius < tan2 * center_dist * center_dist;
+        match self.mode {
+            CullMode::FarOrSmall => far || small,
+            CullMode::FarAndSmall => far && small,
+            CullMode::Far => far,
+            CullMode::Small => small,
+            CullMode::Off => false,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hysteresis_band_prevents_flicker() {
+        let c = InstanceCuller::new(&CullConfig {
+            mode: CullMode::Far,
+            ..CullConfig::default()
+        });
+        // just beyond 300 m: culled; coming back needs < 270 m
+        assert!(c.cull(1.0, 302.0, false));
+        assert!(c.cull(1.0, 290.0, true));
+        assert!(!c.cull(1.0, 290.0, false));
+        assert!(!c.cull(1.0, 260.0, true));
+        let s = InstanceCuller::new(&CullConfig::default());
+        // angular radius 1 degree at 57.3 m for r = 1: band up to 1.1 degrees
+        assert!(s.cull(1.0, 60.0, false));
+        assert!(s.cull(1.0, 55.0, true));
+        assert!(!s.cull(1.0, 55.0, false));
+        assert!(!s.cull(1.0, 50.0, true));
+        let and = InstanceCuller::new(&CullConfig {
+            mode: CullMode::FarAndSmall,
+            ..CullConfig::default()
+        });
+        assert!(!and.cull(50.0, 400.0, false), "far but big");
+        assert!(and.cull(1.0, 400.0, false));
+    }
+}

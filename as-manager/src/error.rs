@@ -1,0 +1,40 @@
+//! The crate's error type and `Result` alias.
+
+use crate::backend::BackendError;
+
+/// Everything the manager can refuse or fail at.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AsError {
+    /// A [`crate::Config`] value is out of range; the string names the field and the rule.
+    #[error("invalid config: {0}")]
+    InvalidConfig(String),
+    /// A mesh description is unusable (no LODs, bad counts, indices out of range, non-finite data).
+    #[error("invalid mesh `{name}`: {reason}")]
+    InvalidMesh {
+        /// The mesh's debug name.
+        name: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A transform holds NaN or infinite values.
+    #[error("invalid transform (non-finite values)")]
+    InvalidTransform,
+    /// An instance description is out of range (customIndex or SBT offset beyond 24 bits).
+    #[error("invalid instance: {0}")]
+    InvalidInstance(String),
+    /// The mesh id is unknown or was unregistered.
+    #[error("unknown mesh {0:?}")]
+    UnknownMesh(crate::MeshId),
+    /// The instance id is unknown or was removed.
+    #[error("unknown instance {0:?}")]
+    UnknownInstance(crate::InstanceId),
+    /// The operation needs a skinned instance.
+    #[error("instance {0:?} is not skinned")]
+    NotSkinned(crate::InstanceId),
+    /// The backend reported an error the manager cannot absorb (device lost).
+    #[error("backend: {0}")]
+    Backend(#[from] BackendError),
+}
+
+/// `Result` with [`AsError`].
+pub type Result<T, E = AsError> = std::result::Result<T, E>;

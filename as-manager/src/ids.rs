@@ -1,0 +1,87 @@
+//! Stable ids: index + generation, recycled through a free list.
+
+/// A registered mesh (its LOD chain). Cheap to copy; stale ids are detected by generation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct MeshId {
+    pub(crate) index: u32,
+    pub(crate) generation: u32,
+}
+
+/// A placed instance of a mesh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct InstanceId {
+    pub(crate) index: u32,
+    pub(crate) generation: u32,
+}
+
+impl MeshId {
+    /// The slot index (stable while the mesh lives).
+    pub fn index(self) -> u32 {
+        self.index
+    }
+}
+
+impl InstanceId {
+    /// The slot index (stable while the instance lives).
+    pub fn index(self) -> u32 {
+        self.index
+    }
+}
+
+/// Allocates `(index, generation)` pairs; a freed index comes back with generation + 1.
+#[derive(Debug, Default)]
+pub(crate) struct IdAllocator {
+    generations: Vec<u32>,
+    live: Vec<bool>,
+    free: Vec<u32>,
+}
+
+impl IdAllocator {
+    pub fn alloc(&mut self) -> (u32, u32) {
+        if let Some(i) = self.free.pop() {
+            self.live[i as usize] = true;
+            (i, self.generations[i as usize])
+        } else {
+            let i = self.generations.len() as u32;
+            self.generations.push(0);
+            self.live.push(true);
+            (i, 0)
+        }
+    }
+
+    pub fn is_live(&self, index: u32, generation: u32) -> bool {
+        let i = index as usize;
+        i < self.live.len() && self.live[i] && self.generations[i] == generation
+    }
+
+    /// Marks the id dead now (later calls see it as unknown); the index is recycled by
+    /// [`IdAllocator::recycle`] once the manager has applied the removal.
+    pub fn kill(&mut self, index: u32) {
+        self.live[index as usize] = false;
+    }
+
+    pub fn recycle(&mut self, index: u32) {
+        let i = index as usize;
+        self.generations[i] = self.generations[i].wrapping_add(1);
+        self.free.push(index);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recycled_ids_get_new_generation() {
+        let mut a = IdAllocator::default();
+        let (i, g) = a.alloc();
+        assert!(a.is_live(i, g));
+        a.kill(i);
+        assert!(!a.is_live(i, g));
+        a.recycle(i);
+        let (j, h) = a.alloc();
+        assert_eq!(i, j);
+        assert_ne!(g, h);
+        assert!(!a.is_live(i, g));
+    }
+}

@@ -1,0 +1,189 @@
+//! Applying queued registry commands, in queue order.
+
+use std::sync::Arc;
+
+use glam::Affine3A;
+
+use super::registrar::{Command, InstanceDesc};
+use super::state::{InstanceState, MeshState, NONE};
+use super::AsManager;
+use crate::backend::AsBackend;
+use crate::config::PolicyKind;
+use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
+use crate::record::INSTANCE_FORCE_OPAQUE;
+use crate::{InstanceId, MeshId};
+
+fn world_sphere(desc: &MeshDesc, t: &Affine3A) -> (glam::Vec3, f32, f32) {
+    let c = t.transform_point3(glam::Vec3::from(desc.bounds_center));
+    let m = t.matrix3;
+    let scale = m.x_axis.length().max(m.y_axis.length()).max(m.z_axis.length());
+    (c, desc.bounds_radius * scale, scale)
+}
+
+impl<B: AsBackend> AsManager<B> {
+    pub(crate) fn apply_commands(&mut self) {
+        let (commands, recycled) = {
+            let mut p = self.registrar.pending.lock();
+            (std::mem::take(&mut p.commands), ())
+        };
+        let _ = recycled;
+        self.stats.commands_applied = commands.len() as u32;
+        let mut dead_meshes = Vec::new();
+        let mut dead_instances = Vec::new();
+        for c in commands {
+            match c {
+                Command::RegisterMesh(id, desc) => self.apply_register(id, desc),
+                Command::UnregisterMesh(id) => {
+                    dead_instances.extend(self.apply_unregister(id));
+                    dead_meshes.push(id.index);
+                }
+                Command::AddInstance(id, desc) => self.apply_add(id, desc),
+                Command::SetTransform(id, t) => self.apply_transform(id, t),
+                Command::RemoveInstance(id) => {
+                    if self.apply_remove(id.index) {
+                        dead_instances.push(id.index);
+                    }
+                }
+                Command::SetPose(id, pose) => {
+                    if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
+                        i.pose = pose;
+                        i.pose_version += 1;
+                    }
+                }
+            }
+        }
+        if !dead_meshes.is_empty() || !dead_instances.is_empty() {
+            let mut p = self.registrar.pending.lock();
+            for m in dead_meshes {
+                p.meshes.recycle(m);
+            }
+            for i in dead_instances {
+                p.instances.kill(i);
+                p.instances.recycle(i);
+            }
+        }
+    }
+
+    fn apply_register(&mut self, id: MeshId, desc: Arc<MeshDesc>) {
+        let slot = id.index as usize;
+        if self.t.meshes.len() <= slot {
+            self.t.meshes.resize_with(slot + 1, || None);
+        }
+        let errors = desc.lods.iter().map(|l| l.geometric_error).collect();
+        self.t.meshes[slot] = Some(MeshState {
+            desc,
+            errors,
+            lod_entry: [NONE; MAX_LODS],
+            lod_floor: 0,
+            floor_since: 0,
+            instances: Vec::new(),
+        });
+        if self.config.policy == PolicyKind::Naive {
+            self.naive_register_mesh(id.index);
+        }
+    }
+
+    /// Removes the mesh's instances and BLASes; returns the instance slots removed.
+    fn apply_unregister(&mut self, id: MeshId) -> Vec<u32> {
+        let Some(Some(mesh)) = self.t.meshes.get(id.index as usize) else { return Vec::new() };
+        let insts = mesh.instances.clone();
+        let entries: Vec<u32> = mesh.lod_entry.iter().copied().filter(|&e| e != NONE).collect();
+        for &i in &insts {
+            self.apply_remove(i);
+        }
+        for e in entries {
+            if self.t.entries[e as usize].live {
+                self.release_entry(e);
+            }
+        }
+        self.floors.retain(|&m| m != id.index);
+        self.t.meshes[id.index as usize] = None;
+        insts
+    }
+
+    fn apply_add(&mut self, id: InstanceId, desc: InstanceDesc) {
+        let Some(Some(mesh)) = self.t.meshes.get_mut(desc.mesh.index as usize) else { return };
+        let (center, radius, scale) = world_sphere(&mesh.desc, &desc.transform);
+        let flags = desc.flags | if mesh.desc.opaque { INSTANCE_FORCE_OPAQUE } else { 0 };
+        let mesh_pos = mesh.instances.len() as u32;
+        mesh.instances.push(id.index);
+        let slot = id.index as usize;
+        if self.t.instances.len() <= slot {
+            self.t.instances.resize_with(slot + 1, || None);
+        }
+        self.t.instances[slot] = Some(InstanceState {
+            mesh: desc.mesh.index,
+            mesh_pos,
+            transform: desc.transform,
+            rows: crate::record::transform_rows(&desc.transform),
+            center,
+            radius,
+            scale,
+            custom_index: desc.custom_index,
+            mask: desc.mask,
+            sbt_offset: desc.sbt_offset,
+            flags,
+            lod_target: (MAX_LODS - 1) as u8,
+            shown: (NONE, 0),
+            own: (NONE, 0),
+            culled: true,
+            last_visit: u64::MAX,
+            pose: None,
+            pose_version: 0,
+            seed_request: None,
+            seed_keep: None,
+            seed_has: false,
+        });
+        self.grid.insert(id.index, center, radius);
+        self.live_instances += 1;
+        if self.config.policy == PolicyKind::Naive {
+            self.naive_add_instance(id.index);
+        }
+    }
+
+    fn apply_transform(&mut self, id: InstanceId, t: Affine3A) {
+        let Some(Some(inst)) = self.t.instances.get_mut(id.index as usize) else { return };
+        let Some(Some(mesh)) = self.t.meshes.get(inst.mesh as usize) else { return };
+        let (center, radius, scale) = world_sphere(&mesh.desc, &t);
+        inst.transform = t;
+        inst.rows = crate::record::transform_rows(&t);
+        inst.center = center;
+        inst.radius = radius;
+        inst.scale = scale;
+        self.grid.insert(id.index, center, radius);
+    }
+
+    /// Removes an instance's state; returns whether it existed.
+    fn apply_remove(&mut self, slot: u32) -> bool {
+        let Some(Some(inst)) = self.t.instances.get(slot as usize) else { return false };
+        let (mesh, mesh_pos, own, shown, seed_has) = (inst.mesh, inst.mesh_pos, inst.own, inst.shown, inst.seed_has);
+        if let Some(Some(m)) = self.t.meshes.get_mut(mesh as usize) {
+            m.instances.swap_remove(mesh_pos as usize);
+            if let Some(&moved) = m.instances.get(mesh_pos as usize) {
+                if let Some(Some(mi)) = self.t.instances.get_mut(moved as usize) {
+                    mi.mesh_pos = mesh_pos;
+                }
+            }
+        }
+        let kind = self.t.meshes[mesh as usize].as_ref().map(|m| m.kind());
+        if seed_has {
+            self.seed_drop_ref(slot);
+        }
+        if kind == Some(MeshKind::Skinned) {
+            // Skinned BLASes belong to the instance: release every entry it owns.
+            for key in [own, shown] {
+                if self.t.entry_valid(key) && self.t.entries[key.0 as usize].owner == slot {
+                    self.release_entry(key.0);
+                }
+            }
+            let owned: Vec<u32> = self.t.active.iter().copied().filter(|&e| self.t.entries[e as usize].owner == slot).collect();
+            for e in owned {
+                self.release_entry(e);
+            }
+        }
+        self.grid.remove(slot);
+        self.t.instances[slot as usize] = None;
+        self.live_instances -= 1;
+        true
+    }
+}

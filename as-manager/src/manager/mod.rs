@@ -1,0 +1,425 @@
+//! `AsManager`: the engine-facing API and the frame loop.
+
+mod apply;
+mod baseline;
+mod managed;
+mod registrar;
+mod schedule;
+mod state;
+
+use std::collections::VecDeque;
+
+use glam::{Affine3A, Vec3};
+
+pub use registrar::{InstanceDesc, Registrar};
+use state::{EntryState, Tables};
+
+use crate::backend::model::CostModel;
+use crate::backend::{AsBackend, CostOp, TlasHandle};
+use crate::config::{Config, PolicyKind};
+use crate::cull::InstanceCuller;
+use crate::lod::LodSelector;
+use crate::record::TlasInstance;
+use crate::spatial::GridIndex;
+use crate::{AsError, InstanceId, Result};
+
+/// A camera: residency, LOD and culling are measured from its position; `forward` (unit)
+/// only raises the build priority of what it looks at.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// World position.
+    pub position: Vec3,
+    /// View direction (unit length, or zero for "all around").
+    pub forward: Vec3,
+}
+
+impl Camera {
+    /// A camera at `position` looking along `forward`.
+    pub fn new(position: Vec3, forward: Vec3) -> Self {
+        Self { position, forward }
+    }
+}
+
+/// One frame's input. Frame numbers must increase.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameInput<'a> {
+    /// Frame number (the backend's timeline value).
+    pub frame: u64,
+    /// Cameras (any number; all share the one TLAS).
+    pub cameras: &'a [Camera],
+}
+
+/// What one `update` did.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameStats {
+    /// Frame number.
+    pub frame: u64,
+    /// Registry commands applied.
+    pub commands_applied: u32,
+    /// Live instances.
+    pub instances: u32,
+    /// Instances examined this frame (near the cameras for `Managed`).
+    pub instances_visited: u32,
+    /// Instances in the TLAS.
+    pub tlas_instances: u32,
+    /// Instances with a built BLAS but culled.
+    pub culled: u32,
+    /// Built BLASes.
+    pub blas_count: u32,
+    /// Bytes of built BLASes.
+    pub blas_bytes: u64,
+    /// Bytes of freed BLASes the GPU may still use (counted against the budget).
+    pub retiring_bytes: u64,
+    /// The budget in force (after any OOM back-off).
+    pub memory_budget: u64,
+    /// BLASes created (built) this frame.
+    pub builds: u32,
+    /// Triangles built this frame.
+    pub build_primitives: u64,
+    /// Estimated GPU ms of this frame's builds.
+    pub build_estimated_ms: f32,
+    /// An item larger than the whole build budget was admitted alone.
+    pub oversized_admitted: bool,
+    /// Items still waiting in the build queue.
+    pub queued: u32,
+    /// BLASes released (residency) this frame.
+    pub releases: u32,
+    /// BLASes evicted (memory) this frame.
+    pub evictions: u32,
+    /// LOD fallbacks (memory) this frame.
+    pub lod_fallbacks: u32,
+    /// Compactions recorded this frame.
+    pub compactions: u32,
+    /// Skinned refits this frame.
+    pub refits: u32,
+    /// Skinned rebuilds (refit quality degraded) this frame.
+    pub rebuilds: u32,
+    /// Triangles refitted or rebuilt this frame.
+    pub refit_primitives: u64,
+    /// Worst measured refit quality ratio among this frame's refits (1.0 = as built).
+    pub worst_refit_quality: f32,
+    /// OOM answers from the backend this frame.
+    pub oom_events: u32,
+    /// GPU ms measured by the backend and received this frame.
+    pub measured_gpu_ms: f64,
+}
+
+impl FrameStats {
+    /// Bytes counted against the budget.
+    pub fn memory_in_use(&self) -> u64 {
+        self.blas_bytes + self.retiring_bytes
+    }
+}
+
+/// The result of `update`.
+#[derive(Debug, Clone, Copy)]
+pub struct FrameOutput<'a> {
+    /// The backend's TLAS for this frame.
+    pub tlas: TlasHandle,
+    /// The instance records it was built from.
+    pub instances: &'a [TlasInstance],
+    /// Statistics.
+    pub stats: &'a FrameStats,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Visit {
+    pub slot: u32,
+    /// Distance from the nearest camera to the centre.
+    pub center_dist: f32,
+    /// Distance from the nearest camera to the bounding sphere.
+    pub surface_dist: f32,
+}
+
+/// The BLAS/TLAS manager. See the crate docs for the frame pipeline.
+///
+/// ```
+/// use std::sync::Arc;
+/// use glam::{Affine3A, Vec3};
+/// use rtstream_as_manager::*;
+/// use rtstream_as_manager::backend::model::ModelBackend;
+///
+/// let mut m = AsManager::new(Config::default(), ModelBackend::lavapipe()).unwrap();
+/// let mesh = m.register_mesh(MeshDesc::new("crate", MeshKind::Static, 1.0, vec![LodDesc {
+///     geometry: LodGeometry::Counts { vertices: 24, triangles: 12 }, geometric_error: 0.0 }])).unwrap();
+/// m.add_instance(InstanceDesc::new(mesh, Affine3A::from_translation(Vec3::new(0.0, 0.0, 20.0)))).unwrap();
+/// let cam = [Camera::new(Vec3::ZERO, Vec3::Z)];
+/// let mut n = 0;
+/// for frame in 0..4 {
+///     n = m.update(FrameInput { frame, cameras: &cam }).unwrap().instances.len();
+/// }
+/// assert_eq!(n, 1);
+/// ```
+#[derive(Debug)]
+pub struct AsManager<B: AsBackend> {
+    config: Config,
+    backend: B,
+    registrar: Registrar,
+    t: Tables,
+    grid: GridIndex,
+    lod: LodSelector,
+    culler: InstanceCuller,
+    costs: CostModel,
+    visits: Vec<Visit>,
+    cam_pos: Vec<Vec3>,
+    cam_fwd: Vec<Vec3>,
+    tlas_list: Vec<(u32, u64)>,
+    records: Vec<TlasInstance>,
+    compact_pending: Vec<(u32, u32)>,
+    retiring: VecDeque<(u64, u64)>,
+    retiring_bytes: u64,
+    live_bytes: u64,
+    built_count: u32,
+    oom_cap: Option<u64>,
+    floors: Vec<u32>,
+    live_instances: u32,
+    last_frame: Option<u64>,
+    frame: u64,
+    stats: FrameStats,
+}
+
+impl<B: AsBackend> AsManager<B> {
+    /// A manager with a validated `config` driving `backend`.
+    pub fn new(config: Config, backend: B) -> Result<Self> {
+        config.validate()?;
+        Ok(Self {
+            grid: GridIndex::new(config.residency.cell_size),
+            lod: LodSelector::new(&config.lod),
+            culler: InstanceCuller::new(&config.cull),
+            costs: config.cost_prior,
+            config,
+            backend,
+            registrar: Registrar::default(),
+            t: Tables::default(),
+            visits: Vec::new(),
+            cam_pos: Vec::new(),
+            cam_fwd: Vec::new(),
+            tlas_list: Vec::new(),
+            records: Vec::new(),
+            compact_pending: Vec::new(),
+            retiring: VecDeque::new(),
+            retiring_bytes: 0,
+            live_bytes: 0,
+            built_count: 0,
+            oom_cap: None,
+            floors: Vec::new(),
+            live_instances: 0,
+            last_frame: None,
+            frame: 0,
+            stats: FrameStats::default(),
+        })
+    }
+
+    /// A thread-safe handle for registration from loader threads.
+    pub fn registrar(&self) -> Registrar {
+        self.registrar.clone()
+    }
+
+    /// See [`Registrar::register_mesh`].
+    pub fn register_mesh(&self, desc: crate::MeshDesc) -> Result<crate::MeshId> {
+        self.registrar.register_mesh(desc)
+    }
+
+    /// See [`Registrar::unregister_mesh`].
+    pub fn unregister_mesh(&self, id: crate::MeshId) -> Result<()> {
+        self.registrar.unregister_mesh(id)
+    }
+
+    /// See [`Registrar::add_instance`].
+    pub fn add_instance(&self, desc: InstanceDesc) -> Result<InstanceId> {
+        self.registrar.add_instance(desc)
+    }
+
+    /// See [`Registrar::set_transform`].
+    pub fn set_transform(&self, id: InstanceId, transform: Affine3A) -> Result<()> {
+        self.registrar.set_transform(id, transform)
+    }
+
+    /// See [`Registrar::remove_instance`].
+    pub fn remove_instance(&self, id: InstanceId) -> Result<()> {
+        self.registrar.remove_instance(id)
+    }
+
+    /// See [`Registrar::set_skinned_pose`].
+    pub fn set_skinned_pose(&self, id: InstanceId, positions: std::sync::Arc<Vec<[f32; 3]>>) -> Result<()> {
+        self.registrar.set_skinned_pose(id, positions)
+    }
+
+    /// See [`Registrar::mark_deformed`].
+    pub fn mark_deformed(&self, id: InstanceId) -> Result<()> {
+        self.registrar.mark_deformed(id)
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// Replaces the configuration (validated); budgets apply from the next `update` (an
+    /// over-budget state is evicted at once; freed bytes still in flight drain within the
+    /// backend's frames in flight).
+    pub fn set_config(&mut self, config: Config) -> Result<()> {
+        config.validate()?;
+        if config.residency.cell_size != self.config.residency.cell_size {
+            let mut grid = GridIndex::new(config.residency.cell_size);
+            for (slot, inst) in self.t.instances.iter().enumerate() {
+                if let Some(i) = inst {
+                    grid.insert(slot as u32, i.center, i.radius);
+                }
+            }
+            self.grid = grid;
+        }
+        self.lod = LodSelector::new(&config.lod);
+        self.culler = InstanceCuller::new(&config.cull);
+        self.config = config;
+        Ok(())
+    }
+
+    /// The backend.
+    pub fn backend(&self) -> &B {
+        &self.backend
+    }
+
+    /// The backend, mutably (e.g. to inject failures in tests).
+    pub fn backend_mut(&mut self) -> &mut B {
+        &mut self.backend
+    }
+
+    /// The cost model as refined by measurements so far.
+    pub fn cost_model(&self) -> &CostModel {
+        &self.costs
+    }
+
+    /// The last frame's statistics.
+    pub fn stats(&self) -> &FrameStats {
+        &self.stats
+    }
+
+    /// The LOD an instance is targeting (skinned poses are for this LOD), once applied.
+    pub fn instance_lod(&self, id: InstanceId) -> Option<usize> {
+        let inst = self.t.instances.get(id.index as usize)?.as_ref()?;
+        let own = inst.own;
+        if self.t.entry_valid(own) {
+            Some(self.t.entries[own.0 as usize].lod as usize)
+        } else {
+            Some(inst.lod_target as usize)
+        }
+    }
+
+    /// Bytes counted against the memory budget now (built + retiring).
+    pub fn memory_in_use(&self) -> u64 {
+        self.live_bytes + self.retiring_bytes
+    }
+
+    pub(crate) fn budget(&self) -> u64 {
+        let b = self.config.memory.blas_bytes;
+        self.oom_cap.map_or(b, |c| c.min(b))
+    }
+
+    /// Runs one frame: applies queued registrations, then residency, LOD, scheduling, memory,
+    /// culling and assembly, then records the backend work and the TLAS build.
+    pub fn update(&mut self, input: FrameInput<'_>) -> Result<FrameOutput<'_>> {
+        let frame = input.frame;
+        if self.last_frame.is_some_and(|l| frame <= l) {
+            return Err(AsError::InvalidConfig(format!("frame {frame} does not increase")));
+        }
+        if input.cameras.iter().any(|c| !c.position.is_finite() || !c.forward.is_finite()) {
+            return Err(AsError::InvalidTransform);
+        }
+        let _span = tracing::debug_span!("update", frame).entered();
+        self.last_frame = Some(frame);
+        self.frame = frame;
+        self.stats = FrameStats {
+            frame,
+            worst_refit_quality: 1.0,
+            ..FrameStats::default()
+        };
+        self.backend.begin_frame(frame)?;
+        self.drain_retiring();
+        self.refine_costs();
+        {
+            let _s = tracing::trace_span!("apply").entered();
+            self.apply_commands();
+        }
+        self.cam_pos.clear();
+        self.cam_fwd.clear();
+        for c in input.cameras {
+            self.cam_pos.push(c.position);
+            self.cam_fwd.push(c.forward);
+        }
+        match self.config.policy {
+            PolicyKind::Managed => self.managed_frame()?,
+            PolicyKind::Naive => self.naive_frame()?,
+            PolicyKind::SeedR1R2 => self.seed_frame()?,
+        }
+        let tlas = {
+            let _s = tracing::trace_span!("record").entered();
+            let tlas = self.backend.build_tlas(&self.records)?;
+            self.backend.end_frame(frame)?;
+            tlas
+        };
+        self.stats.instances = self.live_instances;
+        self.stats.tlas_instances = self.records.len() as u32;
+        self.stats.blas_count = self.built_count;
+        self.stats.blas_bytes = self.live_bytes;
+        self.stats.retiring_bytes = self.retiring_bytes;
+        self.stats.memory_budget = self.budget();
+        Ok(FrameOutput {
+            tlas,
+            instances: &self.records,
+            stats: &self.stats,
+        })
+    }
+
+    fn drain_retiring(&mut self) {
+        let done = self.backend.completed_frame();
+        while let Some(&(last, bytes)) = self.retiring.front() {
+            if done.is_some_and(|d| d >= last) {
+                self.retiring.pop_front();
+                self.retiring_bytes -= bytes;
+            } else {
+                break;
+            }
+        }
+    }
+
+    /// Exponential moving average of measured ms per unit into the cost model.
+    fn refine_costs(&mut self) {
+        for m in self.backend.take_measurements() {
+            self.stats.measured_gpu_ms += m.gpu_ms;
+            let min_units = match m.op {
+                CostOp::Tlas => 1_000,
+                CostOp::Compact => 1 << 20,
+                _ => 10_000,
+            };
+            if m.units < min_units || !m.gpu_ms.is_finite() {
+                continue;
+            }
+            let est = self.costs.estimate(m.op, m.units);
+            if est > 0.0 {
+                let c = self.costs.coefficient_mut(m.op);
+                *c *= 0.8 + 0.2 * (m.gpu_ms / est);
+            }
+        }
+    }
+
+    /// Frees a built entry's handle (retired after this frame) and drops the entry.
+    pub(crate) fn release_entry(&mut self, slot: u32) {
+        let frame = self.frame;
+        let e = &mut self.t.entries[slot as usize];
+        if let Some(h) = e.handle.take() {
+            self.backend.free_blas(h, frame);
+            self.live_bytes -= e.bytes;
+            self.retiring.push_back((frame, e.bytes));
+            self.retiring_bytes += e.bytes;
+            self.built_count -= 1;
+            tracing::trace!(slot, bytes = e.bytes, "blas released");
+        }
+        e.state = EntryState::Idle;
+        e.bytes = 0;
+        self.t.drop_entry(slot);
+    }
+}
+
+#[cfg(test)]
+mod tests;

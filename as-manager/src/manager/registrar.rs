@@ -1,0 +1,178 @@
+//! `Registrar`: the thread-safe, queued half of the API. Loader threads call it; `update`
+//! drains the queue in call order (ids are allocated and commands queued under one lock, so
+//! queue order, id order and application order agree).
+
+use std::sync::Arc;
+
+use glam::Affine3A;
+use parking_lot::Mutex;
+
+use crate::ids::IdAllocator;
+use crate::mesh::{MeshDesc, MeshKind};
+use crate::{AsError, InstanceId, MeshId, Result};
+
+/// Parameters of a placed instance.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InstanceDesc {
+    /// Its mesh.
+    pub mesh: MeshId,
+    /// Object to world.
+    pub transform: Affine3A,
+    /// `instanceCustomIndex` (24 bits), e.g. the engine's per-instance material/record index.
+    pub custom_index: u32,
+    /// Visibility mask (8 bits).
+    pub mask: u8,
+    /// `instanceShaderBindingTableRecordOffset` (24 bits).
+    pub sbt_offset: u32,
+    /// Extra instance flags (`record::INSTANCE_*`); FORCE_OPAQUE is added for opaque meshes.
+    pub flags: u8,
+}
+
+impl InstanceDesc {
+    /// An instance with mask 0xff, custom index 0, SBT offset 0, no extra flags.
+    pub fn new(mesh: MeshId, transform: Affine3A) -> Self {
+        Self {
+            mesh,
+            transform,
+            custom_index: 0,
+            mask: 0xff,
+            sbt_offset: 0,
+            flags: 0,
+        }
+    }
+}
+
+#[derive(Debug)]
+pub(crate) enum Command {
+    RegisterMesh(MeshId, Arc<MeshDesc>),
+    UnregisterMesh(MeshId),
+    AddInstance(InstanceId, InstanceDesc),
+    SetTransform(InstanceId, Affine3A),
+    RemoveInstance(InstanceId),
+    SetPose(InstanceId, Option<Arc<Vec<[f32; 3]>>>),
+}
+
+#[derive(Debug, Default)]
+pub(crate) struct Pending {
+    pub commands: Vec<Command>,
+    pub meshes: IdAllocator,
+    pub instances: IdAllocator,
+    pub mesh_kind: Vec<MeshKind>,
+    pub instance_skinned: Vec<bool>,
+}
+
+/// A cloneable, `Send + Sync` handle for registering meshes and instances from any thread.
+/// Changes take effect at the next `AsManager::update`.
+#[derive(Debug, Clone, Default)]
+pub struct Registrar {
+    pub(crate) pending: Arc<Mutex<Pending>>,
+}
+
+fn finite(t: &Affine3A) -> bool {
+    t.matrix3.is_finite() && t.translation.is_finite()
+}
+
+impl Registrar {
+    /// Validates and queues a mesh (with its LOD chain).
+    pub fn register_mesh(&self, desc: MeshDesc) -> Result<MeshId> {
+        desc.validate()?;
+        let mut p = self.pending.lock();
+        let (index, generation) = p.meshes.alloc();
+        let id = MeshId { index, generation };
+        if p.mesh_kind.len() <= index as usize {
+            p.mesh_kind.resize(index as usize + 1, MeshKind::Static);
+        }
+        p.mesh_kind[index as usize] = desc.kind;
+        p.commands.push(Command::RegisterMesh(id, Arc::new(desc)));
+        Ok(id)
+    }
+
+    /// Queues the removal of a mesh, its BLASes and all its instances.
+    pub fn unregister_mesh(&self, id: MeshId) -> Result<()> {
+        let mut p = self.pending.lock();
+        if !p.meshes.is_live(id.index, id.generation) {
+            return Err(AsError::UnknownMesh(id));
+        }
+        p.meshes.kill(id.index);
+        p.commands.push(Command::UnregisterMesh(id));
+        Ok(())
+    }
+
+    /// Queues a new instance.
+    pub fn add_instance(&self, desc: InstanceDesc) -> Result<InstanceId> {
+        if !finite(&desc.transform) {
+            return Err(AsError::InvalidTransform);
+        }
+        if desc.custom_index >= 1 << 24 || desc.sbt_offset >= 1 << 24 {
+            return Err(AsError::InvalidInstance("customIndex and SBT offset must fit in 24 bits".into()));
+        }
+        let mut p = self.pending.lock();
+        if !p.meshes.is_live(desc.mesh.index, desc.mesh.generation) {
+            return Err(AsError::UnknownMesh(desc.mesh));
+        }
+        let skinned = p.mesh_kind[desc.mesh.index as usize] == MeshKind::Skinned;
+        let (index, generation) = p.instances.alloc();
+        if p.instance_skinned.len() <= index as usize {
+            p.instance_skinned.resize(index as usize + 1, false);
+        }
+        p.instance_skinned[index as usize] = skinned;
+        let id = InstanceId { index, generation };
+        p.commands.push(Command::AddInstance(id, desc));
+        Ok(id)
+    }
+
+    fn live_instance(p: &Pending, id: InstanceId) -> Result<()> {
+        if p.instances.is_live(id.index, id.generation) {
+            Ok(())
+        } else {
+            Err(AsError::UnknownInstance(id))
+        }
+    }
+
+    /// Queues a transform change.
+    pub fn set_transform(&self, id: InstanceId, transform: Affine3A) -> Result<()> {
+        if !finite(&transform) {
+            return Err(AsError::InvalidTransform);
+        }
+        let mut p = self.pending.lock();
+        Self::live_instance(&p, id)?;
+        p.commands.push(Command::SetTransform(id, transform));
+        Ok(())
+    }
+
+    /// Queues the removal of an instance.
+    pub fn remove_instance(&self, id: InstanceId) -> Result<()> {
+        let mut p = self.pending.lock();
+        Self::live_instance(&p, id)?;
+        p.instances.kill(id.index);
+        p.commands.push(Command::RemoveInstance(id));
+        Ok(())
+    }
+
+    /// Queues a new pose of a skinned instance: mesh-space positions of the LOD it is built at
+    /// (see `AsManager::instance_lod`); a pose whose length does not match is refitted without
+    /// a quality measurement.
+    pub fn set_skinned_pose(&self, id: InstanceId, positions: Arc<Vec<[f32; 3]>>) -> Result<()> {
+        self.pose(id, Some(positions))
+    }
+
+    /// Marks a skinned instance deformed without data (counts-only meshes, model backend).
+    pub fn mark_deformed(&self, id: InstanceId) -> Result<()> {
+        self.pose(id, None)
+    }
+
+    fn pose(&self, id: InstanceId, positions: Option<Arc<Vec<[f32; 3]>>>) -> Result<()> {
+        if let Some(p) = &positions {
+            if !p.iter().flatten().all(|v| v.is_finite()) {
+                return Err(AsError::InvalidTransform);
+            }
+        }
+        let mut p = self.pending.lock();
+        Self::live_instance(&p, id)?;
+        if !p.instance_skinned[id.index as usize] {
+            return Err(AsError::NotSkinned(id));
+        }
+        p.commands.push(Command::SetPose(id, positions));
+        Ok(())
+    }
+}

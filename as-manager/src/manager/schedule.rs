@@ -1,0 +1,411 @@
+//! Build scheduling (`BuildBudget`), memory (budget, LOD fallback, eviction), skinned refits
+//! and compaction.
+
+use std::sync::Arc;
+
+use super::state::{EntryState, NONE};
+use super::AsManager;
+use crate::backend::{AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef};
+use crate::mesh::{LodGeometry, MeshKind};
+use crate::quality::RefitQuality;
+use crate::Result;
+
+/// One admitted build, with what it needs from the mesh (kept alive by `Arc`).
+struct Admitted {
+    slot: u32,
+    geometry: LodGeometry,
+    pose: Option<Arc<Vec<[f32; 3]>>>,
+    class: BlasClass,
+    opaque: bool,
+}
+
+fn geometry_ref<'a>(g: &'a LodGeometry, pose: Option<&'a Arc<Vec<[f32; 3]>>>, opaque: bool) -> GeometryRef<'a> {
+    let data = g.data();
+    let positions = match (pose, data) {
+        (Some(p), Some(d)) if p.len() == d.positions.len() => Some(p.as_slice()),
+        (_, Some(d)) => Some(d.positions.as_slice()),
+        _ => None,
+    };
+    GeometryRef {
+        vertex_count: g.vertices(),
+        triangle_count: g.triangles(),
+        positions,
+        indices: data.map(|d| d.indices.as_slice()),
+        opaque,
+    }
+}
+
+impl<B: AsBackend> AsManager<B> {
+    /// Build priority: lower is sooner. Distance, minus a bonus when in view, minus aging.
+    fn priority(&self, slot: u32) -> f32 {
+        let e = &self.t.entries[slot as usize];
+        let b = &self.config.build;
+        let dist = if e.dist_frame == self.frame { e.min_dist } else { e.min_dist + self.config.residency.r2 };
+        let bonus = if e.in_view { b.in_view_bonus } else { 0.0 };
+        dist - bonus - b.aging_per_frame * self.frame.saturating_sub(e.queued_since) as f32
+    }
+
+    /// Eviction order: not near any camera this frame first, then farthest, then least
+    /// recently in the TLAS. Larger is evicted first.
+    fn eviction_score(&self, slot: u32) -> (bool, f32, u64) {
+        let e = &self.t.entries[slot as usize];
+        let near = e.dist_frame == self.frame;
+        let age = self.frame - e.last_in_tlas.unwrap_or(0).min(self.frame);
+        (!near, if near { e.min_dist } else { f32::INFINITY }, age)
+    }
+
+    /// Evicts built entries scoring worse than `than` (or any when `None`) until `need` more
+    /// bytes fit under the budget, counting bytes already retiring as soon-free. Returns
+    /// whether `need` fits now (not counting retiring bytes: those still occupy memory).
+    fn make_room(&mut self, need: u64, than: Option<f32>) -> bool {
+        let budget = self.budget();
+        if self.memory_in_use() + need <= budget {
+            return true;
+        }
+        if self.live_bytes + need <= budget {
+            return false; // wait for in-flight frees
+        }
+        let min_life = self.config.residency.min_resident_frames as u64;
+        let mut cands: Vec<(bool, f32, u64, u32)> = self
+            .t
+            .active
+            .iter()
+            .copied()
+            .filter(|&s| {
+                let e = &self.t.entries[s as usize];
+                e.state == EntryState::Built && self.frame.saturating_sub(e.created) >= min_life
+            })
+            .map(|s| {
+                let (far, d, age) = self.eviction_score(s);
+                (far, d, age, s)
+            })
+            .filter(|&(far, d, _, _)| than.is_none_or(|t| far || d > t))
+            .collect();
+        cands.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.total_cmp(&a.1)).then(b.2.cmp(&a.2)));
+        for (_, _, _, s) in cands {
+            if self.live_bytes + need <= budget {
+                break;
+            }
+            self.release_entry(s);
+            self.stats.evictions += 1;
+        }
+        self.memory_in_use() + need <= budget
+    }
+
+    /// After a budget cut or an OOM: evict until the built bytes fit.
+    pub(crate) fn enforce_budget(&mut self) {
+        if self.live_bytes > self.budget() {
+            self.make_room(0, None);
+        }
+    }
+
+    /// Builds queued entries within the per-frame budget (`budgeted`), memory permitting.
+    pub(crate) fn schedule_builds(&mut self, budgeted: bool) -> Result<()> {
+        let mut queue: Vec<(f32, u32)> = self
+            .t
+            .active
+            .iter()
+            .copied()
+            .filter(|&s| self.t.entries[s as usize].state == EntryState::Queued)
+            .map(|s| (self.priority(s), s))
+            .collect();
+        queue.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let b = self.config.build.clone();
+        let (mut prims, mut ms, mut bytes) = (0u64, 0f64, 0u64);
+        let mut admitted: Vec<Admitted> = Vec::new();
+        let mut sizes = Vec::new();
+        for &(prio, slot) in &queue {
+            let (mesh_ix, lod, owner, tris) = {
+                let e = &self.t.entries[slot as usize];
+                (e.mesh, e.lod as usize, e.owner, e.triangles)
+            };
+            let mesh = self.t.meshes[mesh_ix as usize].as_ref().expect("live mesh");
+            let kind = mesh.kind();
+            let class = if kind == MeshKind::Skinned { BlasClass::Skinned } else { BlasClass::Static };
+            let geometry = mesh.desc.lods[lod].geometry.clone();
+            let opaque = mesh.desc.opaque;
+            let nlods = mesh.errors.len();
+            let pose = if owner != NONE {
+                self.t.instances[owner as usize].as_ref().and_then(|i| i.pose.clone())
+            } else {
+                None
+            };
+            let op = if class == BlasClass::Skinned { CostOp::BuildSkinned } else { CostOp::BuildStatic };
+            let est = self.costs.estimate(op, tris as u64);
+            let size = self.backend.blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
+            if budgeted {
+                let oversized = tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64;
+                if oversized && !admitted.is_empty() {
+                    continue;
+                }
+                if !oversized && (prims + tris as u64 > b.max_primitives || ms + est > b.max_gpu_ms as f64) {
+                    continue;
+                }
+                if self.memory_in_use() + bytes + size.as_bytes > self.budget() {
+                    // Coarser LOD first, then evict what matters less.
+                    if kind == MeshKind::Static && lod + 1 < nlods {
+                        let m = self.t.meshes[mesh_ix as usize].as_mut().expect("live");
+                        if (m.lod_floor as usize) <= lod {
+                            m.lod_floor = lod as u8 + 1;
+                            m.floor_since = self.frame;
+                            if !self.floors.contains(&mesh_ix) {
+                                self.floors.push(mesh_ix);
+                            }
+                            self.stats.lod_fallbacks += 1;
+                        }
+                        self.t.entries[slot as usize].state = EntryState::Idle;
+                        continue;
+                    }
+                    let dist = self.t.entries[slot as usize].min_dist;
+                    if !self.make_room(bytes + size.as_bytes, Some(dist)) {
+                        continue;
+                    }
+                }
+                let _ = prio;
+                prims += tris as u64;
+                ms += est;
+                bytes += size.as_bytes;
+                self.stats.oversized_admitted |= oversized;
+                admitted.push(Admitted { slot, geometry, pose, class, opaque });
+                sizes.push(size);
+                if oversized {
+                    break;
+                }
+            } else {
+                prims += tris as u64;
+                ms += est;
+                bytes += size.as_bytes;
+                admitted.push(Admitted { slot, geometry, pose, class, opaque });
+                sizes.push(size);
+            }
+        }
+        self.stats.queued = (queue.len() - admitted.len()) as u32;
+        if admitted.is_empty() {
+            return Ok(());
+        }
+        let builds: Vec<BlasBuild<'_>> = admitted
+            .iter()
+            .zip(&sizes)
+            .map(|(a, s)| BlasBuild {
+                geometry: geometry_ref(&a.geometry, a.pose.as_ref(), a.opaque),
+                class: a.class,
+                sizes: *s,
+            })
+            .collect();
+        match self.backend.build_blases(&builds) {
+            Ok(handles) => {
+                drop(builds);
+                for ((a, s), h) in admitted.iter().zip(&sizes).zip(handles) {
+                    let frame = self.frame;
+                    let pose_version = if a.class == BlasClass::Skinned {
+                        let owner = self.t.entries[a.slot as usize].owner;
+                        self.t.instances[owner as usize].as_ref().map_or(0, |i| i.pose_version)
+                    } else {
+                        0
+                    };
+                    let quality = match (a.class, a.geometry.data()) {
+                        (BlasClass::Skinned, Some(d)) => {
+                            let g = geometry_ref(&a.geometry, a.pose.as_ref(), a.opaque);
+                            Some(RefitQuality::at_build(g.positions.unwrap_or(&d.positions), &d.indices))
+                        }
+                        _ => None,
+                    };
+                    let e = &mut self.t.entries[a.slot as usize];
+                    e.state = EntryState::Built;
+                    e.handle = Some(h);
+                    e.bytes = s.as_bytes;
+                    e.sizes = *s;
+                    e.created = frame;
+                    e.refit_frame = frame;
+                    e.pose_version = pose_version;
+                    e.quality = quality;
+                    e.last_ratio = 1.0;
+                    e.needs_compaction = a.class == BlasClass::Static;
+                    if e.needs_compaction {
+                        let key = (a.slot, e.generation);
+                        self.compact_pending.push(key);
+                    }
+                    self.live_bytes += s.as_bytes;
+                    self.built_count += 1;
+                    tracing::trace!(slot = a.slot, bytes = s.as_bytes, "blas built");
+                }
+                self.stats.builds = admitted.len() as u32;
+                self.stats.build_primitives = prims;
+                self.stats.build_estimated_ms = ms as f32;
+                Ok(())
+            }
+            Err(BackendError::OutOfDeviceMemory) => {
+                self.on_oom();
+                Ok(())
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The device ran out of memory below our budget: cap the budget at what is in use now
+    /// (minus 10%) and evict down to it; the queue retries on later frames.
+    fn on_oom(&mut self) {
+        self.stats.oom_events += 1;
+        let cap = (self.memory_in_use() as f64 * 0.9) as u64;
+        self.oom_cap = Some(self.oom_cap.map_or(cap, |c| c.min(cap)).max(1));
+        tracing::warn!(cap, "backend out of memory; budget capped");
+        self.enforce_budget();
+    }
+
+    /// Refits dirty skinned BLASes oldest first within the refit budget; rebuilds those whose
+    /// measured quality ratio exceeds the bound.
+    pub(crate) fn schedule_refits(&mut self, budgeted: bool) -> Result<()> {
+        let mut dirty: Vec<(u64, u32)> = Vec::new();
+        for &s in &self.t.active {
+            let e = &self.t.entries[s as usize];
+            if e.owner == NONE || e.state != EntryState::Built {
+                continue;
+            }
+            if let Some(inst) = self.t.instances[e.owner as usize].as_ref() {
+                if inst.pose_version > e.pose_version {
+                    dirty.push((e.refit_frame, s));
+                }
+            }
+        }
+        if dirty.is_empty() {
+            return Ok(());
+        }
+        dirty.sort_unstable();
+        let bound = self.config.build.rebuild_quality_bound;
+        let max = self.config.build.max_refit_primitives;
+        let mut prims = 0u64;
+        let mut jobs: Vec<(u32, LodGeometry, Option<Arc<Vec<[f32; 3]>>>, bool, bool)> = Vec::new();
+        for &(_, s) in &dirty {
+            let e = &self.t.entries[s as usize];
+            let tris = e.triangles as u64;
+            if budgeted && !jobs.is_empty() && prims + tris > max {
+                continue;
+            }
+            let inst = self.t.instances[e.owner as usize].as_ref().expect("owner lives");
+            let mesh = self.t.meshes[e.mesh as usize].as_ref().expect("live mesh");
+            let geometry = mesh.desc.lods[e.lod as usize].geometry.clone();
+            let pose = inst.pose.clone();
+            let mut rebuild = false;
+            let mut ratio = e.last_ratio;
+            if let (Some(q), Some(p), Some(d)) = (&e.quality, &pose, geometry.data()) {
+                if p.len() == d.positions.len() {
+                    ratio = q.ratio(p, &d.indices);
+                    rebuild = ratio > bound;
+                }
+            }
+            prims += tris;
+            let e = &mut self.t.entries[s as usize];
+            e.last_ratio = if rebuild { 1.0 } else { ratio };
+            self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(e.last_ratio);
+            jobs.push((s, geometry, pose, rebuild, mesh.desc.opaque));
+            if budgeted && prims >= max {
+                break;
+            }
+        }
+        let refits: Vec<BlasRefit<'_>> = jobs
+            .iter()
+            .map(|(s, g, p, rebuild, opaque)| BlasRefit {
+                blas: self.t.entries[*s as usize].handle.expect("built"),
+                geometry: geometry_ref(g, p.as_ref(), *opaque),
+                rebuild: *rebuild,
+            })
+            .collect();
+        match self.backend.refit_blases(&refits) {
+            Ok(()) => {}
+            Err(BackendError::OutOfDeviceMemory) => {
+                self.on_oom();
+                return Ok(());
+            }
+            Err(e) => return Err(e.into()),
+        }
+        drop(refits);
+        let frame = self.frame;
+        for (s, g, p, rebuild, _) in jobs {
+            let owner = self.t.entries[s as usize].owner;
+            let version = self.t.instances[owner as usize].as_ref().map_or(0, |i| i.pose_version);
+            let e = &mut self.t.entries[s as usize];
+            e.pose_version = version;
+            e.refit_frame = frame;
+            if rebuild {
+                self.stats.rebuilds += 1;
+                if let (Some(p), Some(d)) = (&p, g.data()) {
+                    e.quality = Some(RefitQuality::at_build(p, &d.indices));
+                }
+            } else {
+                self.stats.refits += 1;
+            }
+            self.stats.refit_primitives += e.triangles as u64;
+        }
+        Ok(())
+    }
+
+    /// Compacts built static BLASes whose compacted size is known, within the per-frame
+    /// compaction budget and the memory budget (the copy coexists with the original until
+    /// the original retires).
+    pub(crate) fn schedule_compactions(&mut self) -> Result<()> {
+        if self.compact_pending.is_empty() {
+            return Ok(());
+        }
+        let b = &self.config.build;
+        let (max_n, max_ms) = (b.max_compactions, b.max_compaction_ms as f64);
+        let mut pending = std::mem::take(&mut self.compact_pending);
+        let mut done = 0u32;
+        let mut ms = 0.0;
+        pending.retain(|&key| {
+            if !self.t.built(key) {
+                return false;
+            }
+            let e = &self.t.entries[key.0 as usize];
+            let h = e.handle.expect("built");
+            let Some(size) = self.backend.compacted_size(h) else { return true };
+            if size as f64 >= e.bytes as f64 * 0.97 {
+                self.t.entries[key.0 as usize].needs_compaction = false;
+                return false; // nothing worth saving (e.g. lavapipe)
+            }
+            let est = self.costs.estimate(CostOp::Compact, e.bytes);
+            if done >= max_n || (done > 0 && ms + est > max_ms) {
+                return true;
+            }
+            if self.memory_in_use() + size > self.budget() {
+                return true;
+            }
+            match self.backend.compact_blas(h) {
+                Ok(new) => {
+                    let frame = self.frame;
+                    let e = &mut self.t.entries[key.0 as usize];
+                    self.backend.free_blas(h, frame);
+                    self.retiring.push_back((frame, e.bytes));
+                    self.retiring_bytes += e.bytes;
+                    self.live_bytes = self.live_bytes - e.bytes + size;
+                    e.bytes = size;
+                    e.handle = Some(new);
+                    e.needs_compaction = false;
+                    done += 1;
+                    ms += est;
+                    false
+                }
+                Err(_) => true,
+            }
+        });
+        self.stats.compactions = done;
+        self.compact_pending = pending;
+        Ok(())
+    }
+
+    /// Lowers memory-fallback LOD floors again once memory is comfortably under budget.
+    pub(crate) fn relax_floors(&mut self) {
+        if self.floors.is_empty() || self.memory_in_use() as f64 > 0.75 * self.budget() as f64 {
+            return;
+        }
+        let frame = self.frame;
+        let meshes = &mut self.t.meshes;
+        self.floors.retain(|&m| {
+            let Some(Some(mesh)) = meshes.get_mut(m as usize) else { return false };
+            if frame.saturating_sub(mesh.floor_since) >= 60 {
+                mesh.lod_floor = mesh.lod_floor.saturating_sub(1);
+                mesh.floor_since = frame;
+            }
+            mesh.lod_floor > 0
+        });
+    }
+}
