@@ -35,31 +35,6 @@ pub struct TriangleGeometry {
     pub opaque: bool,
 }
 
-/// The class of a BLAS, which decides its build flags.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BlasClass {
-    /// Static geometry: PREFER_FAST_TRACE + ALLOW_COMPACTION.
-    Static,
-    /// Deforming geometry: PREFER_FAST_BUILD + ALLOW_UPDATE (refit each frame).
-    Skinned,
-}
-
-impl BlasClass {
-    /// The build flags of this class.
-    pub fn flags(self) -> vk::BuildAccelerationStructureFlagsKHR {
-        match self {
-            Self::Static => {
-                vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
-                    | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
-            }
-            Self::Skinned => {
-                vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
-                    | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
-            }
-        }
-    }
-}
-
 /// Sizes reported by vkGetAccelerationStructureBuildSizesKHR.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct AsSizes {
@@ -375,49 +350,5 @@ impl VulkanContext {
         })?;
         let base = align_up(buffer.address, align);
         Ok((buffer, base))
-    }
-}
-
-/// A 64-byte record in the layout of `VkAccelerationStructureInstanceKHR`.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct RawInstance {
-    /// Row-major 3x4 object-to-world transform.
-    pub transform: [f32; 12],
-    /// customIndex (low 24 bits) | mask << 24.
-    pub custom_index_and_mask: u32,
-    /// SBT record offset (low 24 bits) | flags << 24.
-    pub sbt_offset_and_flags: u32,
-    /// BLAS device address.
-    pub blas_address: u64,
-}
-
-const _: () = assert!(std::mem::size_of::<RawInstance>() == 64);
-
-impl RawInstance {
-    /// Builds a record from a column-major 4x4 transform (glam's `Mat4::to_cols_array`).
-    pub fn new(
-        cols: [f32; 16],
-        custom_index: u32,
-        mask: u8,
-        flags: vk::GeometryInstanceFlagsKHR,
-        blas_address: u64,
-    ) -> Self {
-        debug_assert!(
-            custom_index < (1 << 24),
-            "customIndex {custom_index} does not fit 24 bits"
-        );
-        let mut transform = [0.0; 12];
-        for row in 0..3 {
-            for col in 0..4 {
-                transform[row * 4 + col] = cols[col * 4 + row];
-            }
-        }
-        Self {
-            transform,
-            custom_index_and_mask: (custom_index & 0x00ff_ffff) | (u32::from(mask) << 24),
-            sbt_offset_and_flags: (flags.as_raw() & 0xff) << 24,
-            blas_address,
-        }
     }
 }

@@ -3,7 +3,8 @@
 
 use ash::vk;
 
-use super::accel::{align_up, AccelStruct, BlasBuild, RawInstance, BUILD_INPUT_USAGE};
+use super::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use super::context::VulkanContext;
 use super::error::VkResult;
 use super::geometry::GpuGeometry;
@@ -304,15 +305,16 @@ pub fn time_tlas_build(
     reps: usize,
 ) -> VkResult<(f64, u64)> {
     let n = transforms.len() as u32;
-    let records: Vec<RawInstance> = transforms
+    let records: Vec<TlasInstance> = transforms
         .iter()
         .enumerate()
         .map(|(i, t)| {
-            RawInstance::new(
-                *t,
+            TlasInstance::new(
+                &glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(t)),
                 (i as u32) & 0xff_ffff,
                 0xff,
-                vk::GeometryInstanceFlagsKHR::FORCE_OPAQUE,
+                0,
+                INSTANCE_FORCE_OPAQUE,
                 blas.address,
             )
         })

@@ -4,6 +4,7 @@
 //! It runs on Mesa lavapipe (CPU) and on NVIDIA GPUs; device selection prefers ray queries.
 
 mod accel;
+mod backend;
 mod buffer;
 mod compute;
 mod context;
@@ -13,10 +14,8 @@ mod measure;
 mod query;
 mod scene;
 
-pub use accel::{
-    align_up, AccelStruct, AsSizes, BlasBuild, BlasClass, RawInstance, TriangleGeometry,
-    BUILD_INPUT_USAGE,
-};
+pub use accel::{align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE};
+pub use backend::{class_flags, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use compute::{BindingKind, Bound, ComputePipeline};
 pub use context::{ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog, VulkanContext};

@@ -7,7 +7,10 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::accel::{align_up, AccelStruct, BlasBuild, BlasClass, RawInstance, BUILD_INPUT_USAGE};
+use super::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use super::backend::class_flags;
+use crate::backend::BlasClass;
+use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use super::buffer::GpuBuffer;
 use super::context::VulkanContext;
 use super::error::{VkResult, VulkanError};
@@ -103,7 +106,7 @@ impl StaticScene {
         instances: &[InstanceDesc],
         built: &mut Vec<GpuMesh>,
     ) -> VkResult<(AccelStruct, GpuBuffer, SceneBuildStats)> {
-        let flags = BlasClass::Static.flags();
+        let flags = class_flags(BlasClass::Static);
         let align = ctx.info().min_scratch_alignment;
         let mut stats = SceneBuildStats::default();
         let mut geoms = Vec::with_capacity(meshes.len());
@@ -149,16 +152,13 @@ impl StaticScene {
                 )));
             }
             let opaque = meshes[inst.mesh as usize].opaque;
-            let flags = if opaque {
-                vk::GeometryInstanceFlagsKHR::FORCE_OPAQUE
-            } else {
-                vk::GeometryInstanceFlagsKHR::empty()
-            };
-            records.push(RawInstance::new(
-                inst.transform,
+            let transform = glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(&inst.transform));
+            records.push(TlasInstance::new(
+                &transform,
                 inst.custom_index,
                 inst.mask,
-                flags,
+                0,
+                if opaque { INSTANCE_FORCE_OPAQUE } else { 0 },
                 mesh.blas.address,
             ));
         }
