@@ -268,12 +268,12 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
     .into_iter()
     .map(|k| (k, by_kind(k)))
     .collect();
-    let pool = |k: Kind| {
-        &pools
+    let pool = |k: Kind| -> &[MeshId] {
+        pools
             .iter()
             .find(|(x, _)| *x == k)
             .map(|(_, v)| v.as_slice())
-            .unwrap_or(&[])[..]
+            .unwrap_or(&[])
     };
     // Weighted mix of the free instances (after terrain and characters).
     let mix: [(Kind, f32); 6] = [

@@ -91,8 +91,7 @@ impl Skeleton {
                     c.values.len()
                 ));
             }
-            if c.times.windows(2).any(|w| !(w[1] >= w[0])) || c.times.iter().any(|t| !t.is_finite())
-            {
+            if c.times.iter().any(|t| !t.is_finite()) || c.times.windows(2).any(|w| w[1] < w[0]) {
                 return Err(format!("channel {k}: key times not increasing"));
             }
             if c.values.iter().any(|v| !v.is_finite()) {
