@@ -16,151 +16,22 @@
 //! `mesh_budget_bytes`, evicting the farthest meshes' finer LODs first; coarsest LODs arrive with
 //! their levels and are never refused (so the budget must exceed what the load radius holds).
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use glam::{Mat4, Vec3};
+use glam::Mat4;
 
 use crate::bake::{read_manifest, Manifest};
-use crate::error::{Result, StreamingError};
+use crate::error::Result;
 use crate::loader::{Done, Job, LevelSource, LoadedLevel, LoaderPool, LoaderShared};
 use crate::model::{Aabb, Instance, InstanceId, LevelId, LodGeometry, MeshId, Motion};
 use crate::skin::{skin_parallel, SkinJob};
 
-/// A viewpoint that drives streaming.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Camera {
-    /// World position.
-    pub position: Vec3,
-}
+mod lod_stream;
+mod types;
 
-impl From<Vec3> for Camera {
-    fn from(position: Vec3) -> Camera {
-        Camera { position }
-    }
-}
-
-/// Streaming parameters.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StreamConfig {
-    /// Levels whose ground rectangle is within this distance (XZ) of a camera are loaded.
-    pub load_radius: f32,
-    /// Loaded levels farther than this from every camera are unloaded (> `load_radius`).
-    pub unload_radius: f32,
-    /// Loader threads.
-    pub loader_threads: usize,
-    /// CPU memory budget for mesh LOD data in bytes.
-    pub mesh_budget_bytes: usize,
-    /// A LOD is fine enough when its error is at most this angle (radians) x distance.
-    pub lod_error_angle: f32,
-    /// Hysteresis factor for evicting finer LODs (> 1).
-    pub lod_evict_factor: f32,
-    /// At most this many loader jobs in flight (closer requests go first).
-    pub max_in_flight: usize,
-}
-
-impl Default for StreamConfig {
-    fn default() -> StreamConfig {
-        StreamConfig {
-            load_radius: 300.0,
-            unload_radius: 400.0,
-            loader_threads: 2,
-            mesh_budget_bytes: 256 << 20,
-            lod_error_angle: 0.002,
-            lod_evict_factor: 1.5,
-            max_in_flight: 64,
-        }
-    }
-}
-
-/// What the world tells its consumer (the facade feeds these to the BLAS manager).
-#[derive(Debug, Clone)]
-pub enum WorldEvent {
-    /// A level is in: register its instances. Their meshes' coarsest LODs were announced
-    /// (by `MeshLodLoaded`) before this event or are already resident.
-    LevelLoaded {
-        /// The level.
-        level: LevelId,
-        /// Its world bounds.
-        bounds: Aabb,
-        /// Its instances (ids, mesh ids, transforms, bounds, material class, static/skinned).
-        instances: Arc<[Instance]>,
-    },
-    /// A level is out: unregister these instances (the same list `LevelLoaded` gave).
-    LevelUnloaded {
-        /// The level.
-        level: LevelId,
-        /// Its instances.
-        instances: Arc<[Instance]>,
-    },
-    /// A mesh LOD's geometry is resident.
-    MeshLodLoaded {
-        /// The mesh.
-        mesh: MeshId,
-        /// LOD index (0 finest).
-        lod: u8,
-        /// LODs the mesh has.
-        lod_count: u8,
-        /// Geometric error in mesh-space metres (multiply by the instance's scale).
-        error: f32,
-        /// The geometry (shared; skinned meshes carry their weights and skeleton).
-        geometry: Arc<LodGeometry>,
-    },
-    /// A mesh LOD's geometry was dropped; release what was built from it.
-    MeshLodEvicted {
-        /// The mesh.
-        mesh: MeshId,
-        /// LOD index.
-        lod: u8,
-    },
-    /// Something could not be loaded; the rest of the world carries on.
-    LoadFailed {
-        /// The level being loaded, if any.
-        level: Option<LevelId>,
-        /// The mesh LOD being loaded, if any.
-        mesh: Option<(MeshId, u8)>,
-        /// What went wrong (names the file).
-        error: Arc<StreamingError>,
-    },
-}
-
-/// A snapshot of the streaming state.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct StreamStats {
-    /// Levels loaded.
-    pub loaded_levels: usize,
-    /// Levels being loaded.
-    pub loading_levels: usize,
-    /// Levels whose last load failed (retried after leaving the unload radius).
-    pub failed_levels: usize,
-    /// Instances in loaded levels.
-    pub loaded_instances: usize,
-    /// Mesh LODs resident.
-    pub resident_lods: usize,
-    /// Bytes of resident mesh LOD data.
-    pub mesh_bytes: usize,
-    /// Bytes of finer LODs requested but not yet arrived.
-    pub in_flight_bytes: usize,
-    /// Loader jobs in flight.
-    pub in_flight_jobs: usize,
-    /// Loader threads running.
-    pub loader_threads_alive: usize,
-}
-
-/// Deformed positions of one skinned instance for one frame.
-#[derive(Debug, Clone)]
-pub struct SkinnedFrame {
-    /// The instance.
-    pub instance: InstanceId,
-    /// Its mesh.
-    pub mesh: MeshId,
-    /// The LOD that was deformed (the finest resident one).
-    pub lod: u8,
-    /// Mesh-space positions (apply the instance transform), one per vertex of that LOD.
-    pub positions: Vec<[f32; 3]>,
-}
+pub use types::{Camera, SkinnedFrame, StreamConfig, StreamStats, WorldEvent};
 
 #[derive(Debug)]
 enum LevelState {
@@ -656,131 +527,6 @@ impl World {
             // A failed LOD may be retried once the mesh comes back.
             slot.failed.iter_mut().for_each(|f| *f = false);
         }
-    }
-
-    fn stream_lods(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
-        let _span = tracing::trace_span!("lod_stream").entered();
-        if cameras.is_empty() {
-            return;
-        }
-        // Effective distance (distance / scale) of each streamed mesh's nearest loaded instance.
-        let mut eff: HashMap<MeshId, f32> = HashMap::new();
-        for l in &self.levels {
-            let LevelState::Loaded { instances, .. } = &l.state else {
-                continue;
-            };
-            for inst in instances.iter() {
-                if !self.meshes[inst.mesh.0 as usize].streamed {
-                    continue;
-                }
-                let d = cameras
-                    .iter()
-                    .map(|c| {
-                        ((c.position - inst.sphere.center).length() - inst.sphere.radius).max(0.0)
-                    })
-                    .fold(f32::INFINITY, f32::min)
-                    / inst.max_scale().max(1e-6);
-                let e = eff.entry(inst.mesh).or_insert(f32::INFINITY);
-                *e = e.min(d);
-            }
-        }
-        let angle = self.config.lod_error_angle;
-        let mut requests: Vec<(f32, MeshId, usize)> = Vec::new();
-        let mut ids: Vec<(&MeshId, &f32)> = eff.iter().collect();
-        ids.sort_unstable_by_key(|(m, _)| **m);
-        for (&m, &d) in ids {
-            let slot = &mut self.meshes[m.0 as usize];
-            let want = slot.desired(d, angle);
-            let keep = slot.desired(d / self.config.lod_evict_factor, angle);
-            // Evict a finer LOD that is finer than needed even closer up.
-            for k in 0..slot.coarsest() {
-                if k < keep && slot.resident[k].take().is_some() {
-                    self.mesh_bytes -= slot.lods[k].0;
-                    ev.push(WorldEvent::MeshLodEvicted {
-                        mesh: m,
-                        lod: k as u8,
-                    });
-                }
-            }
-            let finest = slot.finest_resident().unwrap_or(slot.coarsest());
-            if want < finest && slot.pending.is_none() && !slot.failed[want] {
-                requests.push((d, m, want));
-            }
-        }
-        requests.sort_by(|a, b| a.0.total_cmp(&b.0));
-        for (d, m, lod) in requests {
-            if self.in_flight >= self.config.max_in_flight {
-                break;
-            }
-            let bytes = self.meshes[m.0 as usize].lods[lod].0;
-            if !self.make_room(bytes, d, &eff, ev) {
-                continue;
-            }
-            let ticket = self.next_ticket;
-            self.next_ticket += 1;
-            self.meshes[m.0 as usize].pending = Some((lod, ticket));
-            self.in_flight_bytes += bytes;
-            self.in_flight += 1;
-            self.pool.submit(Job::Lod {
-                mesh: m,
-                lod,
-                ticket,
-            });
-        }
-    }
-
-    /// Evicts finer LODs of meshes farther than `d` (farthest first) until `bytes` fit the budget.
-    fn make_room(
-        &mut self,
-        bytes: usize,
-        d: f32,
-        eff: &HashMap<MeshId, f32>,
-        ev: &mut Vec<WorldEvent>,
-    ) -> bool {
-        let budget = self.config.mesh_budget_bytes;
-        if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
-            return true;
-        }
-        let mut victims: Vec<(f32, MeshId, usize)> = Vec::new();
-        for (i, s) in self.meshes.iter().enumerate() {
-            if !s.streamed {
-                continue;
-            }
-            let m = MeshId(i as u32);
-            let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
-            if md <= d {
-                continue;
-            }
-            for k in 0..s.coarsest() {
-                if s.resident[k].is_some() {
-                    victims.push((md, m, k));
-                }
-            }
-        }
-        // Evict only if that makes enough room; evicting for a request that still does not fit
-        // would make the victims re-request and thrash.
-        let freeable: usize = victims
-            .iter()
-            .map(|&(_, m, k)| self.meshes[m.0 as usize].lods[k].0)
-            .sum();
-        if self.mesh_bytes + self.in_flight_bytes + bytes > budget + freeable {
-            return false;
-        }
-        victims.sort_by(|a, b| b.0.total_cmp(&a.0));
-        for (_, m, k) in victims {
-            if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
-                break;
-            }
-            let s = &mut self.meshes[m.0 as usize];
-            if s.resident[k].take().is_some() {
-                self.mesh_bytes -= s.lods[k].0;
-                ev.push(WorldEvent::MeshLodEvicted {
-                    mesh: m,
-                    lod: k as u8,
-                });
-            }
-        }
-        self.mesh_bytes + self.in_flight_bytes + bytes <= budget
     }
 
     /// Deforms every loaded skinned instance (its mesh's finest resident LOD) at `time` seconds,
