@@ -17,12 +17,23 @@
 //!   map ([`WorldPreset::default_world`]) and a 16 km scale test ([`WorldPreset::large_world`]).
 //! - Baked worlds ([`bake()`]) are a manifest, a mesh library of individually checksummed LOD
 //!   chunks and one file per level, in a small versioned, FNV-1a-checksummed binary format
-//!   ([`format`]).
+//!   ([`mod@format`]).
 //! - [`World`] owns all state on the thread that calls [`World::update`]; loader threads only
 //!   decode files and send results over crossbeam channels, so events come out in one ordered
 //!   stream ([`WorldEvent`]). Loader jobs run under `catch_unwind`: no thread is lost to a file.
 //! - Skinning is CPU-side and parallel ([`skin::skin_parallel`], [`World::skin_frame`]).
 //! - No `unsafe` in this crate.
+//!
+//! Wiring to a BLAS manager (what the facade does with [`WorldEvent`]s):
+//! - `MeshLodLoaded { mesh, lod, geometry, error, .. }`: register (mesh, LOD) geometry; static
+//!   instances share it. Always precedes the `LevelLoaded` whose instances first use the mesh.
+//! - `LevelLoaded { instances, .. }`: register each [`Instance`] (id, mesh, transform, bounds,
+//!   [`MaterialClass`] — only opaque is BLAS-eligible — and [`Motion`]).
+//! - `LevelUnloaded { instances, .. }`: unregister the same instances.
+//! - `MeshLodEvicted { mesh, lod }`: drop what was built from that LOD (fall back to a coarser
+//!   resident one; the coarsest stays while any loaded instance uses the mesh).
+//! - `LoadFailed { .. }`: log; nothing to undo.
+//! - Each frame, [`World::skin_frame`] gives skinned instances' deformed positions to refit from.
 
 #![forbid(unsafe_code)]
 

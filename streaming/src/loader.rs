@@ -340,3 +340,57 @@ pub(crate) fn read_lod(shared: &LoaderShared, mesh: MeshId, lod: usize) -> Resul
     f.read_exact(&mut buf).map_err(io)?;
     format::decode_lod(&buf, mesh, lod).map_err(|reason| StreamingError::Format { path, reason })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panicking_job_becomes_an_error_naming_the_file() {
+        let r: Result<()> = guarded(PathBuf::from("levels/000042.rtl"), || panic!("decoder bug"));
+        match r {
+            Err(StreamingError::LoaderPanic { path, message }) => {
+                assert_eq!(path, PathBuf::from("levels/000042.rtl"));
+                assert!(message.contains("decoder bug"));
+            }
+            other => panic!("expected LoaderPanic, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn pool_threads_survive_failing_jobs() {
+        let shared = Arc::new(LoaderShared {
+            dir: std::env::temp_dir().join("rtstream-no-such-world"),
+            manifest: Manifest {
+                extent: Aabb::EMPTY,
+                levels: Vec::new(),
+                meshes: Vec::new(),
+            },
+            mesh_bounds: Vec::new(),
+        });
+        let pool = LoaderPool::new(shared, 2).expect("pool");
+        for k in 0..20 {
+            pool.submit(Job::Level {
+                level: LevelId(k),
+                ticket: u64::from(k),
+                source: LevelSource::Baked(PathBuf::from(format!("missing{k}.rtl"))),
+            });
+            pool.submit(Job::Lod {
+                mesh: MeshId(k),
+                lod: 0,
+                ticket: 0,
+            });
+        }
+        for _ in 0..40 {
+            let done = pool
+                .results
+                .recv_timeout(std::time::Duration::from_secs(10))
+                .expect("result");
+            match done {
+                Done::Level { result, .. } => assert!(result.is_err()),
+                Done::Lod { result, .. } => assert!(result.is_err()),
+            }
+        }
+        assert_eq!(pool.alive(), 2);
+    }
+}

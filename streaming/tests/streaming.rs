@@ -232,3 +232,42 @@ fn skinned_instances_deform_each_frame() {
     assert!(moved > 0, "animation did not move any vertex");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn two_cameras_keep_two_areas_loaded() {
+    let (world, dir) = common::baked_small("two-cams", 10);
+    let config = StreamConfig {
+        load_radius: 80.0,
+        unload_radius: 150.0,
+        ..StreamConfig::default()
+    };
+    let mut w = World::open(&dir, config).expect("open");
+    let (lo, hi) = (world.extent.min, world.extent.max);
+    let a = Vec3::new(lo.x + 60.0, 0.0, lo.z + 60.0);
+    let b = Vec3::new(hi.x - 60.0, 0.0, hi.z - 60.0);
+    let mut c = Consumer::default();
+    c.eat(w.update_until_idle(0, &[Camera::from(a), Camera::from(b)], common::SETTLE));
+    let near = |p: Vec3| {
+        world
+            .levels
+            .iter()
+            .filter(|l| l.bounds.distance_xz(p) <= config.load_radius)
+            .map(|l| l.id)
+            .collect::<Vec<_>>()
+    };
+    for id in near(a).into_iter().chain(near(b)) {
+        assert!(w.is_loaded(id), "{id:?} not loaded");
+    }
+    // Dropping camera b unloads its area only.
+    c.eat(w.update_until_idle(1, &[Camera::from(a)], common::SETTLE));
+    for id in near(b) {
+        assert!(
+            !w.is_loaded(id) || near(a).contains(&id),
+            "{id:?} still loaded"
+        );
+    }
+    for id in near(a) {
+        assert!(w.is_loaded(id));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
