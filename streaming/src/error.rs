@@ -23,6 +23,54 @@ pub enum StreamingError {
     /// The glTF's node graph is unusable (a cycle, or nesting deeper than we accept).
     #[error("{path}: node graph: {reason}")]
     InvalidScene { path: PathBuf, reason: String },
+    /// The glTF JSON breaks the glTF 2.0 schema in a way the parser tolerates (e.g. an
+    /// extension whose value is not an object).
+    #[error("{path}: glTF schema violation: {reason}")]
+    Schema { path: PathBuf, reason: String },
+    /// A baked world file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A baked world file is corrupt, truncated, of another version, or inconsistent.
+    #[error("{path}: {reason}")]
+    Format {
+        path: PathBuf,
+        #[source]
+        reason: FormatError,
+    },
+    /// The real assets the generator builds on (Debian's assimp-testmodels) are missing.
+    #[error("{path}: generator assets missing ({reason}); install Debian's assimp-testmodels")]
+    MissingAssets { path: PathBuf, reason: String },
+    /// A loader job panicked; the loader thread caught it and carries on.
+    #[error("{path}: loader panicked: {message}")]
+    LoaderPanic { path: PathBuf, message: String },
+}
+
+/// Why a baked file was rejected.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FormatError {
+    /// The file does not start with the expected magic.
+    #[error("bad magic {found:?} (expected {expected:?})")]
+    BadMagic { expected: [u8; 4], found: [u8; 4] },
+    /// The file was written by an unsupported format version.
+    #[error("unsupported format version {found} (this build reads {supported})")]
+    Version { found: u32, supported: u32 },
+    /// The file ends before the data it announces.
+    #[error("truncated: needed {needed} bytes at offset {offset}, {available} available")]
+    Truncated {
+        offset: usize,
+        needed: usize,
+        available: usize,
+    },
+    /// The payload's checksum does not match the header.
+    #[error("checksum mismatch: header says {expected:#018x}, payload hashes to {actual:#018x}")]
+    Checksum { expected: u64, actual: u64 },
+    /// The payload decodes but breaks an invariant (index out of range, NaN, unknown id...).
+    #[error("inconsistent data: {0}")]
+    Inconsistent(String),
 }
 
 /// The crate's result alias.

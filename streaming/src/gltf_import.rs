@@ -4,12 +4,21 @@
 //! share the mesh's transform, so one BLAS per mesh suffices). Other primitive modes are skipped
 //! with a warning. Non-finite positions, out-of-range indices and cyclic node graphs are errors
 //! that name the file; nothing is passed on half-checked.
+//!
+//! Materials map to a [`MaterialClass`] (glTF alpha mode OPAQUE/MASK/BLEND; the first primitive's
+//! material decides). Skins (JOINTS_0/WEIGHTS_0, the skin's joints and inverse bind matrices) and
+//! the file's first animation become a [`Skeleton`] attached to the mesh as [`SkinWeights`];
+//! joints are re-ordered parent-before-child and every index and key is validated.
 
 use std::path::{Path, PathBuf};
 
-use glam::{Mat4, Vec3};
+use std::sync::Arc;
+
+use glam::{Mat4, Quat, Vec3, Vec4};
 
 use crate::error::{Result, StreamingError};
+use crate::model::{MaterialClass, SkinWeights};
+use crate::skin::{Channel, ChannelPath, Joint, Skeleton};
 
 /// Deepest node nesting accepted; deeper graphs are reported as invalid (they are almost surely
 /// cycles, which the glTF spec forbids but broken files contain).
@@ -28,6 +37,10 @@ pub struct TriMesh {
     pub indices: Vec<u32>,
     /// Linear base colour of the first primitive's material (white when none).
     pub base_color: [f32; 4],
+    /// Material class from the first primitive's alpha mode.
+    pub material: MaterialClass,
+    /// Skinning data, when a node skins this mesh and every primitive has JOINTS_0/WEIGHTS_0.
+    pub skin: Option<SkinWeights>,
 }
 
 impl TriMesh {
@@ -50,7 +63,8 @@ impl TriMesh {
 pub struct MeshInstance {
     /// Index into [`GltfScene::meshes`].
     pub mesh: usize,
-    /// Local-to-world transform (all ancestor node transforms applied).
+    /// Local-to-world transform (all ancestor node transforms applied). For a skinned mesh the
+    /// skeleton places the vertices, so this is the identity (glTF ignores the node transform).
     pub transform: Mat4,
 }
 
@@ -84,6 +98,7 @@ impl GltfScene {
 /// ```
 pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
     let path = path.as_ref();
+    check_extensions(path)?;
     let (doc, buffers, _images) = gltf::import(path).map_err(|source| StreamingError::Gltf {
         path: path.to_owned(),
         source,
@@ -92,15 +107,18 @@ pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
     // glTF mesh index -> our mesh index (None: the mesh had no triangles).
     let mut remap = Vec::with_capacity(doc.meshes().len());
     let mut meshes = Vec::new();
+    let mut raw_skins = Vec::new();
     for mesh in doc.meshes() {
         match read_mesh(path, &mesh, &buffers)? {
-            Some(m) => {
+            Some((m, raw)) => {
                 remap.push(Some(meshes.len()));
                 meshes.push(m);
+                raw_skins.push(raw);
             }
             None => remap.push(None),
         }
     }
+    attach_skins(path, &doc, &buffers, &remap, &mut meshes, raw_skins)?;
 
     let roots: Vec<gltf::Node> = match doc.default_scene().or_else(|| doc.scenes().next()) {
         Some(scene) => scene.nodes().collect(),
@@ -135,9 +153,10 @@ pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
             });
         }
         if let Some(m) = node.mesh().and_then(|m| remap[m.index()]) {
+            let skinned = meshes[m].skin.is_some();
             instances.push(MeshInstance {
                 mesh: m,
-                transform: world,
+                transform: if skinned { Mat4::IDENTITY } else { world },
             });
         }
         for child in node.children() {
@@ -154,11 +173,69 @@ pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
     })
 }
 
+/// Per-vertex joints and weights read from the primitives (None when some primitive lacks them).
+type RawSkin = Option<(Vec<[u16; 4]>, Vec<[f32; 4]>)>;
+
+/// The glTF schema requires every `extensions` value to be an object of objects; the parser
+/// ignores unknown extensions, so check the raw JSON ourselves (wrongTypes/badExtension.gltf).
+fn check_extensions(path: &Path) -> Result<()> {
+    let Ok(bytes) = std::fs::read(path) else {
+        return Ok(()); // gltf::import reports unreadable files with its own error.
+    };
+    let json: &[u8] = if bytes.starts_with(b"glTF") {
+        match gltf::binary::Glb::from_slice(&bytes) {
+            Ok(glb) => return check_extensions_json(path, &glb.json),
+            Err(_) => return Ok(()), // Reported by gltf::import.
+        }
+    } else {
+        &bytes
+    };
+    check_extensions_json(path, json)
+}
+
+fn check_extensions_json(path: &Path, json: &[u8]) -> Result<()> {
+    let Ok(value) = serde_json::from_slice::<serde_json::Value>(json) else {
+        return Ok(()); // Reported by gltf::import.
+    };
+    let mut stack = vec![(String::from("$"), &value)];
+    while let Some((at, v)) = stack.pop() {
+        match v {
+            serde_json::Value::Object(map) => {
+                for (k, child) in map {
+                    let here = format!("{at}.{k}");
+                    if k == "extensions" {
+                        let serde_json::Value::Object(exts) = child else {
+                            return Err(StreamingError::Schema {
+                                path: path.to_owned(),
+                                reason: format!("{here} is not an object"),
+                            });
+                        };
+                        if let Some((name, _)) = exts.iter().find(|(_, e)| !e.is_object()) {
+                            return Err(StreamingError::Schema {
+                                path: path.to_owned(),
+                                reason: format!("{here}.{name} is not an object"),
+                            });
+                        }
+                    }
+                    stack.push((here, child));
+                }
+            }
+            serde_json::Value::Array(items) => {
+                for (i, child) in items.iter().enumerate() {
+                    stack.push((format!("{at}[{i}]"), child));
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
 fn read_mesh(
     path: &Path,
     mesh: &gltf::Mesh,
     buffers: &[gltf::buffer::Data],
-) -> Result<Option<TriMesh>> {
+) -> Result<Option<(TriMesh, RawSkin)>> {
     let name = mesh
         .name()
         .map(str::to_owned)
@@ -174,7 +251,12 @@ fn read_mesh(
         normals: Vec::new(),
         indices: Vec::new(),
         base_color: [1.0; 4],
+        material: MaterialClass::Opaque,
+        skin: None,
     };
+    let mut raw_joints: Vec<[u16; 4]> = Vec::new();
+    let mut raw_weights: Vec<[f32; 4]> = Vec::new();
+    let mut all_have_skin = true;
     let mut all_have_normals = true;
     let mut first = true;
     for prim in mesh.primitives() {
@@ -217,8 +299,32 @@ fn read_mesh(
             Some(n) if all_have_normals => out.normals.extend(n),
             _ => all_have_normals = false,
         }
+        match (reader.read_joints(0), reader.read_weights(0)) {
+            (Some(j), Some(w)) if all_have_skin => {
+                let j: Vec<[u16; 4]> = j.into_u16().collect();
+                let w: Vec<[f32; 4]> = w.into_f32().collect();
+                if j.len() != positions.len() || w.len() != positions.len() {
+                    return Err(invalid(format!(
+                        "primitive {}: {} joints / {} weights for {} vertices",
+                        prim.index(),
+                        j.len(),
+                        w.len(),
+                        positions.len()
+                    )));
+                }
+                raw_joints.extend(j);
+                raw_weights.extend(w);
+            }
+            _ => all_have_skin = false,
+        }
         if first {
-            out.base_color = prim.material().pbr_metallic_roughness().base_color_factor();
+            let material = prim.material();
+            out.base_color = material.pbr_metallic_roughness().base_color_factor();
+            out.material = match material.alpha_mode() {
+                gltf::material::AlphaMode::Opaque => MaterialClass::Opaque,
+                gltf::material::AlphaMode::Mask => MaterialClass::AlphaMasked,
+                gltf::material::AlphaMode::Blend => MaterialClass::Transparent,
+            };
             first = false;
         }
         out.indices.extend(indices.into_iter().map(|i| i + base));
@@ -227,5 +333,211 @@ fn read_mesh(
     if !all_have_normals || out.normals.len() != out.positions.len() {
         out.normals.clear();
     }
-    Ok((!out.indices.is_empty()).then_some(out))
+    let raw = (all_have_skin && raw_joints.len() == out.positions.len())
+        .then_some((raw_joints, raw_weights));
+    Ok((!out.indices.is_empty()).then_some((out, raw)))
+}
+
+/// Builds a [`Skeleton`] for every skinned node's mesh and attaches it with the mesh's weights.
+fn attach_skins(
+    path: &Path,
+    doc: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+    remap: &[Option<usize>],
+    meshes: &mut [TriMesh],
+    mut raw: Vec<RawSkin>,
+) -> Result<()> {
+    let mut parent = vec![None; doc.nodes().len()];
+    for n in doc.nodes() {
+        for c in n.children() {
+            parent[c.index()] = Some(n.index());
+        }
+    }
+    for node in doc.nodes() {
+        let (Some(skin), Some(mesh)) = (node.skin(), node.mesh()) else {
+            continue;
+        };
+        let Some(m) = remap[mesh.index()] else {
+            continue;
+        };
+        if meshes[m].skin.is_some() {
+            continue;
+        }
+        let Some((joints, weights)) = raw[m].take() else {
+            tracing::warn!(file = %path.display(), mesh = %meshes[m].name, "skinned node's mesh lacks JOINTS_0/WEIGHTS_0; treated as static");
+            continue;
+        };
+        let invalid = |reason: String| StreamingError::InvalidMesh {
+            path: path.to_owned(),
+            mesh: meshes[m].name.clone(),
+            reason,
+        };
+        let skeleton = read_skeleton(doc, buffers, &skin, &parent).map_err(&invalid)?;
+        let order = skeleton.1;
+        let skeleton = skeleton.0;
+        let n = skeleton.joints.len();
+        let mut jw = Vec::with_capacity(joints.len());
+        let mut ww = Vec::with_capacity(weights.len());
+        for (v, (j, w)) in joints.iter().zip(&weights).enumerate() {
+            if !w.iter().all(|x| x.is_finite() && *x >= 0.0) {
+                return Err(invalid(format!("vertex {v} has an invalid skin weight")));
+            }
+            let sum: f32 = w.iter().sum();
+            let mut out_j = [0u16; 4];
+            for k in 0..4 {
+                let ji = usize::from(j[k]);
+                if ji >= n {
+                    if w[k] > 0.0 {
+                        return Err(invalid(format!("vertex {v} uses joint {ji} of {n}")));
+                    }
+                } else {
+                    out_j[k] = order[ji];
+                }
+            }
+            jw.push(out_j);
+            ww.push(if sum > 0.0 {
+                w.map(|x| x / sum)
+            } else {
+                [1.0, 0.0, 0.0, 0.0]
+            });
+        }
+        meshes[m].skin = Some(SkinWeights {
+            joints: jw,
+            weights: ww,
+            skeleton: Arc::new(skeleton),
+        });
+    }
+    Ok(())
+}
+
+/// Reads a skin's joints (re-ordered parent-before-child) and the file's first animation.
+/// Returns the skeleton and the map from the skin's joint order to the skeleton's.
+fn read_skeleton(
+    doc: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+    skin: &gltf::Skin,
+    parent: &[Option<usize>],
+) -> std::result::Result<(Skeleton, Vec<u16>), String> {
+    let nodes: Vec<gltf::Node> = skin.joints().collect();
+    if nodes.is_empty() || nodes.len() > usize::from(u16::MAX) {
+        return Err(format!("skin {} has {} joints", skin.index(), nodes.len()));
+    }
+    let joint_of = |node: usize| nodes.iter().position(|n| n.index() == node);
+    let depth = |mut node: usize| {
+        let mut d = 0;
+        while let Some(p) = parent[node] {
+            node = p;
+            d += 1;
+            if d > MAX_NODE_DEPTH {
+                break;
+            }
+        }
+        d
+    };
+    let mut sorted: Vec<usize> = (0..nodes.len()).collect();
+    sorted.sort_by_key(|&i| depth(nodes[i].index()));
+    let mut order = vec![0u16; nodes.len()];
+    for (new, &old) in sorted.iter().enumerate() {
+        order[old] = new as u16;
+    }
+    let reader = skin.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+    let ibm: Vec<Mat4> = match reader.read_inverse_bind_matrices() {
+        Some(it) => it.map(|m| Mat4::from_cols_array_2d(&m)).collect(),
+        None => vec![Mat4::IDENTITY; nodes.len()],
+    };
+    if ibm.len() < nodes.len() {
+        return Err(format!(
+            "{} inverse bind matrices for {} joints",
+            ibm.len(),
+            nodes.len()
+        ));
+    }
+    let mut root = Mat4::IDENTITY;
+    let mut joints = Vec::with_capacity(nodes.len());
+    for &old in &sorted {
+        let node = &nodes[old];
+        // Nearest ancestor that is a joint.
+        let mut p = parent[node.index()];
+        let mut steps = 0;
+        while let Some(pi) = p {
+            if joint_of(pi).is_some() || steps > MAX_NODE_DEPTH {
+                break;
+            }
+            p = parent[pi];
+            steps += 1;
+        }
+        let parent_joint = p.and_then(joint_of).map(|j| order[j]);
+        if parent_joint.is_none() && joints.is_empty() {
+            // Non-joint ancestors of the first root joint place the whole skeleton.
+            let mut a = parent[node.index()];
+            let mut steps = 0;
+            while let Some(ai) = a {
+                if let Some(n) = doc.nodes().nth(ai) {
+                    root = Mat4::from_cols_array_2d(&n.transform().matrix()) * root;
+                }
+                a = parent[ai];
+                steps += 1;
+                if steps > MAX_NODE_DEPTH {
+                    return Err("joint ancestry too deep (a cycle?)".into());
+                }
+            }
+        }
+        let (t, r, s) = node.transform().decomposed();
+        joints.push(Joint {
+            parent: parent_joint,
+            translation: Vec3::from(t),
+            rotation: Quat::from_array(r),
+            scale: Vec3::from(s),
+            inverse_bind: ibm[old],
+        });
+    }
+    let mut channels = Vec::new();
+    let mut duration = 0.0f32;
+    if let Some(anim) = doc.animations().next() {
+        for ch in anim.channels() {
+            let Some(j) = joint_of(ch.target().node().index()) else {
+                continue;
+            };
+            let r = ch.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+            let Some(times) = r.read_inputs().map(|i| i.collect::<Vec<f32>>()) else {
+                return Err(format!("animation channel {} has no input", ch.index()));
+            };
+            use gltf::animation::util::ReadOutputs;
+            let (path, mut values): (ChannelPath, Vec<Vec4>) = match r.read_outputs() {
+                Some(ReadOutputs::Translations(t)) => (
+                    ChannelPath::Translation,
+                    t.map(|v| Vec3::from(v).extend(0.0)).collect(),
+                ),
+                Some(ReadOutputs::Scales(t)) => (
+                    ChannelPath::Scale,
+                    t.map(|v| Vec3::from(v).extend(0.0)).collect(),
+                ),
+                Some(ReadOutputs::Rotations(q)) => (
+                    ChannelPath::Rotation,
+                    q.into_f32().map(Vec4::from).collect(),
+                ),
+                Some(ReadOutputs::MorphTargetWeights(_)) => continue,
+                None => return Err(format!("animation channel {} has no output", ch.index())),
+            };
+            if ch.sampler().interpolation() == gltf::animation::Interpolation::CubicSpline {
+                // (in-tangent, value, out-tangent) triplets: keep the values.
+                values = values.chunks(3).filter_map(|c| c.get(1).copied()).collect();
+            }
+            duration = duration.max(times.last().copied().unwrap_or(0.0));
+            channels.push(Channel {
+                joint: order[j],
+                path,
+                times,
+                values,
+            });
+        }
+    }
+    let skeleton = Skeleton {
+        joints,
+        root,
+        channels,
+        duration,
+    };
+    skeleton.validate()?;
+    Ok((skeleton, order))
 }

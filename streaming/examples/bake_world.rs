@@ -1,0 +1,72 @@
+//! Generates a preset world, bakes it to a directory and streams a camera across it.
+//!
+//! `cargo run --release -p rtstream-streaming --example bake_world -- [default|large|small:N] [DIR]`
+
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use rtstream_streaming::{bake, generate, Camera, StreamConfig, World, WorldEvent, WorldPreset};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let preset = match args.next().as_deref() {
+        None | Some("default") => WorldPreset::default_world(),
+        Some("large") => WorldPreset::large_world(),
+        Some(s) => match s.strip_prefix("small:").and_then(|n| n.parse().ok()) {
+            Some(n) => WorldPreset::small(n, 1),
+            None => return Err(format!("unknown preset {s:?} (default, large, small:N)").into()),
+        },
+    };
+    let dir = args
+        .next()
+        .map_or_else(|| std::env::temp_dir().join("rtstream-world"), Into::into);
+
+    let t = Instant::now();
+    let world = generate(&preset)?;
+    let s = world.stats();
+    println!(
+        "generated {} levels, {} instances ({} non-opaque, {} skinned), {} meshes in {:.2} s; {:.1} bytes/instance",
+        s.levels,
+        s.instances,
+        s.non_opaque,
+        s.skinned,
+        s.meshes,
+        t.elapsed().as_secs_f64(),
+        world.bytes_per_instance()
+    );
+    let t = Instant::now();
+    let report = bake(&world, &dir)?;
+    println!(
+        "baked to {} in {:.2} s: {report:?}",
+        dir.display(),
+        t.elapsed().as_secs_f64()
+    );
+
+    let mut w = World::open(&dir, StreamConfig::default())?;
+    let (lo, hi) = (world.extent.min, world.extent.max);
+    let (mut loads, mut unloads, mut lods, mut fails) = (0, 0, 0, 0);
+    let t = Instant::now();
+    let frames = 200;
+    for f in 0..=frames {
+        let k = f as f32 / frames as f32;
+        let p = Vec3::new(lo.x + (hi.x - lo.x) * k, 2.0, lo.z + (hi.z - lo.z) * k);
+        for e in w.update_until_idle(f, &[Camera::from(p)], Duration::from_secs(10)) {
+            match e {
+                WorldEvent::LevelLoaded { .. } => loads += 1,
+                WorldEvent::LevelUnloaded { .. } => unloads += 1,
+                WorldEvent::MeshLodLoaded { .. } => lods += 1,
+                WorldEvent::MeshLodEvicted { .. } => {}
+                WorldEvent::LoadFailed { error, .. } => {
+                    fails += 1;
+                    eprintln!("load failed: {error}");
+                }
+            }
+        }
+    }
+    println!(
+        "flew across in {:.2} s: {loads} level loads, {unloads} unloads, {lods} LOD loads, {fails} failures; {:?}",
+        t.elapsed().as_secs_f64(),
+        w.stats()
+    );
+    Ok(())
+}

@@ -1,0 +1,134 @@
+//! Finer-LOD streaming under the mesh memory budget (see the `world` module header).
+
+use std::collections::HashMap;
+
+use super::{Camera, LevelState, World, WorldEvent};
+use crate::loader::Job;
+use crate::model::MeshId;
+
+impl World {
+    pub(super) fn stream_lods(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
+        let _span = tracing::trace_span!("lod_stream").entered();
+        if cameras.is_empty() {
+            return;
+        }
+        // Effective distance (distance / scale) of each streamed mesh's nearest loaded instance.
+        let mut eff: HashMap<MeshId, f32> = HashMap::new();
+        for l in &self.levels {
+            let LevelState::Loaded { instances, .. } = &l.state else {
+                continue;
+            };
+            for inst in instances.iter() {
+                if !self.meshes[inst.mesh.0 as usize].streamed {
+                    continue;
+                }
+                let d = cameras
+                    .iter()
+                    .map(|c| {
+                        ((c.position - inst.sphere.center).length() - inst.sphere.radius).max(0.0)
+                    })
+                    .fold(f32::INFINITY, f32::min)
+                    / inst.max_scale().max(1e-6);
+                let e = eff.entry(inst.mesh).or_insert(f32::INFINITY);
+                *e = e.min(d);
+            }
+        }
+        let angle = self.config.lod_error_angle;
+        let mut requests: Vec<(f32, MeshId, usize)> = Vec::new();
+        let mut ids: Vec<(&MeshId, &f32)> = eff.iter().collect();
+        ids.sort_unstable_by_key(|(m, _)| **m);
+        for (&m, &d) in ids {
+            let slot = &mut self.meshes[m.0 as usize];
+            let want = slot.desired(d, angle);
+            let keep = slot.desired(d / self.config.lod_evict_factor, angle);
+            // Evict a finer LOD that is finer than needed even closer up.
+            for k in 0..slot.coarsest() {
+                if k < keep && slot.resident[k].take().is_some() {
+                    self.mesh_bytes -= slot.lods[k].0;
+                    ev.push(WorldEvent::MeshLodEvicted {
+                        mesh: m,
+                        lod: k as u8,
+                    });
+                }
+            }
+            let finest = slot.finest_resident().unwrap_or(slot.coarsest());
+            if want < finest && slot.pending.is_none() && !slot.failed[want] {
+                requests.push((d, m, want));
+            }
+        }
+        requests.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for (d, m, lod) in requests {
+            if self.in_flight >= self.config.max_in_flight {
+                break;
+            }
+            let bytes = self.meshes[m.0 as usize].lods[lod].0;
+            if !self.make_room(bytes, d, &eff, ev) {
+                continue;
+            }
+            let ticket = self.next_ticket;
+            self.next_ticket += 1;
+            self.meshes[m.0 as usize].pending = Some((lod, ticket));
+            self.in_flight_bytes += bytes;
+            self.in_flight += 1;
+            self.pool.submit(Job::Lod {
+                mesh: m,
+                lod,
+                ticket,
+            });
+        }
+    }
+
+    /// Evicts finer LODs of meshes farther than `d` (farthest first) until `bytes` fit the budget.
+    fn make_room(
+        &mut self,
+        bytes: usize,
+        d: f32,
+        eff: &HashMap<MeshId, f32>,
+        ev: &mut Vec<WorldEvent>,
+    ) -> bool {
+        let budget = self.config.mesh_budget_bytes;
+        if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
+            return true;
+        }
+        let mut victims: Vec<(f32, MeshId, usize)> = Vec::new();
+        for (i, s) in self.meshes.iter().enumerate() {
+            if !s.streamed {
+                continue;
+            }
+            let m = MeshId(i as u32);
+            let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
+            if md <= d {
+                continue;
+            }
+            for k in 0..s.coarsest() {
+                if s.resident[k].is_some() {
+                    victims.push((md, m, k));
+                }
+            }
+        }
+        // Evict only if that makes enough room; evicting for a request that still does not fit
+        // would make the victims re-request and thrash.
+        let freeable: usize = victims
+            .iter()
+            .map(|&(_, m, k)| self.meshes[m.0 as usize].lods[k].0)
+            .sum();
+        if self.mesh_bytes + self.in_flight_bytes + bytes > budget + freeable {
+            return false;
+        }
+        victims.sort_by(|a, b| b.0.total_cmp(&a.0));
+        for (_, m, k) in victims {
+            if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
+                break;
+            }
+            let s = &mut self.meshes[m.0 as usize];
+            if s.resident[k].take().is_some() {
+                self.mesh_bytes -= s.lods[k].0;
+                ev.push(WorldEvent::MeshLodEvicted {
+                    mesh: m,
+                    lod: k as u8,
+                });
+            }
+        }
+        self.mesh_bytes + self.in_flight_bytes + bytes <= budget
+    }
+}

@@ -1,0 +1,578 @@
+//! The streaming world: level residency with hysteresis, mesh LOD streaming under a CPU memory
+//! budget, and the ordered event stream.
+//!
+//! The thread that calls [`World::update`] owns all world state; loader threads only decode files
+//! (see `loader`). Events are therefore produced by one thread, in program order, which gives the
+//! per-level ordering for free: a level's `MeshLodLoaded` (its meshes' coarsest LODs, when new)
+//! come before its `LevelLoaded`; its `LevelUnloaded` comes before the `MeshLodEvicted` of meshes
+//! no other loaded level uses. A level unloaded while still loading emits nothing (its late result
+//! is discarded by ticket).
+//!
+//! LOD policy: a mesh's coarsest LOD stays resident while any loaded level uses it; at most one
+//! finer LOD is kept, chosen per mesh as the coarsest LOD whose world-space error is at most
+//! `lod_error_angle` x distance to the nearest loaded instance (the nearest camera). A finer LOD
+//! is evicted when it is finer than needed even at `1 / lod_evict_factor` of that distance
+//! (hysteresis). Finer LODs are only requested while resident + in-flight bytes stay within
+//! `mesh_budget_bytes`, evicting the farthest meshes' finer LODs first; coarsest LODs arrive with
+//! their levels and are never refused (so the budget must exceed what the load radius holds).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use glam::Mat4;
+
+use crate::bake::{read_manifest, Manifest};
+use crate::error::Result;
+use crate::loader::{Done, Job, LevelSource, LoadedLevel, LoaderPool, LoaderShared};
+use crate::model::{Aabb, Instance, InstanceId, LevelId, LodGeometry, MeshId, Motion};
+use crate::skin::{skin_parallel, SkinJob};
+
+mod lod_stream;
+mod types;
+
+pub use types::{Camera, SkinnedFrame, StreamConfig, StreamStats, WorldEvent};
+
+#[derive(Debug)]
+enum LevelState {
+    Unloaded,
+    Loading(u64),
+    Loaded {
+        instances: Arc<[Instance]>,
+        meshes: Vec<MeshId>,
+    },
+    Failed,
+}
+
+#[derive(Debug)]
+struct LevelSlot {
+    bounds: Aabb,
+    source: LevelSource,
+    state: LevelState,
+}
+
+#[derive(Debug)]
+struct MeshSlot {
+    /// Bytes and error per LOD.
+    lods: Vec<(usize, f32)>,
+    /// Baked meshes stream their finer LODs; glTF-level meshes are all in memory.
+    streamed: bool,
+    refs: u32,
+    resident: Vec<Option<Arc<LodGeometry>>>,
+    pending: Option<(usize, u64)>,
+    failed: Vec<bool>,
+}
+
+impl MeshSlot {
+    fn coarsest(&self) -> usize {
+        self.lods.len() - 1
+    }
+    fn finest_resident(&self) -> Option<usize> {
+        self.resident.iter().position(Option::is_some)
+    }
+    fn desired(&self, distance: f32, angle: f32) -> usize {
+        let mut i = self.coarsest();
+        while i > 0 && self.lods[i].1 > angle * distance {
+            i -= 1;
+        }
+        i
+    }
+}
+
+/// The streaming world.
+///
+/// ```no_run
+/// use rtstream_streaming::{bake, generate, Camera, StreamConfig, World, WorldEvent, WorldPreset};
+/// let dir = std::env::temp_dir().join("rtstream-doc-world");
+/// bake(&generate(&WorldPreset::small(6, 1))?, &dir)?;
+/// let mut world = World::open(&dir, StreamConfig::default())?;
+/// let cams = [Camera::from(glam::Vec3::ZERO)];
+/// for frame in 0..10 {
+///     for event in world.update(frame, &cams) {
+///         if let WorldEvent::LevelLoaded { instances, .. } = event {
+///             println!("{} instances in", instances.len());
+///         }
+///     }
+/// }
+/// # Ok::<(), rtstream_streaming::StreamingError>(())
+/// ```
+#[derive(Debug)]
+pub struct World {
+    config: StreamConfig,
+    dir: PathBuf,
+    manifest: Option<Arc<LoaderShared>>,
+    pool: LoaderPool,
+    levels: Vec<LevelSlot>,
+    meshes: Vec<MeshSlot>,
+    next_ticket: u64,
+    next_dynamic_instance: u32,
+    in_flight: usize,
+    in_flight_bytes: usize,
+    mesh_bytes: usize,
+    frame: u64,
+}
+
+impl World {
+    /// Opens a baked world directory (see [`crate::bake()`]) and starts the loader threads.
+    pub fn open(dir: impl AsRef<Path>, config: StreamConfig) -> Result<World> {
+        let dir = dir.as_ref().to_owned();
+        let manifest = read_manifest(&dir)?;
+        World::with_manifest(dir, Some(manifest), config)
+    }
+
+    /// A world with no baked content; add glTF levels with [`World::add_gltf_level`].
+    pub fn empty(config: StreamConfig) -> Result<World> {
+        World::with_manifest(PathBuf::new(), None, config)
+    }
+
+    fn with_manifest(
+        dir: PathBuf,
+        manifest: Option<Manifest>,
+        config: StreamConfig,
+    ) -> Result<World> {
+        let m = manifest.unwrap_or(Manifest {
+            extent: Aabb::EMPTY,
+            levels: Vec::new(),
+            meshes: Vec::new(),
+        });
+        let levels = m
+            .levels
+            .iter()
+            .map(|l| LevelSlot {
+                bounds: l.bounds,
+                source: LevelSource::Baked(PathBuf::from(&l.file)),
+                state: LevelState::Unloaded,
+            })
+            .collect();
+        let meshes = m
+            .meshes
+            .iter()
+            .map(|e| MeshSlot {
+                lods: e.lods.iter().map(|l| (l.bytes as usize, l.error)).collect(),
+                streamed: true,
+                refs: 0,
+                resident: vec![None; e.lods.len()],
+                pending: None,
+                failed: vec![false; e.lods.len()],
+            })
+            .collect();
+        let shared = Arc::new(LoaderShared {
+            dir: dir.clone(),
+            mesh_bounds: m.meshes.iter().map(|e| e.bounds).collect(),
+            manifest: m,
+        });
+        let pool = LoaderPool::new(Arc::clone(&shared), config.loader_threads)?;
+        Ok(World {
+            config,
+            dir,
+            manifest: Some(shared),
+            pool,
+            levels,
+            meshes,
+            next_ticket: 1,
+            next_dynamic_instance: 1 << 31,
+            in_flight: 0,
+            in_flight_bytes: 0,
+            mesh_bytes: 0,
+            frame: 0,
+        })
+    }
+
+    /// Registers a glTF 2.0 file as a level placed by `transform`; it streams in and out like any
+    /// other level (its bounds are the placement point until it has loaded). Its meshes get new
+    /// ids and their whole LOD chains arrive with it.
+    pub fn add_gltf_level(&mut self, path: impl AsRef<Path>, transform: Mat4) -> LevelId {
+        let p = transform.w_axis.truncate();
+        let id = LevelId(self.levels.len() as u32);
+        self.levels.push(LevelSlot {
+            bounds: Aabb { min: p, max: p },
+            source: LevelSource::Gltf {
+                path: path.as_ref().to_owned(),
+                transform,
+            },
+            state: LevelState::Unloaded,
+        });
+        id
+    }
+
+    /// The baked world's directory (empty for [`World::empty`]).
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The baked world's manifest.
+    pub fn manifest(&self) -> Option<&Manifest> {
+        self.manifest.as_ref().map(|s| &s.manifest)
+    }
+
+    /// Number of levels (baked and glTF).
+    pub fn level_count(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// Whether a level is loaded.
+    pub fn is_loaded(&self, level: LevelId) -> bool {
+        matches!(
+            self.levels.get(level.0 as usize).map(|l| &l.state),
+            Some(LevelState::Loaded { .. })
+        )
+    }
+
+    /// The finest resident LOD of a mesh.
+    pub fn resident_lod(&self, mesh: MeshId) -> Option<(usize, Arc<LodGeometry>)> {
+        let s = self.meshes.get(mesh.0 as usize)?;
+        let i = s.finest_resident()?;
+        s.resident[i].clone().map(|g| (i, g))
+    }
+
+    /// Current counters.
+    pub fn stats(&self) -> StreamStats {
+        let mut st = StreamStats {
+            loaded_levels: 0,
+            loading_levels: 0,
+            failed_levels: 0,
+            loaded_instances: 0,
+            resident_lods: self
+                .meshes
+                .iter()
+                .flat_map(|m| &m.resident)
+                .filter(|r| r.is_some())
+                .count(),
+            mesh_bytes: self.mesh_bytes,
+            in_flight_bytes: self.in_flight_bytes,
+            in_flight_jobs: self.in_flight,
+            loader_threads_alive: self.pool.alive(),
+        };
+        for l in &self.levels {
+            match &l.state {
+                LevelState::Loaded { instances, .. } => {
+                    st.loaded_levels += 1;
+                    st.loaded_instances += instances.len();
+                }
+                LevelState::Loading(_) => st.loading_levels += 1,
+                LevelState::Failed => st.failed_levels += 1,
+                LevelState::Unloaded => {}
+            }
+        }
+        st
+    }
+
+    /// Advances streaming by one frame: takes finished loads, loads/unloads levels around the
+    /// cameras, streams LODs, and returns the events in order. Never blocks on I/O.
+    pub fn update(&mut self, frame: u64, cameras: &[Camera]) -> Vec<WorldEvent> {
+        let _span = tracing::debug_span!("world_update", frame).entered();
+        self.frame = frame;
+        let mut ev = Vec::new();
+        while let Ok(done) = self.pool.results.try_recv() {
+            self.finish(done, &mut ev);
+        }
+        self.residency(cameras, &mut ev);
+        self.stream_lods(cameras, &mut ev);
+        ev
+    }
+
+    /// Calls [`World::update`] (same frame and cameras) until no load is in flight or `timeout`
+    /// passes, waiting on the loaders in between; returns every event. For tests and tools.
+    pub fn update_until_idle(
+        &mut self,
+        frame: u64,
+        cameras: &[Camera],
+        timeout: Duration,
+    ) -> Vec<WorldEvent> {
+        let deadline = Instant::now() + timeout;
+        let mut all = Vec::new();
+        loop {
+            all.extend(self.update(frame, cameras));
+            if self.in_flight == 0 {
+                break;
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.pool.results.recv_timeout(left) {
+                Ok(done) => self.finish(done, &mut all),
+                Err(_) => break,
+            }
+        }
+        all
+    }
+
+    fn finish(&mut self, done: Done, ev: &mut Vec<WorldEvent>) {
+        self.in_flight = self.in_flight.saturating_sub(1);
+        match done {
+            Done::Level {
+                level,
+                ticket,
+                result,
+            } => {
+                let Some(slot) = self.levels.get(level.0 as usize) else {
+                    return;
+                };
+                if !matches!(slot.state, LevelState::Loading(t) if t == ticket) {
+                    return; // Unloaded while loading: drop silently.
+                }
+                match result {
+                    Err(e) => {
+                        tracing::warn!(level = level.0, error = %e, "level load failed");
+                        self.levels[level.0 as usize].state = LevelState::Failed;
+                        ev.push(WorldEvent::LoadFailed {
+                            level: Some(level),
+                            mesh: None,
+                            error: Arc::new(e),
+                        });
+                    }
+                    Ok(loaded) => self.level_arrived(level, loaded, ev),
+                }
+            }
+            Done::Lod {
+                mesh,
+                lod,
+                ticket,
+                result,
+            } => {
+                let Some(slot) = self.meshes.get_mut(mesh.0 as usize) else {
+                    return;
+                };
+                if slot.pending != Some((lod, ticket)) {
+                    return; // Cancelled (its bytes were released then).
+                }
+                slot.pending = None;
+                self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
+                match result {
+                    Err(e) => {
+                        slot.failed[lod] = true;
+                        ev.push(WorldEvent::LoadFailed {
+                            level: None,
+                            mesh: Some((mesh, lod as u8)),
+                            error: Arc::new(e),
+                        });
+                    }
+                    Ok(g) => {
+                        let n = slot.lods.len() as u8;
+                        let coarsest = slot.coarsest();
+                        ev.push(lod_loaded(mesh, lod, n, &g));
+                        slot.resident[lod] = Some(g);
+                        self.mesh_bytes += slot.lods[lod].0;
+                        // Keep one finer LOD: drop the others (not the coarsest).
+                        for k in 0..coarsest {
+                            if k != lod && slot.resident[k].take().is_some() {
+                                self.mesh_bytes -= slot.lods[k].0;
+                                ev.push(WorldEvent::MeshLodEvicted { mesh, lod: k as u8 });
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn level_arrived(&mut self, level: LevelId, loaded: LoadedLevel, ev: &mut Vec<WorldEvent>) {
+        let (instances, meshes): (Vec<Instance>, Vec<MeshId>) = match loaded {
+            LoadedLevel::Baked { level: l, coarse } => {
+                for (m, lod, res) in coarse {
+                    let slot = &mut self.meshes[m.0 as usize];
+                    if slot.resident[lod].is_some() {
+                        continue;
+                    }
+                    match res {
+                        Ok(g) => {
+                            ev.push(lod_loaded(m, lod, slot.lods.len() as u8, &g));
+                            slot.resident[lod] = Some(g);
+                            self.mesh_bytes += slot.lods[lod].0;
+                        }
+                        Err(e) => {
+                            slot.failed[lod] = true;
+                            ev.push(WorldEvent::LoadFailed {
+                                level: Some(level),
+                                mesh: Some((m, lod as u8)),
+                                error: Arc::new(e),
+                            });
+                        }
+                    }
+                }
+                // Instances whose mesh has no coarsest LOD cannot be used: leave them out.
+                let kept: Vec<Instance> = l
+                    .instances
+                    .into_iter()
+                    .filter(|i| {
+                        let s = &self.meshes[i.mesh.0 as usize];
+                        s.resident[s.coarsest()].is_some()
+                    })
+                    .collect();
+                let mut ids: Vec<MeshId> = kept.iter().map(|i| i.mesh).collect();
+                ids.sort_unstable();
+                ids.dedup();
+                (kept, ids)
+            }
+            LoadedLevel::Gltf { meshes, instances } => {
+                let base = self.meshes.len() as u32;
+                let mut ids = Vec::with_capacity(meshes.len());
+                let mut bounds = Vec::with_capacity(meshes.len());
+                for (k, m) in meshes.into_iter().enumerate() {
+                    let id = MeshId(base + k as u32);
+                    let n = m.lods.len() as u8;
+                    // Coarsest first, as for baked levels.
+                    for (lod, g) in m.lods.iter().enumerate().rev() {
+                        ev.push(lod_loaded(id, lod, n, g));
+                        self.mesh_bytes += g.byte_size();
+                    }
+                    tracing::trace!(mesh = id.0, name = %m.name, "glTF level mesh");
+                    self.meshes.push(MeshSlot {
+                        lods: m.lods.iter().map(|g| (g.byte_size(), g.error)).collect(),
+                        streamed: false,
+                        refs: 0,
+                        failed: vec![false; m.lods.len()],
+                        resident: m.lods.into_iter().map(Some).collect(),
+                        pending: None,
+                    });
+                    ids.push(id);
+                    bounds.push(m.bounds);
+                }
+                let inst = instances
+                    .into_iter()
+                    .map(|i| {
+                        let id = InstanceId(self.next_dynamic_instance);
+                        self.next_dynamic_instance = self.next_dynamic_instance.wrapping_add(1);
+                        Instance::new(
+                            id,
+                            ids[i.mesh],
+                            i.transform,
+                            &bounds[i.mesh],
+                            i.material,
+                            i.motion,
+                        )
+                    })
+                    .collect();
+                (inst, ids)
+            }
+        };
+        for m in &meshes {
+            self.meshes[m.0 as usize].refs += 1;
+        }
+        let slot = &mut self.levels[level.0 as usize];
+        if matches!(slot.source, LevelSource::Gltf { .. }) {
+            let p = slot.bounds.min;
+            slot.bounds = instances
+                .iter()
+                .fold(Aabb { min: p, max: p }, |b, i| b.union(i.aabb));
+        }
+        let instances: Arc<[Instance]> = instances.into();
+        tracing::trace!(level = level.0, instances = instances.len(), "level loaded");
+        ev.push(WorldEvent::LevelLoaded {
+            level,
+            bounds: slot.bounds,
+            instances: Arc::clone(&instances),
+        });
+        slot.state = LevelState::Loaded { instances, meshes };
+    }
+
+    fn residency(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
+        let _span = tracing::trace_span!("residency").entered();
+        let (load, unload) = (
+            self.config.load_radius,
+            self.config.unload_radius.max(self.config.load_radius),
+        );
+        for i in 0..self.levels.len() {
+            let slot = &self.levels[i];
+            let d = cameras
+                .iter()
+                .map(|c| slot.bounds.distance_xz(c.position))
+                .fold(f32::INFINITY, f32::min);
+            match slot.state {
+                LevelState::Unloaded if d <= load => {
+                    let ticket = self.next_ticket;
+                    self.next_ticket += 1;
+                    self.pool.submit(Job::Level {
+                        level: LevelId(i as u32),
+                        ticket,
+                        source: slot.source.clone(),
+                    });
+                    self.in_flight += 1;
+                    self.levels[i].state = LevelState::Loading(ticket);
+                }
+                LevelState::Loading(_) | LevelState::Failed if d > unload => {
+                    self.levels[i].state = LevelState::Unloaded;
+                }
+                LevelState::Loaded { .. } if d > unload => self.unload(LevelId(i as u32), ev),
+                _ => {}
+            }
+        }
+    }
+
+    fn unload(&mut self, level: LevelId, ev: &mut Vec<WorldEvent>) {
+        let state = std::mem::replace(
+            &mut self.levels[level.0 as usize].state,
+            LevelState::Unloaded,
+        );
+        let LevelState::Loaded { instances, meshes } = state else {
+            return;
+        };
+        ev.push(WorldEvent::LevelUnloaded { level, instances });
+        for m in meshes {
+            let slot = &mut self.meshes[m.0 as usize];
+            slot.refs = slot.refs.saturating_sub(1);
+            if slot.refs > 0 {
+                continue;
+            }
+            if let Some((lod, _)) = slot.pending.take() {
+                self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
+            }
+            for (lod, r) in slot.resident.iter_mut().enumerate() {
+                if r.take().is_some() {
+                    self.mesh_bytes -= slot.lods[lod].0;
+                    ev.push(WorldEvent::MeshLodEvicted {
+                        mesh: m,
+                        lod: lod as u8,
+                    });
+                }
+            }
+            // A failed LOD may be retried once the mesh comes back.
+            slot.failed.iter_mut().for_each(|f| *f = false);
+        }
+    }
+
+    /// Deforms every loaded skinned instance (its mesh's finest resident LOD) at `time` seconds,
+    /// spread over `threads` threads. Each instance gets its own animation phase.
+    pub fn skin_frame(&self, time: f32, threads: usize) -> Vec<SkinnedFrame> {
+        let mut meta = Vec::new();
+        let mut jobs = Vec::new();
+        for l in &self.levels {
+            let LevelState::Loaded { instances, .. } = &l.state else {
+                continue;
+            };
+            for inst in instances.iter().filter(|i| i.motion == Motion::Skinned) {
+                let slot = &self.meshes[inst.mesh.0 as usize];
+                let Some(lod) = slot.finest_resident() else {
+                    continue;
+                };
+                let Some(g) = slot.resident[lod].as_deref() else {
+                    continue;
+                };
+                meta.push((inst.id, inst.mesh, lod as u8));
+                jobs.push(SkinJob {
+                    geometry: g,
+                    time: time + (inst.id.0 % 97) as f32 * 0.037,
+                    positions: Vec::new(),
+                });
+            }
+        }
+        skin_parallel(&mut jobs, threads);
+        meta.into_iter()
+            .zip(jobs)
+            .map(|((instance, mesh, lod), j)| SkinnedFrame {
+                instance,
+                mesh,
+                lod,
+                positions: j.positions,
+            })
+            .collect()
+    }
+}
+
+fn lod_loaded(mesh: MeshId, lod: usize, lod_count: u8, g: &Arc<LodGeometry>) -> WorldEvent {
+    WorldEvent::MeshLodLoaded {
+        mesh,
+        lod: lod as u8,
+        lod_count,
+        error: g.error,
+        geometry: Arc::clone(g),
+    }
+}

@@ -1,0 +1,141 @@
+//! The world's public types: cameras, streaming parameters, events and counters.
+
+use std::sync::Arc;
+
+use glam::Vec3;
+
+use crate::error::StreamingError;
+use crate::model::{Aabb, Instance, InstanceId, LevelId, LodGeometry, MeshId};
+
+/// A viewpoint that drives streaming.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// World position.
+    pub position: Vec3,
+}
+
+impl From<Vec3> for Camera {
+    fn from(position: Vec3) -> Camera {
+        Camera { position }
+    }
+}
+
+/// Streaming parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamConfig {
+    /// Levels whose ground rectangle is within this distance (XZ) of a camera are loaded.
+    pub load_radius: f32,
+    /// Loaded levels farther than this from every camera are unloaded (> `load_radius`).
+    pub unload_radius: f32,
+    /// Loader threads.
+    pub loader_threads: usize,
+    /// CPU memory budget for mesh LOD data in bytes.
+    pub mesh_budget_bytes: usize,
+    /// A LOD is fine enough when its error is at most this angle (radians) x distance.
+    pub lod_error_angle: f32,
+    /// Hysteresis factor for evicting finer LODs (> 1).
+    pub lod_evict_factor: f32,
+    /// At most this many loader jobs in flight (closer requests go first).
+    pub max_in_flight: usize,
+}
+
+impl Default for StreamConfig {
+    fn default() -> StreamConfig {
+        StreamConfig {
+            load_radius: 300.0,
+            unload_radius: 400.0,
+            loader_threads: 2,
+            mesh_budget_bytes: 256 << 20,
+            lod_error_angle: 0.002,
+            lod_evict_factor: 1.5,
+            max_in_flight: 64,
+        }
+    }
+}
+
+/// What the world tells its consumer (the facade feeds these to the BLAS manager).
+#[derive(Debug, Clone)]
+pub enum WorldEvent {
+    /// A level is in: register its instances. Their meshes' coarsest LODs were announced
+    /// (by `MeshLodLoaded`) before this event or are already resident.
+    LevelLoaded {
+        /// The level.
+        level: LevelId,
+        /// Its world bounds.
+        bounds: Aabb,
+        /// Its instances (ids, mesh ids, transforms, bounds, material class, static/skinned).
+        instances: Arc<[Instance]>,
+    },
+    /// A level is out: unregister these instances (the same list `LevelLoaded` gave).
+    LevelUnloaded {
+        /// The level.
+        level: LevelId,
+        /// Its instances.
+        instances: Arc<[Instance]>,
+    },
+    /// A mesh LOD's geometry is resident.
+    MeshLodLoaded {
+        /// The mesh.
+        mesh: MeshId,
+        /// LOD index (0 finest).
+        lod: u8,
+        /// LODs the mesh has.
+        lod_count: u8,
+        /// Geometric error in mesh-space metres (multiply by the instance's scale).
+        error: f32,
+        /// The geometry (shared; skinned meshes carry their weights and skeleton).
+        geometry: Arc<LodGeometry>,
+    },
+    /// A mesh LOD's geometry was dropped; release what was built from it.
+    MeshLodEvicted {
+        /// The mesh.
+        mesh: MeshId,
+        /// LOD index.
+        lod: u8,
+    },
+    /// Something could not be loaded; the rest of the world carries on.
+    LoadFailed {
+        /// The level being loaded, if any.
+        level: Option<LevelId>,
+        /// The mesh LOD being loaded, if any.
+        mesh: Option<(MeshId, u8)>,
+        /// What went wrong (names the file).
+        error: Arc<StreamingError>,
+    },
+}
+
+/// A snapshot of the streaming state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StreamStats {
+    /// Levels loaded.
+    pub loaded_levels: usize,
+    /// Levels being loaded.
+    pub loading_levels: usize,
+    /// Levels whose last load failed (retried after leaving the unload radius).
+    pub failed_levels: usize,
+    /// Instances in loaded levels.
+    pub loaded_instances: usize,
+    /// Mesh LODs resident.
+    pub resident_lods: usize,
+    /// Bytes of resident mesh LOD data.
+    pub mesh_bytes: usize,
+    /// Bytes of finer LODs requested but not yet arrived.
+    pub in_flight_bytes: usize,
+    /// Loader jobs in flight.
+    pub in_flight_jobs: usize,
+    /// Loader threads running.
+    pub loader_threads_alive: usize,
+}
+
+/// Deformed positions of one skinned instance for one frame.
+#[derive(Debug, Clone)]
+pub struct SkinnedFrame {
+    /// The instance.
+    pub instance: InstanceId,
+    /// Its mesh.
+    pub mesh: MeshId,
+    /// The LOD that was deformed (the finest resident one).
+    pub lod: u8,
+    /// Mesh-space positions (apply the instance transform), one per vertex of that LOD.
+    pub positions: Vec<[f32; 3]>,
+}

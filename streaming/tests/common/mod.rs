@@ -1,0 +1,37 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use rtstream_streaming::{bake, generate, GeneratedWorld, WorldPreset, ASSIMP_GLTF2_DIR};
+
+/// The assimp-testmodels glTF2 directory; fails the test with a clear message when missing.
+pub fn assets() -> PathBuf {
+    let dir = PathBuf::from(ASSIMP_GLTF2_DIR);
+    assert!(
+        dir.join("2CylinderEngine-glTF-Binary/2CylinderEngine.glb").is_file(),
+        "missing test assets under {}: install Debian's assimp-testmodels (apt-get install assimp-testmodels)",
+        dir.display()
+    );
+    dir
+}
+
+/// A fresh, empty scratch directory for this test.
+pub fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rtstream-test-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("create scratch dir");
+    dir
+}
+
+/// Generates a small world (grid x grid levels of the default map's density) and bakes it.
+pub fn baked_small(name: &str, grid: u32) -> (GeneratedWorld, PathBuf) {
+    assets();
+    let world = generate(&WorldPreset::small(grid, 7)).expect("generate");
+    let dir = scratch(name);
+    bake(&world, &dir).expect("bake");
+    (world, dir)
+}
+
+pub const SETTLE: Duration = Duration::from_secs(30);
