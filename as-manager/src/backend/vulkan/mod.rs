@@ -8,6 +8,7 @@ mod buffer;
 mod compute;
 mod context;
 mod error;
+mod rt_pipeline;
 mod scene;
 
 pub use accel::{
@@ -18,6 +19,7 @@ pub use buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use compute::{BindingKind, Bound, ComputePipeline};
 pub use context::{ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog, VulkanContext};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
+pub use rt_pipeline::{RayTracingPipeline, RtShaders};
 pub use scene::{GpuMesh, InstanceDesc, MeshDesc, SceneBuildStats, StaticScene};
 
 pub use ash;
