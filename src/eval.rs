@@ -40,9 +40,9 @@ pub struct DemoWorldDesc {
 impl Default for DemoWorldDesc {
     fn default() -> Self {
         Self {
-            rows: 5,
-            columns: 5,
-            first_row: 8.0,
+            rows: 6,
+            columns: 6,
+            first_row: 5.0,
             row_growth: 1.6,
         }
     }
@@ -118,7 +118,7 @@ impl EvalWorld {
         let mut dist = desc.first_row;
         for row in 0..desc.rows {
             // Spread the row over about the same view angle at every distance.
-            let half_width = dist * 0.55;
+            let half_width = dist * 0.7;
             for col in 0..desc.columns {
                 let k = row * desc.columns + col;
                 let u = if desc.columns > 1 {
@@ -134,7 +134,7 @@ impl EvalWorld {
                     world.instances.push(SceneInstance {
                         mesh,
                         transform: place * node,
-                        base_color: palette(k),
+                        base_color: palette(row * 7 + col),
                     });
                 }
             }
@@ -146,8 +146,8 @@ impl EvalWorld {
     /// The camera the demo world is laid out for.
     pub fn demo_camera() -> Camera {
         Camera::look_at(
-            Vec3::new(0.0, 2.2, 4.0),
-            Vec3::new(0.0, 0.6, -20.0),
+            Vec3::new(0.0, 4.5, 2.0),
+            Vec3::new(0.0, 0.0, -22.0),
             55f32.to_radians(),
         )
     }
