@@ -195,7 +195,14 @@ fn metrics_are_zero_for_identical_frames_and_grow_with_the_culling_angle() {
 
 /// A vertical cylinder (radius 0.25, height 2, closed), skinned to two joints: joint 0 holds the
 /// lower half, joint 1 the upper half, blended around y = 1.
-fn two_bone_cylinder() -> (Vec<[f32; 3]>, Vec<u32>, Vec<[u16; 4]>, Vec<[f32; 4]>) {
+struct SkinnedMesh {
+    bind: Vec<[f32; 3]>,
+    indices: Vec<u32>,
+    joints: Vec<[u16; 4]>,
+    weights: Vec<[f32; 4]>,
+}
+
+fn two_bone_cylinder() -> SkinnedMesh {
     let (seg, rings) = (24u32, 20u32);
     let mut pos = Vec::new();
     let mut joints = Vec::new();
@@ -228,12 +235,22 @@ fn two_bone_cylinder() -> (Vec<[f32; 3]>, Vec<u32>, Vec<[u16; 4]>, Vec<[f32; 4]>
             idx.extend([centre, ring * seg + s, ring * seg + (s + 1) % seg]);
         }
     }
-    (pos, idx, joints, weights)
+    SkinnedMesh {
+        bind: pos,
+        indices: idx,
+        joints,
+        weights,
+    }
 }
 
 #[test]
 fn skinned_silhouette_follows_the_pose_and_matches_cpu_skinning() {
-    let (bind, idx, joints, weights) = two_bone_cylinder();
+    let SkinnedMesh {
+        bind,
+        indices: idx,
+        joints,
+        weights,
+    } = two_bone_cylinder();
     let bend = |deg: f32| {
         let pivot = Vec3::new(0.0, 1.0, 0.0);
         [

@@ -201,9 +201,9 @@ impl Renderer {
         if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
             return Err(RenderError::InvalidRequest(format!("image size {w}x{h}")));
         }
-        if !(desc.sun_radius.is_finite() && desc.sun_radius >= 0.0 && desc.sun_radius < 1.0)
-            || !(desc.ao_radius.is_finite() && desc.ao_radius > 0.0)
-        {
+        let sun_ok = (0.0..1.0).contains(&desc.sun_radius);
+        let ao_ok = desc.ao_radius.is_finite() && desc.ao_radius > 0.0;
+        if !(sun_ok && ao_ok) {
             return Err(RenderError::InvalidRequest(format!(
                 "sun radius {} / AO radius {}",
                 desc.sun_radius, desc.ao_radius
