@@ -2,7 +2,7 @@
 //! assimp-testmodels), and the simple projected-angle culling used to make "managed" frames
 //! until the manager's culler drives them.
 
-use std::path::Path;
+use std::path::PathBuf;
 
 use glam::{Mat4, Quat, Vec3};
 use rtstream_as_manager::backend::vulkan::MeshDesc;
@@ -14,6 +14,14 @@ use crate::error::Result;
 
 /// Where Debian's assimp-testmodels keeps its glTF 2 models.
 pub const ASSET_DIR: &str = "/usr/share/assimp/models/glTF2";
+
+/// The asset directory: `RTSTREAM_ASSETS` when set (e.g. a copy carried to the GPU machine,
+/// which has no assimp-testmodels), else [`ASSET_DIR`].
+pub fn asset_dir() -> PathBuf {
+    std::env::var_os("RTSTREAM_ASSETS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(ASSET_DIR))
+}
 
 /// A world of meshes and instances (instance `i` has customIndex `i` when traced).
 #[derive(Debug, Clone, Default)]
@@ -93,7 +101,7 @@ impl EvalWorld {
     /// A ground plane and rows of 2CylinderEngines, boxes and morph cubes at growing distances
     /// along -z (a camera at [`EvalWorld::demo_camera`] sees near and far models at once).
     pub fn demo(desc: &DemoWorldDesc) -> Result<Self> {
-        let dir = Path::new(ASSET_DIR);
+        let dir = asset_dir();
         let engine = load_gltf(dir.join("2CylinderEngine-glTF-Binary/2CylinderEngine.glb"))?;
         let cube = load_gltf(dir.join("BoxTextured-glTF/BoxTextured.gltf"))?;
         let morph = load_gltf(
