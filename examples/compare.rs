@@ -4,7 +4,9 @@
 //! The "managed" frame traces only the instances that survive projected-angle culling (UE5's
 //! small-object test, `--angle` degrees); the reference traces every instance at the finest
 //! LOD. The picture is `managed | reference | difference` (red: the primary hit's instance
-//! differs, yellow: only the shadow bit differs, elsewhere the colour difference x4).
+//! differs, yellow: only the shadow bit differs, elsewhere the colour difference x4). Beside it,
+//! `<out>_ids.png` (the reference's hit buffer, one colour per instance) and `<out>_shadow.png`
+//! (its shadow mask).
 //!
 //! ```text
 //! cargo run --release --example compare -- [--size WxH] [--angle DEG] [--out out/compare.png]
@@ -152,7 +154,17 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let diff = difference_image(&frame, &ref_frame)?;
     let (w3, picture) = side_by_side(width, height, &[&frame.color, &ref_frame.color, &diff]);
     save_rgba_png(&out, w3, height, &picture)?;
+    // The reference frame's hit buffer (instances coloured) and shadow mask, beside the picture.
+    let stem = out.with_extension("");
+    ref_frame.save_instance_png(format!("{}_ids.png", stem.display()))?;
+    ref_frame.save_shadow_png(format!("{}_shadow.png", stem.display()))?;
 
+    // Shadow samples only apply to a sun disk (--soft > 0); hard shadows trace one ray.
+    let shadow_samples = if soft_deg > 0.0 {
+        shadow_samples.max(1)
+    } else {
+        1
+    };
     let r = &ref_frame.passes;
     let (pa, pb, pc) = r.mrays_per_s();
     eprintln!(

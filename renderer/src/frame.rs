@@ -106,6 +106,29 @@ impl Frame {
         save_rgba_png(path, self.width, self.height, &self.color)
     }
 
+    /// Writes the hit buffer as a PNG: each instance in its own colour (hashed from its
+    /// customIndex), misses black.
+    pub fn save_instance_png(&self, path: impl AsRef<Path>) -> Result<()> {
+        let px: Vec<[u8; 4]> = self
+            .hits
+            .iter()
+            .map(|h| {
+                if !h.is_hit() {
+                    return [0, 0, 0, 255];
+                }
+                let x = h.instance.wrapping_mul(0x9e37_79b9).rotate_left(13) ^ 0x5bd1_e995;
+                let x = x.wrapping_mul(0x85eb_ca6b);
+                [
+                    64 + (x >> 24) as u8 % 192,
+                    64 + (x >> 16) as u8 % 192,
+                    64 + (x >> 8) as u8 % 192,
+                    255,
+                ]
+            })
+            .collect();
+        save_rgba_png(path, self.width, self.height, &px)
+    }
+
     /// Writes the shadow mask as a greyscale PNG (white: shadowed, grey: lit, black: miss).
     pub fn save_shadow_png(&self, path: impl AsRef<Path>) -> Result<()> {
         let px: Vec<[u8; 4]> = self

@@ -96,12 +96,18 @@ impl RenderPath {
     /// The path for a device: ray queries when available, else the ray-tracing pipeline.
     pub fn for_device(ctx: &VulkanContext) -> Result<Self> {
         let info = ctx.info();
-        if info.ray_query {
-            Ok(Self::RayQuery)
-        } else if info.ray_tracing_pipeline {
-            Ok(Self::RayTracingPipeline)
+        Self::choose(info.ray_query, info.ray_tracing_pipeline)
+            .ok_or_else(|| RenderError::NoRayTracing(info.name.clone()))
+    }
+
+    /// The choice behind [`for_device`](Self::for_device), from the two extension flags.
+    pub fn choose(ray_query: bool, ray_tracing_pipeline: bool) -> Option<Self> {
+        if ray_query {
+            Some(Self::RayQuery)
+        } else if ray_tracing_pipeline {
+            Some(Self::RayTracingPipeline)
         } else {
-            Err(RenderError::NoRayTracing(info.name.clone()))
+            None
         }
     }
 }
@@ -320,5 +326,27 @@ impl Drop for Renderer {
             Some(Tracer::Pipeline(p)) => p.destroy(&self.ctx),
             None => {}
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ray_queries_win_and_the_pipeline_is_the_fallback() {
+        assert_eq!(RenderPath::choose(true, true), Some(RenderPath::RayQuery));
+        assert_eq!(RenderPath::choose(true, false), Some(RenderPath::RayQuery));
+        // The NVIDIA H100/H200 here: acceleration structures and RT pipelines, no ray queries.
+        assert_eq!(
+            RenderPath::choose(false, true),
+            Some(RenderPath::RayTracingPipeline)
+        );
+        assert_eq!(RenderPath::choose(false, false), None);
+    }
+
+    #[test]
+    fn push_constants_fit_the_guaranteed_128_bytes() {
+        assert!(std::mem::size_of::<Push>() <= 128);
     }
 }
