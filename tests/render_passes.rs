@@ -99,6 +99,18 @@ fn ray_query_hits_match_cpu_reference_on_a_multi_instance_world() {
     assert_eq!(p.primary_rays, u64::from(W * H));
     assert!(p.shadow_rays > 0 && p.ao_rays > 0);
 
+    // Any resolution: one that is not a multiple of the 8x8 workgroup.
+    let (w, h) = (61, 37);
+    let odd = scene
+        .render(&mut renderer, &RenderDesc::new(w, h, camera))
+        .unwrap();
+    assert_eq!(
+        (odd.hits.len(), odd.color.len()),
+        ((w * h) as usize, (w * h) as usize)
+    );
+    let agree_odd = cpu_agreement(&odd, &world.cpu_reference().cast(&camera, w, h));
+    assert!(agree_odd >= 0.995, "{w}x{h}: agreement {agree_odd:.5}");
+
     drop(renderer);
     scene.destroy(&ctx);
     common::assert_no_validation_messages(&ctx);
