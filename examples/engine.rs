@@ -1,5 +1,5 @@
 //! The thin slice: a real glTF mesh into real BLASes and a TLAS, traced by a ray-query compute
-//! shader (primary + shadow ray), written as a PNG.
+//! shader (primary, shadow and ambient-occlusion rays), written as a PNG.
 //!
 //! ```text
 //! cargo run --release --example engine -- [--model PATH] [--out out/engine.png] [--size WxH] [--json]
@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
-use rtstream::renderer::{Camera, RenderDesc, RqRenderer};
+use rtstream::renderer::{Camera, RenderDesc, Renderer};
 use rtstream::{world_bounds, GpuGltfScene};
 
 const DEFAULT_MODEL: &str =
@@ -71,12 +71,10 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let (lo, hi) = world_bounds(&scene);
     let camera = Camera::framing(lo, hi, Vec3::new(0.7, 0.5, 1.0), 40f32.to_radians());
     let desc = RenderDesc {
-        width,
-        height,
-        camera,
         sun_dir: Vec3::new(0.4, 1.0, 0.3),
+        ..RenderDesc::new(width, height, camera)
     };
-    let mut renderer = RqRenderer::new(ctx.clone())?;
+    let mut renderer = Renderer::new(ctx.clone())?;
     // The first dispatch of a new pipeline pays for shader compilation: warm up, then time.
     renderer.render(
         gpu.accel.tlas.raw,
@@ -90,7 +88,8 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let frame = renderer.render(gpu.accel.tlas.raw, &gpu.shading, &desc)?;
     frame.save_png(&out)?;
 
-    let rays = frame.hits.len() as f64 + frame.hits.iter().filter(|h| h.is_hit()).count() as f64;
+    let p = frame.passes;
+    let rays = (p.primary_rays + p.shadow_rays + p.ao_rays) as f64;
     if json {
         println!(
             "{{\"model\":{:?},\"device\":{:?},\"meshes\":{},\"instances\":{},\"triangles\":{},\"blas_bytes\":{},\"blas_scratch_bytes\":{},\"tlas_bytes\":{},\"tlas_scratch_bytes\":{},\"build_ms\":{:.3},\"width\":{},\"height\":{},\"render_ms\":{:.3},\"hit_fraction\":{:.4},\"mrays_per_s\":{:.3}}}",

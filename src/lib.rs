@@ -15,6 +15,7 @@ pub use rtstream_renderer as renderer;
 pub use rtstream_streaming as streaming;
 
 mod error;
+pub mod eval;
 mod gltf_scene;
 
 pub use error::{Error, Result};

@@ -4,7 +4,7 @@
 mod common;
 
 use glam::Vec3;
-use rtstream::renderer::{Camera, RenderDesc, RqRenderer};
+use rtstream::renderer::{Camera, RenderDesc, Renderer};
 use rtstream::{reference_scene, world_bounds, GpuGltfScene};
 
 #[test]
@@ -22,12 +22,10 @@ fn gpu_hits_match_cpu_reference_on_2cylinder_engine() {
     let c = (lo + hi) * 0.5;
     camera.position = c + (camera.position - c) * 0.6;
     let desc = RenderDesc {
-        width: 128,
-        height: 128,
-        camera,
         sun_dir: Vec3::new(0.4, 1.0, 0.3),
+        ..RenderDesc::new(128, 128, camera)
     };
-    let mut renderer = RqRenderer::new(ctx.clone()).expect("renderer");
+    let mut renderer = Renderer::new(ctx.clone()).expect("renderer");
     let frame = renderer
         .render(gpu.accel.tlas.raw, &gpu.shading, &desc)
         .expect("render");

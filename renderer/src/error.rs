@@ -13,6 +13,12 @@ pub enum RenderError {
     /// The device has no VK_KHR_ray_query (this path needs it).
     #[error("device {0:?} has no VK_KHR_ray_query")]
     NoRayQuery(String),
+    /// The device has neither VK_KHR_ray_query nor VK_KHR_ray_tracing_pipeline.
+    #[error("device {0:?} has neither VK_KHR_ray_query nor VK_KHR_ray_tracing_pipeline")]
+    NoRayTracing(String),
+    /// Two frames that cannot be compared (different sizes).
+    #[error("frames differ in size: {0}x{1} vs {2}x{3}")]
+    FrameMismatch(u32, u32, u32, u32),
     /// A render request that cannot be satisfied.
     #[error("invalid render request: {0}")]
     InvalidRequest(String),

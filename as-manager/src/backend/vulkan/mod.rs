@@ -12,6 +12,7 @@ mod error;
 mod geometry;
 mod measure;
 mod query;
+mod rt_pipeline;
 mod scene;
 
 pub use accel::{align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE};
@@ -26,6 +27,7 @@ pub use measure::{
     CompactionResult,
 };
 pub use query::{QueryKind, QueryPool};
+pub use rt_pipeline::{RayTracingPipeline, RtShaders};
 pub use scene::{GpuMesh, InstanceDesc, SceneBuildStats, StaticScene};
 
 pub use ash;

@@ -1,0 +1,472 @@
+//! A small safe ray-tracing-pipeline wrapper (VK_KHR_ray_tracing_pipeline): one raygen, one miss
+//! and one triangle hit group with a closest-hit shader, a shader binding table laid out with the
+//! device's handle size and alignments, and the same binding model as
+//! [`ComputePipeline`](super::ComputePipeline) (set 0, bindings in list order, push constants).
+//!
+//! This is the renderer's path on GPUs without VK_KHR_ray_query (the NVIDIA H100/H200 here).
+
+use std::io::Cursor;
+use std::time::Instant;
+
+use ash::vk;
+
+use super::accel::align_up;
+use super::buffer::{BufferDesc, GpuBuffer, MemoryKind};
+use super::compute::{BindingKind, Bound};
+use super::context::VulkanContext;
+use super::error::{VkResult, VkResultExt, VulkanError};
+
+/// SPIR-V of the three shaders (entry point `main` in each).
+#[derive(Debug, Clone, Copy)]
+pub struct RtShaders<'a> {
+    /// Ray generation shader.
+    pub raygen: &'a [u8],
+    /// Miss shader (miss index 0).
+    pub miss: &'a [u8],
+    /// Closest-hit shader of the only hit group (SBT offset 0 for every instance).
+    pub closest_hit: &'a [u8],
+}
+
+/// Every stage a binding or push constant of the pipeline may be read from.
+const STAGES: vk::ShaderStageFlags = vk::ShaderStageFlags::from_raw(
+    vk::ShaderStageFlags::RAYGEN_KHR.as_raw()
+        | vk::ShaderStageFlags::MISS_KHR.as_raw()
+        | vk::ShaderStageFlags::CLOSEST_HIT_KHR.as_raw(),
+);
+
+/// A ray-tracing pipeline with its shader binding table, one descriptor set and push constants.
+#[derive(Debug)]
+pub struct RayTracingPipeline {
+    raw: vk::Pipeline,
+    layout: vk::PipelineLayout,
+    set_layout: vk::DescriptorSetLayout,
+    pool: vk::DescriptorPool,
+    set: vk::DescriptorSet,
+    sbt: GpuBuffer,
+    /// raygen, miss, hit, callable (empty).
+    regions: [vk::StridedDeviceAddressRegionKHR; 4],
+    bindings: Vec<BindingKind>,
+    push_size: u32,
+}
+
+fn descriptor_type(k: BindingKind) -> vk::DescriptorType {
+    match k {
+        BindingKind::AccelStruct => vk::DescriptorType::ACCELERATION_STRUCTURE_KHR,
+        BindingKind::StorageBuffer => vk::DescriptorType::STORAGE_BUFFER,
+    }
+}
+
+impl RayTracingPipeline {
+    /// Creates the pipeline and its shader binding table. Fails with
+    /// [`VulkanError::Unsupported`] when the device has no VK_KHR_ray_tracing_pipeline.
+    pub fn new(
+        ctx: &VulkanContext,
+        name: &str,
+        shaders: &RtShaders<'_>,
+        bindings: &[BindingKind],
+        push_size: u32,
+    ) -> VkResult<Self> {
+        let Some(rt) = ctx.ray_tracing_pipeline() else {
+            return Err(VulkanError::Unsupported(format!(
+                "{name}: device {:?} has no VK_KHR_ray_tracing_pipeline",
+                ctx.info().name
+            )));
+        };
+        let read = |what: &str, bytes: &[u8]| {
+            ash::util::read_spv(&mut Cursor::new(bytes))
+                .map_err(|e| VulkanError::Unsupported(format!("{name}: bad {what} SPIR-V: {e}")))
+        };
+        let codes = [
+            read("raygen", shaders.raygen)?,
+            read("miss", shaders.miss)?,
+            read("closest-hit", shaders.closest_hit)?,
+        ];
+        let dev = &ctx.device;
+
+        let mut rt_props = vk::PhysicalDeviceRayTracingPipelinePropertiesKHR::default();
+        let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut rt_props);
+        // SAFETY: the physical device belongs to this instance; the chain lives through the call.
+        unsafe {
+            ctx.instance
+                .get_physical_device_properties2(ctx.physical_device, &mut props2)
+        };
+        let handle_size = u64::from(rt_props.shader_group_handle_size);
+        let handle_align = u64::from(rt_props.shader_group_handle_alignment.max(1));
+        let base_align = u64::from(rt_props.shader_group_base_alignment.max(1));
+        if handle_size == 0 || rt_props.max_ray_recursion_depth == 0 {
+            return Err(VulkanError::Unsupported(format!(
+                "{name}: device reports shaderGroupHandleSize {handle_size}, \
+                 maxRayRecursionDepth {}",
+                rt_props.max_ray_recursion_depth
+            )));
+        }
+
+        let layout_bindings: Vec<_> = bindings
+            .iter()
+            .enumerate()
+            .map(|(i, k)| {
+                vk::DescriptorSetLayoutBinding::default()
+                    .binding(i as u32)
+                    .descriptor_type(descriptor_type(*k))
+                    .descriptor_count(1)
+                    .stage_flags(STAGES)
+            })
+            .collect();
+        // SAFETY: `dev` is a valid device; every create-info points to locals that outlive the
+        // call; the objects are destroyed in `destroy` or on the error paths below.
+        let set_layout = unsafe {
+            dev.create_descriptor_set_layout(
+                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&layout_bindings),
+                None,
+            )
+        }
+        .op("vkCreateDescriptorSetLayout")?;
+        let ranges = [vk::PushConstantRange::default()
+            .stage_flags(STAGES)
+            .size(push_size)];
+        let set_layouts = [set_layout];
+        let mut pl_info = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+        if push_size > 0 {
+            pl_info = pl_info.push_constant_ranges(&ranges);
+        }
+        // SAFETY: as above.
+        let layout = match unsafe { dev.create_pipeline_layout(&pl_info, None) } {
+            Ok(l) => l,
+            Err(e) => {
+                // SAFETY: the set layout is unused.
+                unsafe { dev.destroy_descriptor_set_layout(set_layout, None) };
+                return Err(VulkanError::from_vk("vkCreatePipelineLayout", e));
+            }
+        };
+        // From here on, failures clean up through `partial`.
+        let mut partial = Self {
+            raw: vk::Pipeline::null(),
+            layout,
+            set_layout,
+            pool: vk::DescriptorPool::null(),
+            set: vk::DescriptorSet::null(),
+            sbt: ctx
+                .create_buffer(&BufferDesc {
+                    name: &format!("{name} sbt"),
+                    // Room for three base-aligned regions plus the base alignment itself (the
+                    // allocation's address need not be base-aligned).
+                    size: 4 * align_up(align_up(handle_size, handle_align), base_align)
+                        + base_align,
+                    usage: vk::BufferUsageFlags::SHADER_BINDING_TABLE_KHR
+                        | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+                    memory: MemoryKind::Upload,
+                })
+                .inspect_err(|_| {
+                    // SAFETY: layout and set layout are unused.
+                    unsafe {
+                        dev.destroy_pipeline_layout(layout, None);
+                        dev.destroy_descriptor_set_layout(set_layout, None);
+                    }
+                })?,
+            regions: [vk::StridedDeviceAddressRegionKHR::default(); 4],
+            bindings: bindings.to_vec(),
+            push_size,
+        };
+        match partial.finish(ctx, rt, name, &codes, handle_size, handle_align, base_align) {
+            Ok(()) => Ok(partial),
+            Err(e) => {
+                partial.destroy(ctx);
+                Err(e)
+            }
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn finish(
+        &mut self,
+        ctx: &VulkanContext,
+        rt: &ash::khr::ray_tracing_pipeline::Device,
+        name: &str,
+        codes: &[Vec<u32>; 3],
+        handle_size: u64,
+        handle_align: u64,
+        base_align: u64,
+    ) -> VkResult<()> {
+        let dev = &ctx.device;
+        let mut modules = Vec::with_capacity(3);
+        for code in codes {
+            // SAFETY: valid device; the code outlives the call; modules are destroyed below.
+            match unsafe {
+                dev.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(code), None)
+            } {
+                Ok(m) => modules.push(m),
+                Err(e) => {
+                    for m in modules {
+                        // SAFETY: the module is unused.
+                        unsafe { dev.destroy_shader_module(m, None) };
+                    }
+                    return Err(VulkanError::from_vk("vkCreateShaderModule", e));
+                }
+            }
+        }
+        let stages = [
+            vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::RAYGEN_KHR)
+                .module(modules[0])
+                .name(c"main"),
+            vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::MISS_KHR)
+                .module(modules[1])
+                .name(c"main"),
+            vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::CLOSEST_HIT_KHR)
+                .module(modules[2])
+                .name(c"main"),
+        ];
+        let general = |i: u32| {
+            vk::RayTracingShaderGroupCreateInfoKHR::default()
+                .ty(vk::RayTracingShaderGroupTypeKHR::GENERAL)
+                .general_shader(i)
+                .closest_hit_shader(vk::SHADER_UNUSED_KHR)
+                .any_hit_shader(vk::SHADER_UNUSED_KHR)
+                .intersection_shader(vk::SHADER_UNUSED_KHR)
+        };
+        let groups = [
+            general(0),
+            general(1),
+            vk::RayTracingShaderGroupCreateInfoKHR::default()
+                .ty(vk::RayTracingShaderGroupTypeKHR::TRIANGLES_HIT_GROUP)
+                .general_shader(vk::SHADER_UNUSED_KHR)
+                .closest_hit_shader(2)
+                .any_hit_shader(vk::SHADER_UNUSED_KHR)
+                .intersection_shader(vk::SHADER_UNUSED_KHR),
+        ];
+        let info = [vk::RayTracingPipelineCreateInfoKHR::default()
+            .stages(&stages)
+            .groups(&groups)
+            .max_pipeline_ray_recursion_depth(1)
+            .layout(self.layout)];
+        // SAFETY: valid device and layout; stages, groups and modules outlive the call.
+        let created = unsafe {
+            rt.create_ray_tracing_pipelines(
+                vk::DeferredOperationKHR::null(),
+                vk::PipelineCache::null(),
+                &info,
+                None,
+            )
+        };
+        for m in modules {
+            // SAFETY: modules are no longer needed once the pipeline exists (or failed).
+            unsafe { dev.destroy_shader_module(m, None) };
+        }
+        self.raw =
+            created.map_err(|(_, e)| VulkanError::from_vk("vkCreateRayTracingPipelinesKHR", e))?[0];
+
+        // Shader binding table: raygen | miss | hit, each region base-aligned; one record each.
+        let group_count = groups.len() as u32;
+        // SAFETY: the pipeline was created with `group_count` groups.
+        let handles = unsafe {
+            rt.get_ray_tracing_shader_group_handles(
+                self.raw,
+                0,
+                group_count,
+                (handle_size * u64::from(group_count)) as usize,
+            )
+        }
+        .op("vkGetRayTracingShaderGroupHandlesKHR")?;
+        let stride = align_up(handle_size, handle_align);
+        let region_size = align_up(stride, base_align);
+        let base = align_up(self.sbt.address, base_align);
+        let skip = (base - self.sbt.address) as usize;
+        let hs = handle_size as usize;
+        for g in 0..group_count as usize {
+            let at = skip + g * region_size as usize;
+            self.sbt.write(at, &handles[g * hs..(g + 1) * hs]);
+        }
+        let region = |g: u64, stride: u64| vk::StridedDeviceAddressRegionKHR {
+            device_address: base + g * region_size,
+            stride,
+            size: stride,
+        };
+        // The raygen region's size must equal its stride, and that must be base-aligned.
+        self.regions = [
+            region(0, region_size),
+            region(1, stride),
+            region(2, stride),
+            vk::StridedDeviceAddressRegionKHR::default(),
+        ];
+
+        let mut sizes: Vec<vk::DescriptorPoolSize> = Vec::new();
+        for k in &self.bindings {
+            let ty = descriptor_type(*k);
+            match sizes.iter_mut().find(|s| s.ty == ty) {
+                Some(s) => s.descriptor_count += 1,
+                None => sizes.push(vk::DescriptorPoolSize {
+                    ty,
+                    descriptor_count: 1,
+                }),
+            }
+        }
+        // SAFETY: valid device; the create-info points to locals; destroyed in `destroy`.
+        self.pool = unsafe {
+            dev.create_descriptor_pool(
+                &vk::DescriptorPoolCreateInfo::default()
+                    .max_sets(1)
+                    .pool_sizes(&sizes),
+                None,
+            )
+        }
+        .op("vkCreateDescriptorPool")?;
+        let set_layouts = [self.set_layout];
+        // SAFETY: the pool has room for one set of this layout.
+        self.set = unsafe {
+            dev.allocate_descriptor_sets(
+                &vk::DescriptorSetAllocateInfo::default()
+                    .descriptor_pool(self.pool)
+                    .set_layouts(&set_layouts),
+            )
+        }
+        .op("vkAllocateDescriptorSets")?[0];
+        ctx.set_name(self.raw, name);
+        ctx.set_name(self.layout, &format!("{name} layout"));
+        ctx.set_name(self.set_layout, &format!("{name} set layout"));
+        ctx.set_name(self.pool, &format!("{name} descriptor pool"));
+        ctx.set_name(self.set, &format!("{name} set"));
+        Ok(())
+    }
+
+    /// Binds `bound`, traces `width` x `height` x 1 raygen invocations with `push` constants, and
+    /// waits. Returns the wall time in milliseconds (submit to completion).
+    ///
+    /// Writes of earlier submissions are visible to the shaders, and the shaders' writes are
+    /// visible to the host before this returns.
+    pub fn trace(
+        &mut self,
+        ctx: &VulkanContext,
+        bound: &[Bound<'_>],
+        push: &[u8],
+        width: u32,
+        height: u32,
+    ) -> VkResult<f64> {
+        let Some(rt) = ctx.ray_tracing_pipeline() else {
+            return Err(VulkanError::Unsupported(
+                "trace without VK_KHR_ray_tracing_pipeline".into(),
+            ));
+        };
+        if bound.len() != self.bindings.len() || push.len() as u32 != self.push_size {
+            return Err(VulkanError::Unsupported(format!(
+                "trace with {} bindings / {} push bytes; the pipeline has {} / {}",
+                bound.len(),
+                push.len(),
+                self.bindings.len(),
+                self.push_size
+            )));
+        }
+        let handles: Vec<[vk::AccelerationStructureKHR; 1]> = bound
+            .iter()
+            .map(|b| match b {
+                Bound::Accel(a) => [a.raw],
+                Bound::AccelRaw(raw) => [*raw],
+                Bound::Buffer(_) => [vk::AccelerationStructureKHR::null()],
+            })
+            .collect();
+        let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = bound
+            .iter()
+            .map(|b| match b {
+                Bound::Buffer(buf) => [vk::DescriptorBufferInfo::default()
+                    .buffer(buf.raw)
+                    .offset(0)
+                    .range(vk::WHOLE_SIZE)],
+                _ => [vk::DescriptorBufferInfo::default()],
+            })
+            .collect();
+        let mut as_writes: Vec<vk::WriteDescriptorSetAccelerationStructureKHR<'_>> = handles
+            .iter()
+            .map(|h| {
+                vk::WriteDescriptorSetAccelerationStructureKHR::default().acceleration_structures(h)
+            })
+            .collect();
+        let mut writes = Vec::with_capacity(bound.len());
+        for (i, ((b, kind), as_write)) in bound
+            .iter()
+            .zip(&self.bindings)
+            .zip(as_writes.iter_mut())
+            .enumerate()
+        {
+            let w = vk::WriteDescriptorSet::default()
+                .dst_set(self.set)
+                .dst_binding(i as u32)
+                .descriptor_type(descriptor_type(*kind));
+            let w = match (b, kind) {
+                (Bound::Accel(_) | Bound::AccelRaw(_), BindingKind::AccelStruct) => {
+                    w.descriptor_count(1).push_next(as_write)
+                }
+                (Bound::Buffer(_), BindingKind::StorageBuffer) => w.buffer_info(&buffer_infos[i]),
+                _ => {
+                    return Err(VulkanError::Unsupported(format!(
+                        "binding {i}: {b:?} does not match {kind:?}"
+                    )))
+                }
+            };
+            writes.push(w);
+        }
+        // SAFETY: the set is not in use (every trace waits for completion before returning).
+        unsafe { ctx.device.update_descriptor_sets(&writes, &[]) };
+        let start = Instant::now();
+        let [raygen, miss, hit, callable] = &self.regions;
+        ctx.submit_and_wait("ray tracing", |dev, cmd| {
+            // SAFETY: cmd is recording; pipeline, layout, set and SBT are valid; the bound
+            // resources live until the wait returns (they are borrowed for this call).
+            unsafe {
+                let before = [vk::MemoryBarrier2::default()
+                    .src_stage_mask(
+                        vk::PipelineStageFlags2::ALL_COMMANDS | vk::PipelineStageFlags2::HOST,
+                    )
+                    .src_access_mask(vk::AccessFlags2::MEMORY_WRITE | vk::AccessFlags2::HOST_WRITE)
+                    .dst_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
+                    .dst_access_mask(
+                        vk::AccessFlags2::SHADER_STORAGE_READ
+                            | vk::AccessFlags2::SHADER_STORAGE_WRITE
+                            | vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR
+                            | vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR,
+                    )];
+                dev.cmd_pipeline_barrier2(
+                    cmd,
+                    &vk::DependencyInfo::default().memory_barriers(&before),
+                );
+                dev.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::RAY_TRACING_KHR, self.raw);
+                dev.cmd_bind_descriptor_sets(
+                    cmd,
+                    vk::PipelineBindPoint::RAY_TRACING_KHR,
+                    self.layout,
+                    0,
+                    &[self.set],
+                    &[],
+                );
+                if !push.is_empty() {
+                    dev.cmd_push_constants(cmd, self.layout, STAGES, 0, push);
+                }
+                rt.cmd_trace_rays(cmd, raygen, miss, hit, callable, width, height, 1);
+                let after = [vk::MemoryBarrier2::default()
+                    .src_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
+                    .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+                    .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                    .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+                dev.cmd_pipeline_barrier2(
+                    cmd,
+                    &vk::DependencyInfo::default().memory_barriers(&after),
+                );
+            }
+        })?;
+        Ok(start.elapsed().as_secs_f64() * 1e3)
+    }
+
+    /// Destroys the pipeline and its SBT. The caller guarantees no trace is pending (trace waits).
+    pub fn destroy(self, ctx: &VulkanContext) {
+        // SAFETY: no pending work uses these objects; each is destroyed once; null handles
+        // (from a failed creation) are ignored by vkDestroy*.
+        unsafe {
+            ctx.device.destroy_pipeline(self.raw, None);
+            ctx.device.destroy_pipeline_layout(self.layout, None);
+            ctx.device.destroy_descriptor_pool(self.pool, None);
+            ctx.device
+                .destroy_descriptor_set_layout(self.set_layout, None);
+        }
+        ctx.destroy_buffer(self.sbt);
+    }
+}

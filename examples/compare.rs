@@ -1,0 +1,216 @@
+//! A managed frame next to its reference, with the difference image: one PNG a person can look
+//! at, plus the accuracy metrics and per-pass timings.
+//!
+//! The "managed" frame traces only the instances that survive projected-angle culling (UE5's
+//! small-object test, `--angle` degrees); the reference traces every instance at the finest
+//! LOD. The picture is `managed | reference | difference` (red: the primary hit's instance
+//! differs, yellow: only the shadow bit differs, elsewhere the colour difference x4). Beside it,
+//! `<out>_ids.png` (the reference's hit buffer, one colour per instance) and `<out>_shadow.png`
+//! (its shadow mask).
+//!
+//! ```text
+//! cargo run --release --example compare -- [--size WxH] [--angle DEG] [--out out/compare.png]
+//!     [--rows N] [--cols N] [--soft DEG] [--shadow-samples N] [--ao-samples N]
+//!     [--path rq|rt] [--json]
+//! ```
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
+use rtstream::eval::{cull_small_instances, DemoWorldDesc, EvalWorld};
+use rtstream::renderer::{
+    difference_image, save_rgba_png, Frame, FrameMetrics, PassStats, RenderDesc, RenderPath,
+    Renderer, TracedScene,
+};
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    if let Err(e) = run() {
+        eprintln!("error: {e}");
+        let mut source = std::error::Error::source(&*e);
+        while let Some(s) = source {
+            eprintln!("  caused by: {s}");
+            source = s.source();
+        }
+        std::process::exit(1);
+    }
+}
+
+fn passes_json(p: &PassStats) -> String {
+    let (a, b, c) = p.mrays_per_s();
+    format!(
+        "{{\"primary_ms\":{:.3},\"shadow_ms\":{:.3},\"ao_shade_ms\":{:.3},\"primary_rays\":{},\"shadow_rays\":{},\"ao_rays\":{},\"primary_mrays_per_s\":{a:.3},\"shadow_mrays_per_s\":{b:.3},\"ao_mrays_per_s\":{c:.3}}}",
+        p.primary_ms, p.shadow_ms, p.ao_shade_ms, p.primary_rays, p.shadow_rays, p.ao_rays
+    )
+}
+
+/// `frames` side by side with 4-pixel white gaps.
+fn side_by_side(width: u32, height: u32, images: &[&[[u8; 4]]]) -> (u32, Vec<[u8; 4]>) {
+    const GAP: u32 = 4;
+    let n = images.len() as u32;
+    let total = width * n + GAP * (n - 1);
+    let mut out = vec![[255u8; 4]; (total * height) as usize];
+    for (k, img) in images.iter().enumerate() {
+        let x0 = k as u32 * (width + GAP);
+        for y in 0..height {
+            let src = &img[(y * width) as usize..((y + 1) * width) as usize];
+            let at = (y * total + x0) as usize;
+            out[at..at + width as usize].copy_from_slice(src);
+        }
+    }
+    (total, out)
+}
+
+fn run() -> Result<(), Box<dyn std::error::Error>> {
+    let (mut width, mut height) = (640u32, 360u32);
+    let mut angle_deg = 1.0f32;
+    let mut out = PathBuf::from("out/compare.png");
+    let mut world_desc = DemoWorldDesc::default();
+    let mut json = false;
+    let mut path: Option<RenderPath> = None;
+    let mut soft_deg = 0.0f32;
+    let mut shadow_samples = 4u32;
+    let mut ao_samples = 1u32;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let mut value = || args.next().ok_or(format!("{a} needs a value"));
+        match a.as_str() {
+            "--size" => {
+                let s = value()?;
+                let (w, h) = s.split_once('x').ok_or("--size needs WxH")?;
+                (width, height) = (w.parse()?, h.parse()?);
+            }
+            "--angle" => angle_deg = value()?.parse()?,
+            "--out" => out = value()?.into(),
+            "--rows" => world_desc.rows = value()?.parse()?,
+            "--cols" => world_desc.columns = value()?.parse()?,
+            "--soft" => soft_deg = value()?.parse()?,
+            "--shadow-samples" => shadow_samples = value()?.parse()?,
+            "--ao-samples" => ao_samples = value()?.parse()?,
+            "--path" => {
+                path = Some(match value()?.as_str() {
+                    "rq" => RenderPath::RayQuery,
+                    "rt" => RenderPath::RayTracingPipeline,
+                    other => return Err(format!("--path rq|rt, not {other:?}").into()),
+                })
+            }
+            "--json" => json = true,
+            "-h" | "--help" => {
+                println!(
+                    "usage: compare [--size WxH] [--angle DEG] [--out PNG] [--rows N] [--cols N] \
+                     [--soft DEG] [--shadow-samples N] [--ao-samples N] [--path rq|rt] [--json]"
+                );
+                return Ok(());
+            }
+            other => return Err(format!("unknown argument {other:?} (try --help)").into()),
+        }
+    }
+
+    let world = EvalWorld::demo(&world_desc)?;
+    let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
+    let info = ctx.info().clone();
+    eprintln!(
+        "device: {} ({:?}, {}): {}",
+        info.name, info.kind, info.driver, info.reason
+    );
+    let mut renderer = match path {
+        Some(p) => Renderer::with_path(ctx.clone(), p)?,
+        None => Renderer::new(ctx.clone())?,
+    };
+    let camera = EvalWorld::demo_camera();
+    let meshes = world.mesh_descs();
+    let keep = cull_small_instances(
+        camera.position,
+        &world.bounding_spheres(),
+        angle_deg.to_radians(),
+    );
+    let reference = TracedScene::reference(&ctx, &meshes, &world.instances)?;
+    let managed = TracedScene::subset(&ctx, &meshes, &world.instances, |i| keep[i])?;
+    let desc = RenderDesc {
+        sun_radius: soft_deg.to_radians(),
+        shadow_samples,
+        ao_samples,
+        ao_radius: 1.5,
+        ..RenderDesc::new(width, height, camera)
+    };
+    // The first dispatch of a new pipeline pays for shader compilation: warm up, then time.
+    reference.render(
+        &mut renderer,
+        &RenderDesc {
+            width: 64,
+            height: 36,
+            ..desc
+        },
+    )?;
+    let ref_frame: Frame = reference.render(&mut renderer, &desc)?;
+    let frame: Frame = managed.render(&mut renderer, &desc)?;
+    let metrics = FrameMetrics::compare(&frame, &ref_frame)?;
+    let diff = difference_image(&frame, &ref_frame)?;
+    let (w3, picture) = side_by_side(width, height, &[&frame.color, &ref_frame.color, &diff]);
+    save_rgba_png(&out, w3, height, &picture)?;
+    // The reference frame's hit buffer (instances coloured) and shadow mask, beside the picture.
+    let stem = out.with_extension("");
+    ref_frame.save_instance_png(format!("{}_ids.png", stem.display()))?;
+    ref_frame.save_shadow_png(format!("{}_shadow.png", stem.display()))?;
+
+    // Shadow samples only apply to a sun disk (--soft > 0); hard shadows trace one ray.
+    let shadow_samples = if soft_deg > 0.0 {
+        shadow_samples.max(1)
+    } else {
+        1
+    };
+    let r = &ref_frame.passes;
+    let (pa, pb, pc) = r.mrays_per_s();
+    eprintln!(
+        "world: {} meshes, {} instances ({} traced after culling at {angle_deg} deg), {} instanced triangles",
+        world.meshes.len(),
+        world.instances.len(),
+        managed.traced_instances,
+        world.instanced_triangles()
+    );
+    eprintln!(
+        "reference {width}x{height} on {:?}: {:.1} ms (primary {:.1} ms {pa:.2} Mrays/s, shadow {:.1} ms {pb:.2} Mrays/s, AO+shade {:.1} ms {pc:.2} Mrays/s)",
+        renderer.path(), ref_frame.render_ms, r.primary_ms, r.shadow_ms, r.ao_shade_ms
+    );
+    eprintln!(
+        "managed vs reference: primary mismatch {:.4}, shadow mismatch {:.4}, colour RMSE {:.4}, PSNR {:.2} dB -> {}",
+        metrics.primary_mismatch, metrics.shadow_mismatch, metrics.color_rmse, metrics.psnr_db,
+        out.display()
+    );
+    if json {
+        let psnr = if metrics.psnr_db.is_finite() {
+            format!("{:.3}", metrics.psnr_db)
+        } else {
+            "null".into()
+        };
+        println!(
+            "{{\"device\":{:?},\"path\":\"{:?}\",\"width\":{width},\"height\":{height},\"instances\":{},\"traced_instances\":{},\"instanced_triangles\":{},\"cull_angle_deg\":{angle_deg},\"sun_radius_deg\":{soft_deg},\"shadow_samples\":{shadow_samples},\"ao_samples\":{ao_samples},\"reference\":{{\"render_ms\":{:.3},\"passes\":{}}},\"managed\":{{\"render_ms\":{:.3},\"passes\":{}}},\"metrics\":{{\"primary_mismatch\":{:.6},\"shadow_mismatch\":{:.6},\"color_rmse\":{:.6},\"psnr_db\":{psnr}}}}}",
+            info.name,
+            renderer.path(),
+            world.instances.len(),
+            managed.traced_instances,
+            world.instanced_triangles(),
+            ref_frame.render_ms,
+            passes_json(&ref_frame.passes),
+            frame.render_ms,
+            passes_json(&frame.passes),
+            metrics.primary_mismatch,
+            metrics.shadow_mismatch,
+            metrics.color_rmse,
+        );
+    }
+    drop(renderer);
+    reference.destroy(&ctx);
+    managed.destroy(&ctx);
+    let failures = ctx.validation_log().failure_count();
+    if failures > 0 {
+        return Err(format!("{failures} validation messages").into());
+    }
+    Ok(())
+}

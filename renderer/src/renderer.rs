@@ -1,0 +1,352 @@
+//! The renderer: primary visibility, sun shadows (hard or soft) and ambient occlusion, traced
+//! through either a ray-query compute shader or a ray-tracing pipeline. Both run the same pass
+//! code (`shaders/passes.glsl`); only the two trace functions differ.
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use rtstream_as_manager::backend::vulkan::{
+    ash::vk, BindingKind, Bound, BufferDesc, ComputePipeline, GpuBuffer, MemoryKind,
+    RayTracingPipeline, RtShaders, VulkanContext,
+};
+
+use crate::camera::Camera;
+use crate::error::{RenderError, Result};
+use crate::frame::{Frame, PassStats, PixelHit};
+
+const TRACE_COMP: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/trace.comp.spv"));
+const TRACE_RGEN: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/trace.rgen.spv"));
+const TRACE_RMISS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/trace.rmiss.spv"));
+const TRACE_RCHIT: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/trace.rchit.spv"));
+
+/// Descriptor bindings of both paths: TLAS, colour, hits, instances, surface, light.
+const BINDINGS: [BindingKind; 6] = [
+    BindingKind::AccelStruct,
+    BindingKind::StorageBuffer,
+    BindingKind::StorageBuffer,
+    BindingKind::StorageBuffer,
+    BindingKind::StorageBuffer,
+    BindingKind::StorageBuffer,
+];
+
+/// Per-instance shading data, indexed by the instance's customIndex.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct InstanceShading {
+    /// Device address of the mesh's `[f32; 3]` positions (0: shade with a view-facing normal).
+    pub vertices: u64,
+    /// Device address of the mesh's `u32` triangle indices (0 as above).
+    pub indices: u64,
+    /// Linear RGBA base colour.
+    pub base_color: [f32; 4],
+}
+
+/// What to render.
+#[derive(Debug, Clone, Copy)]
+pub struct RenderDesc {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// The camera.
+    pub camera: Camera,
+    /// Direction toward the sun (need not be unit).
+    pub sun_dir: Vec3,
+    /// Angular radius of the sun disk in radians; 0 gives hard shadows (one ray per pixel).
+    pub sun_radius: f32,
+    /// Shadow rays per pixel toward the sun disk when `sun_radius > 0` (R2 low-discrepancy
+    /// points, rotated per pixel).
+    pub shadow_samples: u32,
+    /// Ambient-occlusion rays per pixel (cosine-weighted); 0 turns the AO pass off.
+    pub ao_samples: u32,
+    /// Length of the ambient-occlusion rays (world units).
+    pub ao_radius: f32,
+    /// Seed of the per-pixel sample rotation (vary it per frame to accumulate).
+    pub seed: u32,
+}
+
+impl RenderDesc {
+    /// A `width` x `height` frame of `camera` with the default lighting: a sun from above and
+    /// to the side, hard shadows, one AO ray of length 1.
+    pub fn new(width: u32, height: u32, camera: Camera) -> Self {
+        Self {
+            width,
+            height,
+            camera,
+            sun_dir: Vec3::new(0.4, 1.0, 0.3),
+            sun_radius: 0.0,
+            shadow_samples: 1,
+            ao_samples: 1,
+            ao_radius: 1.0,
+            seed: 0,
+        }
+    }
+}
+
+/// Which tracing path a [`Renderer`] uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RenderPath {
+    /// Compute shader with GL_EXT_ray_query (lavapipe, most GPUs).
+    RayQuery,
+    /// Ray-tracing pipeline (raygen + miss + closest-hit), for devices without ray queries.
+    RayTracingPipeline,
+}
+
+impl RenderPath {
+    /// The path for a device: ray queries when available, else the ray-tracing pipeline.
+    pub fn for_device(ctx: &VulkanContext) -> Result<Self> {
+        let info = ctx.info();
+        Self::choose(info.ray_query, info.ray_tracing_pipeline)
+            .ok_or_else(|| RenderError::NoRayTracing(info.name.clone()))
+    }
+
+    /// The choice behind [`for_device`](Self::for_device), from the two extension flags.
+    pub fn choose(ray_query: bool, ray_tracing_pipeline: bool) -> Option<Self> {
+        if ray_query {
+            Some(Self::RayQuery)
+        } else if ray_tracing_pipeline {
+            Some(Self::RayTracingPipeline)
+        } else {
+            None
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Push {
+    origin: [f32; 4],
+    right: [f32; 4],
+    up: [f32; 4],
+    forward: [f32; 4],
+    sun: [f32; 4],
+    size: [u32; 4],
+    extra: [u32; 4],
+}
+
+#[derive(Debug)]
+enum Tracer {
+    Query(ComputePipeline),
+    Pipeline(RayTracingPipeline),
+}
+
+/// The renderer. Borrows the manager's Vulkan context; traces any TLAS handed to
+/// [`render`](Self::render).
+#[derive(Debug)]
+pub struct Renderer {
+    ctx: Arc<VulkanContext>,
+    tracer: Option<Tracer>,
+}
+
+/// The renderer under its foundation-era name (it now also has a ray-tracing-pipeline path).
+pub type RqRenderer = Renderer;
+
+impl Renderer {
+    /// Creates the renderer on the device's best path ([`RenderPath::for_device`]).
+    pub fn new(ctx: Arc<VulkanContext>) -> Result<Self> {
+        let path = RenderPath::for_device(&ctx)?;
+        Self::with_path(ctx, path)
+    }
+
+    /// Creates the renderer on a chosen path (e.g. to test the ray-tracing pipeline on a device
+    /// that also has ray queries).
+    pub fn with_path(ctx: Arc<VulkanContext>, path: RenderPath) -> Result<Self> {
+        let push = std::mem::size_of::<Push>() as u32;
+        let tracer = match path {
+            RenderPath::RayQuery => {
+                if !ctx.info().ray_query {
+                    return Err(RenderError::NoRayQuery(ctx.info().name.clone()));
+                }
+                Tracer::Query(ComputePipeline::new(
+                    &ctx, "rq trace", TRACE_COMP, &BINDINGS, push,
+                )?)
+            }
+            RenderPath::RayTracingPipeline => {
+                if !ctx.info().ray_tracing_pipeline {
+                    return Err(RenderError::NoRayTracing(ctx.info().name.clone()));
+                }
+                Tracer::Pipeline(RayTracingPipeline::new(
+                    &ctx,
+                    "rt trace",
+                    &RtShaders {
+                        raygen: TRACE_RGEN,
+                        miss: TRACE_RMISS,
+                        closest_hit: TRACE_RCHIT,
+                    },
+                    &BINDINGS,
+                    push,
+                )?)
+            }
+        };
+        Ok(Self {
+            ctx,
+            tracer: Some(tracer),
+        })
+    }
+
+    /// The path this renderer traces with.
+    pub fn path(&self) -> RenderPath {
+        match self.tracer {
+            Some(Tracer::Pipeline(_)) => RenderPath::RayTracingPipeline,
+            _ => RenderPath::RayQuery,
+        }
+    }
+
+    /// Traces `tlas` and returns the frame. `instances[customIndex]` shades each hit (a hit
+    /// whose customIndex is out of range is shaded magenta with a view-facing normal).
+    ///
+    /// Runs three passes, each its own submission so each can be timed: primary, shadow, AO +
+    /// shading.
+    pub fn render(
+        &mut self,
+        tlas: vk::AccelerationStructureKHR,
+        instances: &[InstanceShading],
+        desc: &RenderDesc,
+    ) -> Result<Frame> {
+        let (w, h) = (desc.width, desc.height);
+        if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
+            return Err(RenderError::InvalidRequest(format!("image size {w}x{h}")));
+        }
+        let sun_ok = (0.0..1.0).contains(&desc.sun_radius);
+        let ao_ok = desc.ao_radius.is_finite() && desc.ao_radius > 0.0;
+        if !(sun_ok && ao_ok) {
+            return Err(RenderError::InvalidRequest(format!(
+                "sun radius {} / AO radius {}",
+                desc.sun_radius, desc.ao_radius
+            )));
+        }
+        let pixels = u64::from(w) * u64::from(h);
+        let ctx = &*self.ctx;
+        let mut bufs: Vec<GpuBuffer> = Vec::with_capacity(5);
+        let result = (|| {
+            for (name, bytes_per_pixel) in [
+                ("render color", 4),
+                ("render hits", 16),
+                ("render surface", 16),
+                ("render light", 16),
+            ] {
+                bufs.push(ctx.create_buffer(&BufferDesc {
+                    name,
+                    size: pixels * bytes_per_pixel,
+                    usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                    memory: MemoryKind::Readback,
+                })?);
+            }
+            let fallback = [InstanceShading {
+                vertices: 0,
+                indices: 0,
+                base_color: [0.8; 4],
+            }];
+            let inst = if instances.is_empty() {
+                &fallback[..]
+            } else {
+                instances
+            };
+            bufs.push(ctx.create_buffer_with_data(
+                "render instances",
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                bytemuck::cast_slice(inst),
+            )?);
+            let (r, u, f) = desc.camera.basis();
+            let p = desc.camera.position;
+            let s = desc.sun_dir.normalize_or(Vec3::Y);
+            let mut push = Push {
+                origin: [p.x, p.y, p.z, (desc.camera.fov_y * 0.5).tan()],
+                right: [r.x, r.y, r.z, w as f32 / h as f32],
+                up: [u.x, u.y, u.z, desc.ao_radius],
+                forward: [f.x, f.y, f.z, desc.sun_radius],
+                sun: [s.x, s.y, s.z, 0.0],
+                size: [w, h, 0, desc.shadow_samples.max(1)],
+                extra: [desc.ao_samples, desc.seed, 0, 0],
+            };
+            let bound = [
+                Bound::AccelRaw(tlas),
+                Bound::Buffer(&bufs[0]),
+                Bound::Buffer(&bufs[1]),
+                Bound::Buffer(&bufs[4]),
+                Bound::Buffer(&bufs[2]),
+                Bound::Buffer(&bufs[3]),
+            ];
+            let mut ms = [0.0f64; 3];
+            for (pass, ms) in ms.iter_mut().enumerate() {
+                push.size[2] = pass as u32;
+                *ms = match self.tracer.as_mut().expect("tracer lives until drop") {
+                    Tracer::Query(p) => p.dispatch(
+                        ctx,
+                        &bound,
+                        bytemuck::bytes_of(&push),
+                        [w.div_ceil(8), h.div_ceil(8), 1],
+                    )?,
+                    Tracer::Pipeline(p) => p.trace(ctx, &bound, bytemuck::bytes_of(&push), w, h)?,
+                };
+            }
+            let color: Vec<[u8; 4]> =
+                bytemuck::cast_slice(bufs[0].mapped().expect("readback is mapped")).to_vec();
+            let hits: Vec<PixelHit> =
+                bytemuck::cast_slice(bufs[1].mapped().expect("readback is mapped")).to_vec();
+            let light: &[[f32; 4]] = bytemuck::cast_slice(bufs[3].mapped().expect("mapped"));
+            let sun_visibility = light.iter().map(|l| l[0]).collect();
+            let ambient = light.iter().map(|l| l[1]).collect();
+            let shadow_rays = light.iter().map(|l| l[2] as u64).sum();
+            let ao_rays = light
+                .iter()
+                .zip(&hits)
+                .filter(|(_, h)| h.is_hit())
+                .map(|(l, _)| l[3] as u64)
+                .sum();
+            Ok(Frame {
+                width: w,
+                height: h,
+                color,
+                hits,
+                sun_visibility,
+                ambient,
+                render_ms: ms.iter().sum(),
+                passes: PassStats {
+                    primary_ms: ms[0],
+                    shadow_ms: ms[1],
+                    ao_shade_ms: ms[2],
+                    primary_rays: pixels,
+                    shadow_rays,
+                    ao_rays,
+                },
+            })
+        })();
+        for b in bufs {
+            ctx.destroy_buffer(b);
+        }
+        result
+    }
+}
+
+impl Drop for Renderer {
+    fn drop(&mut self) {
+        match self.tracer.take() {
+            Some(Tracer::Query(p)) => p.destroy(&self.ctx),
+            Some(Tracer::Pipeline(p)) => p.destroy(&self.ctx),
+            None => {}
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ray_queries_win_and_the_pipeline_is_the_fallback() {
+        assert_eq!(RenderPath::choose(true, true), Some(RenderPath::RayQuery));
+        assert_eq!(RenderPath::choose(true, false), Some(RenderPath::RayQuery));
+        // The NVIDIA H100/H200 here: acceleration structures and RT pipelines, no ray queries.
+        assert_eq!(
+            RenderPath::choose(false, true),
+            Some(RenderPath::RayTracingPipeline)
+        );
+        assert_eq!(RenderPath::choose(false, false), None);
+    }
+
+    #[test]
+    fn push_constants_fit_the_guaranteed_128_bytes() {
+        assert!(std::mem::size_of::<Push>() <= 128);
+    }
+}

@@ -1,0 +1,235 @@
+//! Evaluation scenes and helpers: a multi-instance world built from real assets (Debian's
+//! assimp-testmodels), and the simple projected-angle culling used to make "managed" frames
+//! until the manager's culler drives them.
+
+use std::path::PathBuf;
+
+use glam::{Mat4, Quat, Vec3};
+use rtstream_as_manager::backend::vulkan::MeshDesc;
+use rtstream_renderer::reference::ReferenceScene;
+use rtstream_renderer::{cpu_reference, Camera, SceneInstance};
+use rtstream_streaming::{load_gltf, GltfScene, TriMesh};
+
+use crate::error::Result;
+
+/// Where Debian's assimp-testmodels keeps its glTF 2 models.
+pub const ASSET_DIR: &str = "/usr/share/assimp/models/glTF2";
+
+/// The asset directory: `RTSTREAM_ASSETS` when set (e.g. a copy carried to the GPU machine,
+/// which has no assimp-testmodels), else [`ASSET_DIR`].
+pub fn asset_dir() -> PathBuf {
+    std::env::var_os("RTSTREAM_ASSETS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(ASSET_DIR))
+}
+
+/// A world of meshes and instances (instance `i` has customIndex `i` when traced).
+#[derive(Debug, Clone, Default)]
+pub struct EvalWorld {
+    /// The meshes.
+    pub meshes: Vec<TriMesh>,
+    /// The instances.
+    pub instances: Vec<SceneInstance>,
+}
+
+/// Layout of [`EvalWorld::demo`].
+#[derive(Debug, Clone, Copy)]
+pub struct DemoWorldDesc {
+    /// Rows of models, each farther away than the last (distance grows geometrically).
+    pub rows: u32,
+    /// Models per row.
+    pub columns: u32,
+    /// Distance of the first row from the origin (metres along -z).
+    pub first_row: f32,
+    /// Each row is this many times farther than the previous one.
+    pub row_growth: f32,
+}
+
+impl Default for DemoWorldDesc {
+    fn default() -> Self {
+        Self {
+            rows: 6,
+            columns: 6,
+            first_row: 5.0,
+            row_growth: 1.6,
+        }
+    }
+}
+
+/// The meshes of a glTF file, scaled so the whole model's largest extent is `size` and placed
+/// on the ground (min y = 0), centred on x/z. Returns (first mesh index, per-node instances).
+fn add_model(world: &mut EvalWorld, scene: &GltfScene, size: f32) -> (u32, Vec<(u32, Mat4)>) {
+    let (lo, hi) = crate::world_bounds(scene);
+    let ext = (hi - lo).max_element().max(1e-6);
+    let s = size / ext;
+    let centre = Vec3::new((lo.x + hi.x) * 0.5, lo.y, (lo.z + hi.z) * 0.5);
+    let normalize = Mat4::from_scale(Vec3::splat(s)) * Mat4::from_translation(-centre);
+    let first = world.meshes.len() as u32;
+    world.meshes.extend(scene.meshes.iter().cloned());
+    let nodes = scene
+        .instances
+        .iter()
+        .map(|i| (first + i.mesh as u32, normalize * i.transform))
+        .collect();
+    (first, nodes)
+}
+
+fn ground(size: f32) -> TriMesh {
+    let h = size * 0.5;
+    TriMesh {
+        name: "ground".into(),
+        positions: vec![[-h, 0.0, -h], [h, 0.0, -h], [h, 0.0, h], [-h, 0.0, h]],
+        normals: Vec::new(),
+        indices: vec![0, 2, 1, 0, 3, 2],
+        base_color: [0.45, 0.5, 0.4, 1.0],
+        material: rtstream_streaming::MaterialClass::Opaque,
+        skin: None,
+    }
+}
+
+fn palette(k: u32) -> [f32; 4] {
+    const P: [[f32; 4]; 6] = [
+        [0.8, 0.3, 0.25, 1.0],
+        [0.3, 0.6, 0.85, 1.0],
+        [0.9, 0.75, 0.3, 1.0],
+        [0.45, 0.75, 0.4, 1.0],
+        [0.7, 0.45, 0.8, 1.0],
+        [0.85, 0.85, 0.85, 1.0],
+    ];
+    P[k as usize % P.len()]
+}
+
+impl EvalWorld {
+    /// A ground plane and rows of 2CylinderEngines, boxes and morph cubes at growing distances
+    /// along -z (a camera at [`EvalWorld::demo_camera`] sees near and far models at once).
+    pub fn demo(desc: &DemoWorldDesc) -> Result<Self> {
+        let dir = asset_dir();
+        let engine = load_gltf(dir.join("2CylinderEngine-glTF-Binary/2CylinderEngine.glb"))?;
+        let cube = load_gltf(dir.join("BoxTextured-glTF/BoxTextured.gltf"))?;
+        let morph = load_gltf(
+            dir.join("glTF-Sample-Models/AnimatedMorphCube-glTF/AnimatedMorphCube.gltf"),
+        )?;
+        let mut world = Self::default();
+        let mut far = desc.first_row;
+        for _ in 1..desc.rows {
+            far *= desc.row_growth;
+        }
+        world.meshes.push(ground(far * 4.0 + 50.0));
+        world.instances.push(SceneInstance {
+            mesh: 0,
+            transform: Mat4::IDENTITY,
+            base_color: [0.45, 0.5, 0.4, 1.0],
+        });
+        let models = [
+            add_model(&mut world, &engine, 3.0).1,
+            add_model(&mut world, &cube, 1.2).1,
+            add_model(&mut world, &morph, 1.6).1,
+        ];
+        let mut dist = desc.first_row;
+        for row in 0..desc.rows {
+            // Spread the row over about the same view angle at every distance.
+            let half_width = dist * 0.7;
+            for col in 0..desc.columns {
+                let k = row * desc.columns + col;
+                let u = if desc.columns > 1 {
+                    col as f32 / (desc.columns - 1) as f32 * 2.0 - 1.0
+                } else {
+                    0.0
+                };
+                let at = Vec3::new(u * half_width, 0.0, -dist);
+                let kind = (row + col) as usize % models.len();
+                let spin = Quat::from_rotation_y(k as f32 * 0.7);
+                let place = Mat4::from_rotation_translation(spin, at);
+                for &(mesh, node) in &models[kind] {
+                    world.instances.push(SceneInstance {
+                        mesh,
+                        transform: place * node,
+                        base_color: palette(row * 7 + col),
+                    });
+                }
+            }
+            dist *= desc.row_growth;
+        }
+        Ok(world)
+    }
+
+    /// The camera the demo world is laid out for.
+    pub fn demo_camera() -> Camera {
+        Camera::look_at(
+            Vec3::new(0.0, 4.5, 2.0),
+            Vec3::new(0.0, 0.0, -22.0),
+            55f32.to_radians(),
+        )
+    }
+
+    /// The meshes as upload descriptions (opaque).
+    pub fn mesh_descs(&self) -> Vec<MeshDesc<'_>> {
+        self.meshes
+            .iter()
+            .map(|m| MeshDesc {
+                name: &m.name,
+                positions: &m.positions,
+                indices: &m.indices,
+                opaque: true,
+            })
+            .collect()
+    }
+
+    /// World-space bounding sphere (centre, radius) of every instance (of its mesh's local AABB).
+    pub fn bounding_spheres(&self) -> Vec<(Vec3, f32)> {
+        self.instances
+            .iter()
+            .map(|inst| {
+                let (lo, hi) = self.meshes[inst.mesh as usize].bounds();
+                let c = inst.transform.transform_point3((lo + hi) * 0.5);
+                let (scale, _, _) = inst.transform.to_scale_rotation_translation();
+                (c, (hi - lo).length() * 0.5 * scale.abs().max_element())
+            })
+            .collect()
+    }
+
+    /// The CPU reference caster over every instance.
+    pub fn cpu_reference(&self) -> ReferenceScene {
+        cpu_reference(&self.mesh_descs(), &self.instances)
+    }
+
+    /// Triangles over all instances.
+    pub fn instanced_triangles(&self) -> u64 {
+        self.instances
+            .iter()
+            .map(|i| self.meshes[i.mesh as usize].triangle_count() as u64)
+            .sum()
+    }
+}
+
+/// Projected-angle culling (UE5's "small" test): keeps an instance unless its bounding sphere,
+/// seen from `eye`, is smaller than `angle` (radians): `R^2 / |c - e|^2 < tan^2(angle)`. An
+/// instance whose sphere contains the eye is always kept. Returns the keep mask.
+pub fn cull_small_instances(eye: Vec3, spheres: &[(Vec3, f32)], angle: f32) -> Vec<bool> {
+    let t2 = angle.tan().powi(2);
+    spheres
+        .iter()
+        .map(|&(c, r)| {
+            let d2 = (c - eye).length_squared();
+            d2 <= r * r || r * r >= t2 * d2
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn culling_keeps_big_and_near_and_grows_with_the_angle() {
+        let spheres = [
+            (Vec3::new(0.0, 0.0, -10.0), 1.0),  // ~5.7 degrees
+            (Vec3::new(0.0, 0.0, -100.0), 1.0), // ~0.57 degrees
+            (Vec3::ZERO, 0.5),                  // contains the eye
+        ];
+        let keep = |deg: f32| cull_small_instances(Vec3::ZERO, &spheres, deg.to_radians());
+        assert_eq!(keep(0.0), [true, true, true]);
+        assert_eq!(keep(1.0), [true, false, true]);
+        assert_eq!(keep(10.0), [false, false, true]);
+    }
+}
