@@ -9,9 +9,10 @@
 //!   scratch is sub-allocated from the slot's scratch buffer at multiples of
 //!   `minAccelerationStructureScratchOffsetAlignment`; AS storage and buffers are sub-allocated
 //!   by gpu-allocator.
-//! - **Build inputs** live in the slot's host-visible upload arena (bump-allocated, reset when
-//!   the slot is reused): static geometry is needed only while it builds; skinned positions are
-//!   re-uploaded each refit (a skinned BLAS keeps its own index buffer, which updates reuse).
+//! - **Build inputs.** A static BLAS keeps the vertex and index buffers it was built from (the
+//!   engine-side geometry a shader reads through [`VulkanBackend::shading_geometry`]); skinned
+//!   positions go into the slot's host-visible upload arena each refit (bump-allocated, reset
+//!   when the slot is reused) and a skinned BLAS keeps its index buffer, which updates reuse.
 //! - **Retirement.** A freed BLAS (and every buffer a slot outgrew) is queued against the last
 //!   frame that used it and destroyed once the timeline passes that frame.
 //! - **Compaction.** Static BLASes get a compacted-size query after their build; the size is
@@ -90,8 +91,13 @@ struct BlasEntry {
     parts: Vec<AccelStruct>,
     class: BlasClass,
     sizes: BlasSizes,
-    /// Skinned: the index buffer that updates reuse, and the triangle count.
+    /// Skinned: the index buffer that updates reuse, the triangle and vertex counts.
     skinned_indices: Option<(GpuBuffer, u32, u32)>,
+    /// Static: the vertex and index buffers it was built from (kept for shading lookups).
+    static_inputs: Option<(GpuBuffer, GpuBuffer)>,
+    /// Device addresses of the positions and indices a shader should read for this BLAS
+    /// (skinned: this frame's pose in the upload arena).
+    shading: (u64, u64),
     compacted_size: Option<u64>,
 }
 
@@ -162,6 +168,8 @@ pub struct VulkanBackend {
     next_gen: u32,
     /// First-part address -> other parts' addresses, for split meshes.
     split_parts: HashMap<u64, Vec<u64>>,
+    /// First-part address -> blas slot (shading lookups by instance record).
+    by_address: HashMap<u64, u32>,
     retiring: VecDeque<(u64, Retired)>,
     completed: Option<u64>,
     measurements: Vec<Measurement>,
@@ -240,6 +248,7 @@ impl VulkanBackend {
             free_slots: Vec::new(),
             next_gen: 1,
             split_parts: HashMap::new(),
+            by_address: HashMap::new(),
             retiring: VecDeque::new(),
             completed: None,
             measurements: Vec::new(),
@@ -353,6 +362,7 @@ impl VulkanBackend {
     }
 
     fn insert(&mut self, e: BlasEntry) -> BlasHandle {
+        let address = e.parts[0].address;
         let slot = match self.free_slots.pop() {
             Some(s) => {
                 self.blases[s as usize] = Some(e);
@@ -364,6 +374,7 @@ impl VulkanBackend {
             }
         };
         let gen = self.blases[slot as usize].as_ref().map_or(0, |e| e.gen);
+        self.by_address.insert(address, slot);
         BlasHandle(u64::from(slot) | (u64::from(gen) << 32))
     }
 
@@ -371,7 +382,18 @@ impl VulkanBackend {
         self.entry(h)?;
         let slot = (h.0 & 0xffff_ffff) as usize;
         self.free_slots.push(slot as u32);
-        self.blases[slot].take()
+        let e = self.blases[slot].take()?;
+        self.by_address.remove(&e.parts[0].address);
+        Some(e)
+    }
+
+    /// Device addresses of the positions (`[f32; 3]`) and `u32` indices a shader should read
+    /// for the BLAS whose (first-part) device address is `blas_address` — the address in a TLAS
+    /// instance record. For a skinned BLAS the positions are this frame's pose. Valid while the
+    /// frame that recorded the record is in flight.
+    pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
+        let slot = *self.by_address.get(&blas_address)?;
+        self.blases.get(slot as usize)?.as_ref().map(|e| e.shading)
     }
 
     /// Copies `bytes` into the current slot's upload arena; returns its device address.
@@ -600,6 +622,8 @@ impl AsBackend for VulkanBackend {
             accels: Vec<AccelStruct>,
             scratch: Vec<u64>,
             indices: Option<(GpuBuffer, u32, u32)>,
+            inputs: Option<(GpuBuffer, GpuBuffer)>,
+            shading: (u64, u64),
         }
         let mut planned: Vec<Planned> = Vec::with_capacity(builds.len());
         let align = self.ctx.info().min_scratch_alignment;
@@ -609,22 +633,53 @@ impl AsBackend for VulkanBackend {
                     return Err(BackendError::MissingGeometry);
                 };
                 let parts = self.parts_of(&b.geometry, b.class, &b.sizes);
-                let vaddr = self.upload(bytemuck::cast_slice(pos))?;
-                let (iaddr, indices) = if b.class == BlasClass::Skinned {
-                    let mut ib = self.create_buffer(BufferDesc {
-                        name: "skinned indices",
-                        size: (idx.len() * 4).max(4) as u64,
+                let mut ib = self.create_buffer(BufferDesc {
+                    name: "BLAS indices",
+                    size: (idx.len() * 4).max(4) as u64,
+                    usage: BUILD_INPUT_USAGE,
+                    memory: MemoryKind::Upload,
+                })?;
+                ib.write(0, bytemuck::cast_slice(idx));
+                let iaddr = ib.address;
+                let (vaddr, indices, inputs) = if b.class == BlasClass::Skinned {
+                    let vaddr = match self.upload(bytemuck::cast_slice(pos)) {
+                        Ok(a) => a,
+                        Err(e) => {
+                            self.destroy(Retired::Buffer(ib));
+                            return Err(e);
+                        }
+                    };
+                    (vaddr, Some((ib, b.geometry.triangle_count, b.geometry.vertex_count)), None)
+                } else {
+                    let vb = match self.create_buffer(BufferDesc {
+                        name: "BLAS positions",
+                        size: (pos.len() * 12).max(4) as u64,
                         usage: BUILD_INPUT_USAGE,
                         memory: MemoryKind::Upload,
-                    })?;
-                    ib.write(0, bytemuck::cast_slice(idx));
-                    (ib.address, Some((ib, b.geometry.triangle_count, b.geometry.vertex_count)))
-                } else {
-                    (self.upload(bytemuck::cast_slice(idx))?, None)
+                    }) {
+                        Ok(mut vb) => {
+                            vb.write(0, bytemuck::cast_slice(pos));
+                            vb
+                        }
+                        Err(e) => {
+                            self.destroy(Retired::Buffer(ib));
+                            return Err(e);
+                        }
+                    };
+                    (vb.address, None, Some((vb, ib)))
                 };
-                let mut p = Planned { geoms: Vec::new(), accels: Vec::new(), scratch: Vec::new(), indices };
+                let p = Planned {
+                    geoms: Vec::new(),
+                    accels: Vec::new(),
+                    scratch: Vec::new(),
+                    indices,
+                    inputs,
+                    shading: (vaddr, iaddr),
+                };
                 let tris = b.geometry.triangle_count;
                 let per = tris.div_ceil(parts);
+                planned.push(p);
+                let p = planned.last_mut().expect("just pushed");
                 for k in 0..parts {
                     let first = k * per;
                     let count = per.min(tris - first);
@@ -649,7 +704,6 @@ impl AsBackend for VulkanBackend {
                     p.accels.push(a);
                     p.scratch.push(align_up(s.build_scratch.max(s.update_scratch), align));
                 }
-                planned.push(p);
             }
             let total: u64 = planned.iter().flat_map(|p| p.scratch.iter()).sum();
             self.ensure_scratch(total)
@@ -661,6 +715,10 @@ impl AsBackend for VulkanBackend {
                     self.destroy(Retired::Accel(a));
                 }
                 if let Some((ib, _, _)) = p.indices {
+                    self.destroy(Retired::Buffer(ib));
+                }
+                if let Some((vb, ib)) = p.inputs {
+                    self.destroy(Retired::Buffer(vb));
                     self.destroy(Retired::Buffer(ib));
                 }
             }
@@ -720,6 +778,8 @@ impl AsBackend for VulkanBackend {
                 class: b.class,
                 sizes: b.sizes,
                 skinned_indices: p.indices,
+                static_inputs: p.inputs,
+                shading: p.shading,
                 compacted_size: None,
             });
             if statics.contains(&i) {
@@ -776,6 +836,10 @@ impl AsBackend for VulkanBackend {
         let mut geoms = Vec::with_capacity(plan.len());
         for (r, iaddr, tris, verts, _, _) in &plan {
             let vaddr = self.upload(bytemuck::cast_slice(r.geometry.positions.expect("checked above")))?;
+            let slot = (r.blas.0 & 0xffff_ffff) as usize;
+            if let Some(e) = self.blases[slot].as_mut() {
+                e.shading.0 = vaddr;
+            }
             geoms.push(TriangleGeometry {
                 vertex_address: vaddr,
                 vertex_stride: 12,
@@ -823,9 +887,14 @@ impl AsBackend for VulkanBackend {
         let cmd = self.cmd()?;
         let e = self.entry(blas).ok_or_else(|| BackendError::Other(format!("compaction of unknown {blas:?}")))?;
         let size = e.compacted_size.ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
-        let (src, class, sizes) = (e.parts[0].raw, e.class, e.sizes);
+        let (src, class, sizes, shading) = (e.parts[0].raw, e.class, e.sizes, e.shading);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
         let t = self.timestamp_begin(CostOp::Compact, e_bytes(self.entry(blas)));
+        // The compacted copy takes over the input buffers (shading reads them).
+        let inputs = {
+            let slot = (blas.0 & 0xffff_ffff) as usize;
+            self.blases[slot].as_mut().and_then(|e| e.static_inputs.take())
+        };
         // SAFETY: recording; the source was built in an earlier, completed frame (its size query
         // was read), and begin_frame's barrier orders it; dst is at least the compacted size.
         unsafe { self.ctx.cmd_compact(cmd, src, dst.raw) };
@@ -839,6 +908,8 @@ impl AsBackend for VulkanBackend {
             class,
             sizes: BlasSizes { as_bytes: size, ..sizes },
             skinned_indices: None,
+            static_inputs: inputs,
+            shading,
             compacted_size: Some(size),
         }))
     }
@@ -855,6 +926,10 @@ impl AsBackend for VulkanBackend {
             self.retiring.push_back((last_used_frame, Retired::Accel(a)));
         }
         if let Some((ib, _, _)) = e.skinned_indices {
+            self.retiring.push_back((last_used_frame, Retired::Buffer(ib)));
+        }
+        if let Some((vb, ib)) = e.static_inputs {
+            self.retiring.push_back((last_used_frame, Retired::Buffer(vb)));
             self.retiring.push_back((last_used_frame, Retired::Buffer(ib)));
         }
         // Keep the queue ordered by frame (frees of older frames may arrive late).
@@ -973,6 +1048,10 @@ impl Drop for VulkanBackend {
         for e in self.blases.drain(..).flatten() {
             objects.extend(e.parts.into_iter().map(Retired::Accel));
             if let Some((ib, _, _)) = e.skinned_indices {
+                objects.push(Retired::Buffer(ib));
+            }
+            if let Some((vb, ib)) = e.static_inputs {
+                objects.push(Retired::Buffer(vb));
                 objects.push(Retired::Buffer(ib));
             }
         }
