@@ -24,7 +24,7 @@
 //! - **Measured costs.** GPU timestamps around each batch, read back when the frame completes,
 //!   reported through `take_measurements`.
 //! - **Memory limit.** `memory_limit` (optional) makes the backend answer OutOfDeviceMemory above
-//!   that many bytes of its own allocations, exactly as the driver's error would arrive: a way to
+//!   that many bytes of BLAS storage and BLAS inputs (frame infrastructure is not capped), exactly as the driver's error would arrive: a way to
 //!   test the manager's OOM handling on machines with plenty of memory.
 
 use std::collections::{HashMap, VecDeque};
@@ -103,8 +103,14 @@ struct BlasEntry {
 
 #[derive(Debug)]
 enum Retired {
+    /// Frame infrastructure (TLAS).
     Accel(AccelStruct),
+    /// Frame infrastructure (scratch, arenas, instance buffers).
     Buffer(GpuBuffer),
+    /// A BLAS (counted against `memory_limit`).
+    BlasAccel(AccelStruct),
+    /// A BLAS input buffer (counted against `memory_limit`).
+    BlasBuffer(GpuBuffer),
 }
 
 /// A host-visible bump arena for build inputs.
@@ -174,6 +180,7 @@ pub struct VulkanBackend {
     completed: Option<u64>,
     measurements: Vec<Measurement>,
     allocated: u64,
+    blas_allocated: u64,
     lost: bool,
     counters: VulkanCounters,
     expanded: Vec<TlasInstance>,
@@ -253,6 +260,7 @@ impl VulkanBackend {
             completed: None,
             measurements: Vec::new(),
             allocated: 0,
+            blas_allocated: 0,
             lost: false,
             counters: VulkanCounters::default(),
             expanded: Vec::new(),
@@ -277,6 +285,11 @@ impl VulkanBackend {
     /// Bytes of device memory the backend holds (AS storage, scratch, arenas, TLAS, instances).
     pub fn allocated_bytes(&self) -> u64 {
         self.allocated
+    }
+
+    /// Bytes of BLAS storage and BLAS input buffers (what `memory_limit` caps).
+    pub fn blas_allocated_bytes(&self) -> u64 {
+        self.blas_allocated
     }
 
     /// The raw TLAS of a handle returned by `build_tlas` (valid until that slot is reused,
@@ -308,43 +321,56 @@ impl VulkanBackend {
         .op("vkWaitSemaphores")
     }
 
-    fn reserve(&mut self, bytes: u64) -> BackendResult<()> {
-        if let Some(limit) = self.desc.memory_limit {
-            if self.allocated + bytes > limit {
+    /// Counts `bytes` as allocated; `limited` allocations (BLAS storage and inputs, what the
+    /// manager can answer by evicting) are refused past `memory_limit`.
+    fn reserve(&mut self, bytes: u64, limited: bool) -> BackendResult<()> {
+        if let (Some(limit), true) = (self.desc.memory_limit, limited) {
+            if self.blas_allocated + bytes > limit {
                 self.counters.oom += 1;
                 return Err(BackendError::OutOfDeviceMemory);
             }
         }
         self.allocated += bytes;
+        if limited {
+            self.blas_allocated += bytes;
+        }
         Ok(())
     }
 
+    fn unreserve(&mut self, bytes: u64, limited: bool) {
+        self.allocated -= bytes;
+        if limited {
+            self.blas_allocated -= bytes;
+        }
+    }
+
     fn create_accel(&mut self, size: u64, name: &str) -> BackendResult<AccelStruct> {
-        self.reserve(size)?;
+        self.reserve(size, true)?;
         self.ctx
             .create_accel(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, size, name)
             .map_err(|e| {
-                self.allocated -= size;
+                self.unreserve(size, true);
                 backend_err(e)
             })
     }
 
-    fn create_buffer(&mut self, desc: BufferDesc<'_>) -> BackendResult<GpuBuffer> {
-        self.reserve(desc.size)?;
+    fn create_buffer(&mut self, desc: BufferDesc<'_>, limited: bool) -> BackendResult<GpuBuffer> {
+        self.reserve(desc.size, limited)?;
         self.ctx.create_buffer(&desc).map_err(|e| {
-            self.allocated -= desc.size;
+            self.unreserve(desc.size, limited);
             backend_err(e)
         })
     }
 
     fn destroy(&mut self, r: Retired) {
+        let limited = matches!(r, Retired::BlasAccel(_) | Retired::BlasBuffer(_));
         match r {
-            Retired::Accel(a) => {
-                self.allocated -= a.size;
+            Retired::Accel(a) | Retired::BlasAccel(a) => {
+                self.unreserve(a.size, limited);
                 self.ctx.destroy_accel(a);
             }
-            Retired::Buffer(b) => {
-                self.allocated -= b.size;
+            Retired::Buffer(b) | Retired::BlasBuffer(b) => {
+                self.unreserve(b.size, limited);
                 self.ctx.destroy_buffer(b);
             }
         }
@@ -408,7 +434,7 @@ impl VulkanBackend {
                 size,
                 usage: BUILD_INPUT_USAGE,
                 memory: MemoryKind::Upload,
-            })?;
+            }, false)?;
             // Earlier uploads of this frame stay valid in the old buffer, retired with the frame.
             if let Some(old) = self.slots[s].arena.buffer.replace(new) {
                 self.retire_now(Retired::Buffer(old));
@@ -440,7 +466,7 @@ impl VulkanBackend {
             size: size + align,
             usage: vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
             memory: MemoryKind::DeviceLocal,
-        })?;
+        }, false)?;
         let base = align_up(buf.address, align);
         if let Some((old, _, _)) = self.slots[s].scratch.replace((buf, base, size)) {
             // Batches already recorded this frame still use the old buffer.
@@ -549,7 +575,7 @@ impl VulkanBackend {
         while let Some((f, _)) = self.retiring.front() {
             if self.completed.is_some_and(|c| c >= *f) {
                 let (_, r) = self.retiring.pop_front().expect("front exists");
-                if matches!(r, Retired::Accel(_)) {
+                if matches!(r, Retired::BlasAccel(_)) {
                     self.counters.destroyed += 1;
                 }
                 self.destroy(r);
@@ -638,14 +664,14 @@ impl AsBackend for VulkanBackend {
                     size: (idx.len() * 4).max(4) as u64,
                     usage: BUILD_INPUT_USAGE,
                     memory: MemoryKind::Upload,
-                })?;
+                }, true)?;
                 ib.write(0, bytemuck::cast_slice(idx));
                 let iaddr = ib.address;
                 let (vaddr, indices, inputs) = if b.class == BlasClass::Skinned {
                     let vaddr = match self.upload(bytemuck::cast_slice(pos)) {
                         Ok(a) => a,
                         Err(e) => {
-                            self.destroy(Retired::Buffer(ib));
+                            self.destroy(Retired::BlasBuffer(ib));
                             return Err(e);
                         }
                     };
@@ -656,13 +682,13 @@ impl AsBackend for VulkanBackend {
                         size: (pos.len() * 12).max(4) as u64,
                         usage: BUILD_INPUT_USAGE,
                         memory: MemoryKind::Upload,
-                    }) {
+                    }, true) {
                         Ok(mut vb) => {
                             vb.write(0, bytemuck::cast_slice(pos));
                             vb
                         }
                         Err(e) => {
-                            self.destroy(Retired::Buffer(ib));
+                            self.destroy(Retired::BlasBuffer(ib));
                             return Err(e);
                         }
                     };
@@ -712,14 +738,14 @@ impl AsBackend for VulkanBackend {
             // All or nothing: release what this call created (nothing was recorded yet).
             for p in planned {
                 for a in p.accels {
-                    self.destroy(Retired::Accel(a));
+                    self.destroy(Retired::BlasAccel(a));
                 }
                 if let Some((ib, _, _)) = p.indices {
-                    self.destroy(Retired::Buffer(ib));
+                    self.destroy(Retired::BlasBuffer(ib));
                 }
                 if let Some((vb, ib)) = p.inputs {
-                    self.destroy(Retired::Buffer(vb));
-                    self.destroy(Retired::Buffer(ib));
+                    self.destroy(Retired::BlasBuffer(vb));
+                    self.destroy(Retired::BlasBuffer(ib));
                 }
             }
             return Err(e);
@@ -923,14 +949,14 @@ impl AsBackend for VulkanBackend {
             self.split_parts.remove(&e.parts[0].address);
         }
         for a in e.parts {
-            self.retiring.push_back((last_used_frame, Retired::Accel(a)));
+            self.retiring.push_back((last_used_frame, Retired::BlasAccel(a)));
         }
         if let Some((ib, _, _)) = e.skinned_indices {
-            self.retiring.push_back((last_used_frame, Retired::Buffer(ib)));
+            self.retiring.push_back((last_used_frame, Retired::BlasBuffer(ib)));
         }
         if let Some((vb, ib)) = e.static_inputs {
-            self.retiring.push_back((last_used_frame, Retired::Buffer(vb)));
-            self.retiring.push_back((last_used_frame, Retired::Buffer(ib)));
+            self.retiring.push_back((last_used_frame, Retired::BlasBuffer(vb)));
+            self.retiring.push_back((last_used_frame, Retired::BlasBuffer(ib)));
         }
         // Keep the queue ordered by frame (frees of older frames may arrive late).
         self.retiring.make_contiguous().sort_by_key(|(f, _)| *f);
@@ -957,7 +983,7 @@ impl AsBackend for VulkanBackend {
         let bytes = u64::from(n) * 64;
         if self.slots[s].instances.as_ref().is_none_or(|b| b.size < bytes) {
             let size = bytes.next_power_of_two().max(64 * 1024);
-            let buf = self.create_buffer(BufferDesc { name: "TLAS instances", size, usage: BUILD_INPUT_USAGE, memory: MemoryKind::Upload })?;
+            let buf = self.create_buffer(BufferDesc { name: "TLAS instances", size, usage: BUILD_INPUT_USAGE, memory: MemoryKind::Upload }, false)?;
             if let Some(old) = self.slots[s].instances.replace(buf) {
                 self.retire_now(Retired::Buffer(old));
             }
@@ -965,12 +991,12 @@ impl AsBackend for VulkanBackend {
         if self.slots[s].tlas_capacity < n {
             let cap = n.next_power_of_two().max(1024);
             let sizes = self.ctx.tlas_sizes(cap, self.desc.tlas_flags);
-            self.reserve(sizes.storage)?;
+            self.reserve(sizes.storage, false)?;
             let tlas = self
                 .ctx
                 .create_accel(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.storage, &format!("TLAS slot {s}"))
                 .map_err(|e| {
-                    self.allocated -= sizes.storage;
+                    self.unreserve(sizes.storage, false);
                     backend_err(e)
                 })?;
             if let Some(old) = self.slots[s].tlas.replace(tlas) {
@@ -1046,13 +1072,13 @@ impl Drop for VulkanBackend {
         }
         let mut objects: Vec<Retired> = self.retiring.drain(..).map(|(_, r)| r).collect();
         for e in self.blases.drain(..).flatten() {
-            objects.extend(e.parts.into_iter().map(Retired::Accel));
+            objects.extend(e.parts.into_iter().map(Retired::BlasAccel));
             if let Some((ib, _, _)) = e.skinned_indices {
-                objects.push(Retired::Buffer(ib));
+                objects.push(Retired::BlasBuffer(ib));
             }
             if let Some((vb, ib)) = e.static_inputs {
-                objects.push(Retired::Buffer(vb));
-                objects.push(Retired::Buffer(ib));
+                objects.push(Retired::BlasBuffer(vb));
+                objects.push(Retired::BlasBuffer(ib));
             }
         }
         for s in std::mem::take(&mut self.slots) {
