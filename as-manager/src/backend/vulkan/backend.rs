@@ -179,6 +179,8 @@ pub struct VulkanBackend {
     retiring: VecDeque<(u64, Retired)>,
     completed: Option<u64>,
     measurements: Vec<Measurement>,
+    /// The most recent measurements (kept after `take_measurements`), newest last.
+    log: VecDeque<Measurement>,
     allocated: u64,
     blas_allocated: u64,
     lost: bool,
@@ -259,6 +261,7 @@ impl VulkanBackend {
             retiring: VecDeque::new(),
             completed: None,
             measurements: Vec::new(),
+            log: VecDeque::new(),
             allocated: 0,
             blas_allocated: 0,
             lost: false,
@@ -275,6 +278,12 @@ impl VulkanBackend {
     /// What the backend did so far.
     pub fn counters(&self) -> VulkanCounters {
         self.counters
+    }
+
+    /// The most recent GPU measurements (up to 256, oldest first), whether or not the manager
+    /// already took them.
+    pub fn measurement_log(&self) -> impl Iterator<Item = &Measurement> {
+        self.log.iter()
     }
 
     /// Live BLAS count (split parts count once).
@@ -535,7 +544,12 @@ impl VulkanBackend {
             let ticks = s.timestamps.read(&self.ctx, 0, n)?;
             for &(op, units, first) in &s.timed {
                 let dt = ticks[first as usize + 1].saturating_sub(ticks[first as usize]);
-                self.measurements.push(Measurement { op, units, gpu_ms: s.timestamps.ticks_to_ms(dt) });
+                let m = Measurement { op, units, gpu_ms: s.timestamps.ticks_to_ms(dt) };
+                self.measurements.push(m);
+                if self.log.len() == 256 {
+                    self.log.pop_front();
+                }
+                self.log.push_back(m);
             }
             s.timed.clear();
         }

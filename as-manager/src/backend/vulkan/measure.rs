@@ -69,19 +69,27 @@ pub fn build_blas_now(
     }
 }
 
-/// Builds `count` BLASes over the same geometry with `flags` — all in one
-/// vkCmdBuildAccelerationStructuresKHR (`batched`) or one call each — `reps` times after a
-/// warm-up. Returns (median GPU ms, bytes per BLAS).
+/// Builds one BLAS per entry of `geoms` (entries may repeat the same geometry) with `flags` —
+/// all in one vkCmdBuildAccelerationStructuresKHR (`batched`) or one call each — `reps` times
+/// after a warm-up. Returns (median GPU ms, bytes of the first BLAS).
 pub fn time_blas_builds(
     ctx: &VulkanContext,
-    geom: &GpuGeometry,
-    count: usize,
+    geoms: &[&GpuGeometry],
     flags: vk::BuildAccelerationStructureFlagsKHR,
     batched: bool,
     reps: usize,
 ) -> VkResult<(f64, u64)> {
-    let sizes = ctx.blas_sizes(std::slice::from_ref(&geom.geometry), flags);
-    let stride = align_up(sizes.build_scratch, ctx.info().min_scratch_alignment);
+    let count = geoms.len();
+    let all_sizes: Vec<_> = geoms
+        .iter()
+        .map(|g| ctx.blas_sizes(std::slice::from_ref(&g.geometry), flags))
+        .collect();
+    let sizes = all_sizes.first().copied().unwrap_or_default();
+    let stride = all_sizes
+        .iter()
+        .map(|s| align_up(s.build_scratch, ctx.info().min_scratch_alignment))
+        .max()
+        .unwrap_or(0);
     let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "time_blas_builds")?;
     let (scratch, base) = ctx.create_scratch("time_blas_builds scratch", stride * count as u64)?;
     let mut accels = Vec::with_capacity(count);
@@ -89,7 +97,7 @@ pub fn time_blas_builds(
     for i in 0..count {
         match ctx.create_accel(
             vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-            sizes.storage,
+            all_sizes[i].storage,
             &format!("bench blas {i}"),
         ) {
             Ok(a) => accels.push(a),
@@ -105,7 +113,7 @@ pub fn time_blas_builds(
             .iter()
             .enumerate()
             .map(|(i, a)| BlasBuild {
-                geometries: std::slice::from_ref(&geom.geometry),
+                geometries: std::slice::from_ref(&geoms[i].geometry),
                 flags,
                 dst: a.raw,
                 update_from: None,

@@ -77,9 +77,24 @@ impl StaticScene {
         meshes: &[MeshDesc<'_>],
         instances: &[InstanceDesc],
     ) -> VkResult<Self> {
+        Self::build_with_tlas_flags(
+            ctx,
+            meshes,
+            instances,
+            vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
+        )
+    }
+
+    /// As [`StaticScene::build`], with the TLAS built with `tlas_flags`.
+    pub fn build_with_tlas_flags(
+        ctx: &VulkanContext,
+        meshes: &[MeshDesc<'_>],
+        instances: &[InstanceDesc],
+        tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
+    ) -> VkResult<Self> {
         let start = Instant::now();
         let mut built: Vec<GpuMesh> = Vec::with_capacity(meshes.len());
-        let result = Self::build_inner(ctx, meshes, instances, &mut built);
+        let result = Self::build_inner(ctx, meshes, instances, tlas_flags, &mut built);
         match result {
             Ok((tlas, instance_buffer, mut stats)) => {
                 stats.build_ms = start.elapsed().as_secs_f64() * 1e3;
@@ -104,6 +119,7 @@ impl StaticScene {
         ctx: &VulkanContext,
         meshes: &[MeshDesc<'_>],
         instances: &[InstanceDesc],
+        tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
         built: &mut Vec<GpuMesh>,
     ) -> VkResult<(AccelStruct, GpuBuffer, SceneBuildStats)> {
         let flags = class_flags(BlasClass::Static);
@@ -162,7 +178,6 @@ impl StaticScene {
                 mesh.blas.address,
             ));
         }
-        let tlas_flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
         let tlas_sizes = ctx.tlas_sizes(records.len() as u32, tlas_flags);
         stats.tlas_bytes = tlas_sizes.storage;
         stats.tlas_scratch_bytes = tlas_sizes.build_scratch;
