@@ -29,9 +29,12 @@ impl LodSelector {
     }
 
     fn coarsest_within(&self, errors: &[f32], scale: f32, distance: f32, limit: f32) -> usize {
+        // pixels(e * scale, d) <= limit without a division per LOD
+        let rhs = limit * distance.max(1e-3);
+        let ks = self.k * scale;
         let mut best = 0;
         for (i, &e) in errors.iter().enumerate() {
-            if self.pixels(e * scale, distance) <= limit {
+            if e * ks <= rhs {
                 best = i;
             } else {
                 break;
@@ -55,7 +58,7 @@ impl LodSelector {
         let coarser = self.coarsest_within(errors, scale, distance, self.coarsen_below);
         let lod = if coarser > current {
             coarser
-        } else if self.pixels(errors[current] * scale, distance) > self.refine_above {
+        } else if errors[current] * self.k * scale > self.refine_above * distance.max(1e-3) {
             self.coarsest_within(errors, scale, distance, self.threshold)
         } else {
             current

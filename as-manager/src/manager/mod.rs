@@ -20,7 +20,7 @@ use crate::config::{Config, PolicyKind};
 use crate::cull::InstanceCuller;
 use crate::lod::LodSelector;
 use crate::record::TlasInstance;
-use crate::spatial::GridIndex;
+use crate::spatial::{GridIndex, GridLoc};
 use crate::{AsError, InstanceId, Result};
 
 /// A camera: residency, LOD and culling are measured from its position; `forward` (unit)
@@ -124,11 +124,9 @@ pub struct FrameOutput<'a> {
 
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Visit {
-    pub slot: u32,
+    pub loc: GridLoc,
     /// Distance from the nearest camera to the centre.
     pub center_dist: f32,
-    /// Distance from the nearest camera to the bounding sphere.
-    pub surface_dist: f32,
 }
 
 /// The BLAS/TLAS manager. See the crate docs for the frame pipeline.
@@ -156,14 +154,14 @@ pub struct AsManager<B: AsBackend> {
     backend: B,
     registrar: Registrar,
     t: Tables,
-    grid: GridIndex,
+    grid: GridIndex<state::Hot>,
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
     visits: Vec<Visit>,
     cam_pos: Vec<Vec3>,
     cam_fwd: Vec<Vec3>,
-    tlas_list: Vec<(u32, u64)>,
+    tlas_list: Vec<(GridLoc, u64)>,
     records: Vec<TlasInstance>,
     compact_pending: Vec<(u32, u32)>,
     retiring: VecDeque<(u64, u64)>,
@@ -263,8 +261,8 @@ impl<B: AsBackend> AsManager<B> {
         if config.residency.cell_size != self.config.residency.cell_size {
             let mut grid = GridIndex::new(config.residency.cell_size);
             for (slot, inst) in self.t.instances.iter().enumerate() {
-                if let Some(i) = inst {
-                    grid.insert(slot as u32, i.center, i.radius);
+                if let (Some(i), Some(e)) = (inst, self.grid.get(slot as u32)) {
+                    grid.insert(slot as u32, i.center, i.radius, e.data);
                 }
             }
             self.grid = grid;
@@ -297,12 +295,12 @@ impl<B: AsBackend> AsManager<B> {
 
     /// The LOD an instance is targeting (skinned poses are for this LOD), once applied.
     pub fn instance_lod(&self, id: InstanceId) -> Option<usize> {
-        let inst = self.t.instances.get(id.index as usize)?.as_ref()?;
-        let own = inst.own;
-        if self.t.entry_valid(own) {
-            Some(self.t.entries[own.0 as usize].lod as usize)
+        self.t.instances.get(id.index as usize)?.as_ref()?;
+        let h = self.grid.get(id.index)?.data;
+        if self.t.entry_valid(h.own) {
+            Some(self.t.entries[h.own.0 as usize].lod as usize)
         } else {
-            Some(inst.lod_target as usize)
+            Some(h.lod_target as usize)
         }
     }
 

@@ -124,7 +124,7 @@ impl<B: AsBackend> AsManager<B> {
             let class = if kind == MeshKind::Skinned { BlasClass::Skinned } else { BlasClass::Static };
             let geometry = mesh.desc.lods[lod].geometry.clone();
             let opaque = mesh.desc.opaque;
-            let nlods = mesh.errors.len();
+            let nlods = mesh.nlods as usize;
             let pose = if owner != NONE {
                 self.t.instances[owner as usize].as_ref().and_then(|i| i.pose.clone())
             } else {
