@@ -26,8 +26,15 @@ const WARMUP_FRAMES: u64 = 300;
 /// 60 m of it.
 fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
     let lead = world.camera_on_path(frame, SPEED);
-    let offsets = [Vec3::ZERO, Vec3::new(40.0, 0.0, 0.0), Vec3::new(0.0, 0.0, 40.0), Vec3::new(-30.0, 0.0, -30.0)];
-    (0..n).map(|i| Camera::new(lead.position + offsets[i % 4], lead.forward)).collect()
+    let offsets = [
+        Vec3::ZERO,
+        Vec3::new(40.0, 0.0, 0.0),
+        Vec3::new(0.0, 0.0, 40.0),
+        Vec3::new(-30.0, 0.0, -30.0),
+    ];
+    (0..n)
+        .map(|i| Camera::new(lead.position + offsets[i % 4], lead.forward))
+        .collect()
 }
 
 struct Run {
@@ -57,9 +64,35 @@ impl Run {
         r
     }
 
+    /// Times `n` single frames and prints median / p90 / mean: criterion's figures are means
+    /// of batches and on this shared 2-core machine include preemptions by other processes.
+    fn per_frame(&mut self, label: &str, n: usize) {
+        let mut t: Vec<f64> = (0..n)
+            .map(|_| {
+                let s = std::time::Instant::now();
+                black_box(self.step());
+                s.elapsed().as_secs_f64() * 1e6
+            })
+            .collect();
+        t.sort_by(f64::total_cmp);
+        let mean = t.iter().sum::<f64>() / n as f64;
+        eprintln!(
+            "[{label}] per-frame over {n} frames: median {:.1} us, p90 {:.1} us, mean {:.1} us",
+            t[n / 2],
+            t[n * 9 / 10],
+            mean
+        );
+    }
+
     fn step(&mut self) -> usize {
         let cams = cameras(&self.world, self.frame, self.cams);
-        let out = self.manager.update(FrameInput { frame: self.frame, cameras: &cams }).unwrap();
+        let out = self
+            .manager
+            .update(FrameInput {
+                frame: self.frame,
+                cameras: &cams,
+            })
+            .unwrap();
         self.frame += 1;
         out.instances.len()
     }
@@ -74,9 +107,14 @@ fn bench_update(c: &mut Criterion) {
     let million = SynthWorld::generate(SynthParams::million());
     let (default, million) = (&default, &million);
     let mut g = config(c).benchmark_group("update");
-    g.sample_size(20).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    g.sample_size(20)
+        .warm_up_time(Duration::from_millis(500))
+        .measurement_time(Duration::from_secs(3));
     for (wname, world) in [("default", default), ("million", million)] {
-        for (pname, policy) in [("managed", PolicyKind::Managed), ("seed_r1r2", PolicyKind::SeedR1R2)] {
+        for (pname, policy) in [
+            ("managed", PolicyKind::Managed),
+            ("seed_r1r2", PolicyKind::SeedR1R2),
+        ] {
             for cams in [1usize, 4] {
                 if wname == "million" && cams == 4 {
                     continue;
@@ -86,7 +124,9 @@ fn bench_update(c: &mut Criterion) {
                 let id = BenchmarkId::new(format!("{wname}/{pname}"), format!("{cams}cam"));
                 g.bench_function(id, |b| {
                     let run = run.get_or_insert_with(|| {
-                        let r = Run::new(world, policy, cams);
+                        let mut r = Run::new(world, policy, cams);
+                        let n = if policy == PolicyKind::Managed { 2000 } else if wname == "million" { 30 } else { 200 };
+                        r.per_frame(&format!("{wname}/{pname}/{cams}cam"), n);
                         let s = r.manager.stats().clone();
                         eprintln!(
                             "[{wname}/{pname}/{cams}cam] instances {} visited {} tlas {} blas {} bytes {:.1} MiB",
@@ -122,7 +162,10 @@ fn bench_query(c: &mut Criterion) {
         .map(|(m, t)| {
             let d = &world.meshes[*m];
             let s = t.matrix3.x_axis.length();
-            (t.transform_point3(Vec3::from(d.bounds_center)), d.bounds_radius * s)
+            (
+                t.transform_point3(Vec3::from(d.bounds_center)),
+                d.bounds_radius * s,
+            )
         })
         .collect();
     let max_r = spheres.iter().map(|s| s.1).fold(0.0f32, f32::max);
@@ -130,10 +173,17 @@ fn bench_query(c: &mut Criterion) {
     for (i, (c, r)) in spheres.iter().enumerate() {
         grid.insert(i as u32, *c, *r, ());
     }
-    let tree: RTree<GeomWithData<[f32; 3], u32>> =
-        RTree::bulk_load(spheres.iter().enumerate().map(|(i, (c, _))| GeomWithData::new(c.to_array(), i as u32)).collect());
+    let tree: RTree<GeomWithData<[f32; 3], u32>> = RTree::bulk_load(
+        spheres
+            .iter()
+            .enumerate()
+            .map(|(i, (c, _))| GeomWithData::new(c.to_array(), i as u32))
+            .collect(),
+    );
     let mut g = c.benchmark_group("residency_query");
-    g.sample_size(30).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(2));
+    g.sample_size(30)
+        .warm_up_time(Duration::from_millis(500))
+        .measurement_time(Duration::from_secs(2));
     let mut frame = 0u64;
     let mut out: Vec<(u32, f32)> = Vec::with_capacity(4096);
     g.bench_function("grid", |b| {

@@ -46,8 +46,13 @@ pub mod record;
 pub mod spatial;
 pub mod synth;
 
-pub use config::{AssemblyConfig, BuildBudget, Config, CullConfig, CullMode, LodConfig, MemoryBudget, PolicyKind, ResidencyConfig};
+pub use config::{
+    AssemblyConfig, BuildBudget, Config, CullConfig, CullMode, LodConfig, MemoryBudget, PolicyKind,
+    ResidencyConfig,
+};
 pub use error::{AsError, Result};
 pub use ids::{InstanceId, MeshId};
-pub use manager::{AsManager, Camera, FrameInput, FrameOutput, FrameStats, InstanceDesc, Registrar};
+pub use manager::{
+    AsManager, Camera, FrameInput, FrameOutput, FrameStats, InstanceDesc, Registrar,
+};
 pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind, MAX_LODS};

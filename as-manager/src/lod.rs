@@ -53,7 +53,14 @@ impl LodSelector {
     /// assert_eq!(s.select(&errors, 1.0, 1.0, 0, 0), 0);
     /// assert_eq!(s.select(&errors, 1.0, 10_000.0, 0, 0), 3);
     /// ```
-    pub fn select(&self, errors: &[f32], scale: f32, distance: f32, current: usize, floor: usize) -> usize {
+    pub fn select(
+        &self,
+        errors: &[f32],
+        scale: f32,
+        distance: f32,
+        current: usize,
+        floor: usize,
+    ) -> usize {
         let current = current.min(errors.len() - 1);
         let coarser = self.coarsest_within(errors, scale, distance, self.coarsen_below);
         let lod = if coarser > current {
@@ -77,10 +84,26 @@ mod tests {
         let errors = [0.0, 0.1];
         // distance where LOD 1 projects to exactly 1 px
         let d1 = 0.1 * s.k;
-        assert_eq!(s.select(&errors, 1.0, d1 * 1.1, 0, 0), 0, "inside band: stays fine");
-        assert_eq!(s.select(&errors, 1.0, d1 * 1.3, 0, 0), 1, "beyond band: coarsens");
-        assert_eq!(s.select(&errors, 1.0, d1 * 0.9, 1, 0), 1, "inside band: stays coarse");
-        assert_eq!(s.select(&errors, 1.0, d1 * 0.7, 1, 0), 0, "beyond band: refines");
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 1.1, 0, 0),
+            0,
+            "inside band: stays fine"
+        );
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 1.3, 0, 0),
+            1,
+            "beyond band: coarsens"
+        );
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 0.9, 1, 0),
+            1,
+            "inside band: stays coarse"
+        );
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 0.7, 1, 0),
+            0,
+            "beyond band: refines"
+        );
         assert_eq!(s.select(&errors, 1.0, 0.0, 0, 1), 1, "floor wins");
     }
 }

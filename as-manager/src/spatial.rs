@@ -41,11 +41,11 @@ impl Hasher for CellHasher {
     }
     fn write(&mut self, bytes: &[u8]) {
         for b in bytes {
-            self.0 = (self.0.rotate_left(5) ^ *b as u64).wrapping_mul(0x51_7cc1_b727_220a_95);
+            self.0 = (self.0.rotate_left(5) ^ *b as u64).wrapping_mul(0x517c_c1b7_2722_0a95);
         }
     }
     fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7cc1_b727_220a_95);
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x517c_c1b7_2722_0a95);
     }
 }
 
@@ -64,6 +64,8 @@ pub struct GridIndex<T = ()> {
     locs: Vec<(u32, u32)>,
     scratch: Vec<u32>,
     len: usize,
+    /// Largest radius among the in-cell entries (<= cell size): the query's slack.
+    max_small_radius: f32,
 }
 
 fn key(x: i32, z: i32) -> u64 {
@@ -84,6 +86,7 @@ impl<T: Copy> GridIndex<T> {
             locs: Vec::new(),
             scratch: Vec::new(),
             len: 0,
+            max_small_radius: 0.0,
         }
     }
 
@@ -98,7 +101,9 @@ impl<T: Copy> GridIndex<T> {
     }
 
     fn coord(&self, v: f32) -> i32 {
-        (v * self.inv_cell).floor().clamp(i32::MIN as f32 + 1.0, i32::MAX as f32 - 1.0) as i32
+        (v * self.inv_cell)
+            .floor()
+            .clamp(i32::MIN as f32 + 1.0, i32::MAX as f32 - 1.0) as i32
     }
 
     /// Inserts or moves `slot` with its payload.
@@ -117,6 +122,7 @@ impl<T: Copy> GridIndex<T> {
             self.locs[slot as usize] = (LARGE, self.large.len() as u32);
             self.large.push(e);
         } else {
+            self.max_small_radius = self.max_small_radius.max(radius);
             let (x, z) = (self.coord(center.x), self.coord(center.z));
             let n = self.cell_entries.len() as u32;
             let c = *self.cells.entry(key(x, z)).or_insert(n);
@@ -134,7 +140,9 @@ impl<T: Copy> GridIndex<T> {
     /// Where `slot` is now.
     pub fn loc(&self, slot: u32) -> Option<GridLoc> {
         match self.locs.get(slot as usize) {
-            Some(&(c, i)) if !(c == u32::MAX && i == u32::MAX) => Some(GridLoc { cell: c, index: i }),
+            Some(&(c, i)) if !(c == u32::MAX && i == u32::MAX) => {
+                Some(GridLoc { cell: c, index: i })
+            }
             _ => None,
         }
     }
@@ -169,11 +177,17 @@ impl<T: Copy> GridIndex<T> {
 
     /// Removes `slot` if present.
     pub fn remove(&mut self, slot: u32) {
-        let Some(&(c, i)) = self.locs.get(slot as usize) else { return };
+        let Some(&(c, i)) = self.locs.get(slot as usize) else {
+            return;
+        };
         if c == u32::MAX && i == u32::MAX {
             return;
         }
-        let v = if c == LARGE { &mut self.large } else { &mut self.cell_entries[c as usize] };
+        let v = if c == LARGE {
+            &mut self.large
+        } else {
+            &mut self.cell_entries[c as usize]
+        };
         v.swap_remove(i as usize);
         if let Some(moved) = v.get(i as usize) {
             self.locs[moved.slot as usize] = (c, i);
@@ -183,11 +197,16 @@ impl<T: Copy> GridIndex<T> {
     }
 
     /// Calls `visit` for every entry whose centre lies in a cell that a sphere of `range` (plus
-    /// a cell of slack for the entry's own radius) around any of `cameras` touches, and every
-    /// large entry. Cells are deduplicated across cameras; each entry is visited once. The
+    /// the largest in-cell radius as slack) around any of `cameras` touches, and every large
+    /// entry. Cells are deduplicated across cameras; each entry is visited once. The
     /// caller does the exact distance test.
-    pub fn query(&mut self, cameras: &[Vec3], range: f32, mut visit: impl FnMut(GridLoc, &mut GridEntry<T>)) {
-        let reach = range + self.cell_size;
+    pub fn query(
+        &mut self,
+        cameras: &[Vec3],
+        range: f32,
+        mut visit: impl FnMut(GridLoc, &mut GridEntry<T>),
+    ) {
+        let reach = range + self.max_small_radius;
         let mut cells = std::mem::take(&mut self.scratch);
         cells.clear();
         for cam in cameras {
@@ -218,11 +237,23 @@ impl<T: Copy> GridIndex<T> {
         }
         for &c in &cells {
             for (i, e) in self.cell_entries[c as usize].iter_mut().enumerate() {
-                visit(GridLoc { cell: c, index: i as u32 }, e);
+                visit(
+                    GridLoc {
+                        cell: c,
+                        index: i as u32,
+                    },
+                    e,
+                );
             }
         }
         for (i, e) in self.large.iter_mut().enumerate() {
-            visit(GridLoc { cell: LARGE, index: i as u32 }, e);
+            visit(
+                GridLoc {
+                    cell: LARGE,
+                    index: i as u32,
+                },
+                e,
+            );
         }
         self.scratch = cells;
     }

@@ -107,12 +107,18 @@ impl SizeModel {
     pub fn blas_sizes(&self, vertices: u32, triangles: u32, class: BlasClass) -> BlasSizes {
         let (t, v) = (triangles as f64, vertices as f64);
         let base = self.blas_fixed + self.blas_per_triangle * t + self.blas_per_vertex * v;
-        let factor = if class == BlasClass::Skinned { self.skinned_factor } else { 1.0 };
+        let factor = if class == BlasClass::Skinned {
+            self.skinned_factor
+        } else {
+            1.0
+        };
         BlasSizes {
             as_bytes: self.round(base * factor),
             build_scratch: self.round(self.scratch_fixed + self.scratch_per_triangle * t),
             update_scratch: match class {
-                BlasClass::Skinned => self.round(self.scratch_fixed + self.update_scratch_per_triangle * t),
+                BlasClass::Skinned => {
+                    self.round(self.scratch_fixed + self.update_scratch_per_triangle * t)
+                }
                 BlasClass::Static => 0,
             },
         }
@@ -187,7 +193,9 @@ impl CostModel {
         if all.iter().all(|v| v.is_finite() && *v >= 0.0) {
             Ok(())
         } else {
-            Err(AsError::InvalidConfig("cost model coefficients must be finite and >= 0".into()))
+            Err(AsError::InvalidConfig(
+                "cost model coefficients must be finite and >= 0".into(),
+            ))
         }
     }
 }
@@ -318,7 +326,8 @@ impl ModelBackend {
     }
 
     fn fits(&self, extra: u64) -> bool {
-        self.device_bytes.is_none_or(|cap| self.allocated_bytes() + extra <= cap)
+        self.device_bytes
+            .is_none_or(|cap| self.allocated_bytes() + extra <= cap)
     }
 
     fn alloc(&mut self, b: ModelBlas) -> BlasHandle {
@@ -358,7 +367,8 @@ impl AsBackend for ModelBackend {
     }
 
     fn blas_sizes(&self, g: &GeometryRef<'_>, class: BlasClass) -> BlasSizes {
-        self.sizes.blas_sizes(g.vertex_count, g.triangle_count, class)
+        self.sizes
+            .blas_sizes(g.vertex_count, g.triangle_count, class)
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
@@ -399,7 +409,10 @@ impl AsBackend for ModelBackend {
         self.lost()?;
         let (mut rf, mut rb) = (0u64, 0u64);
         for r in refits {
-            let b = self.blases.get(&r.blas).ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+            let b = self
+                .blases
+                .get(&r.blas)
+                .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
             debug_assert_eq!(b.class, BlasClass::Skinned);
             if r.rebuild {
                 rb += b.triangles as u64;
@@ -423,12 +436,18 @@ impl AsBackend for ModelBackend {
         if b.class != BlasClass::Static || self.completed.is_none_or(|c| c < b.built_frame) {
             return None;
         }
-        Some(self.sizes.round(b.bytes as f64 * self.sizes.compaction_ratio).min(b.bytes))
+        Some(
+            self.sizes
+                .round(b.bytes as f64 * self.sizes.compaction_ratio)
+                .min(b.bytes),
+        )
     }
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
         self.lost()?;
-        let size = self.compacted_size(blas).ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
+        let size = self
+            .compacted_size(blas)
+            .ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
         if !self.fits(size) {
             self.counters.oom_failures += 1;
             return Err(BackendError::OutOfDeviceMemory);
@@ -502,7 +521,13 @@ mod tests {
         let s = b.blas_sizes(&g, BlasClass::Static);
         assert!((s.as_bytes as f64 - 1_040_256.0).abs() < 512.0);
         b.begin_frame(0).unwrap();
-        let h = b.build_blases(&[BlasBuild { geometry: g, class: BlasClass::Static, sizes: s }]).unwrap();
+        let h = b
+            .build_blases(&[BlasBuild {
+                geometry: g,
+                class: BlasClass::Static,
+                sizes: s,
+            }])
+            .unwrap();
         b.end_frame(0).unwrap();
         b.free_blas(h[0], 0);
         assert_eq!(b.allocated_bytes(), s.as_bytes, "still in flight");

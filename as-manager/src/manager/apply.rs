@@ -16,7 +16,11 @@ use crate::{InstanceId, MeshId};
 fn world_sphere(desc: &MeshDesc, t: &Affine3A) -> (glam::Vec3, f32, f32) {
     let c = t.transform_point3(glam::Vec3::from(desc.bounds_center));
     let m = t.matrix3;
-    let scale = m.x_axis.length().max(m.y_axis.length()).max(m.z_axis.length());
+    let scale = m
+        .x_axis
+        .length()
+        .max(m.y_axis.length())
+        .max(m.z_axis.length());
     (c, desc.bounds_radius * scale, scale)
 }
 
@@ -89,9 +93,16 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Removes the mesh's instances and BLASes; returns the instance slots removed.
     fn apply_unregister(&mut self, id: MeshId) -> Vec<u32> {
-        let Some(Some(mesh)) = self.t.meshes.get(id.index as usize) else { return Vec::new() };
+        let Some(Some(mesh)) = self.t.meshes.get(id.index as usize) else {
+            return Vec::new();
+        };
         let insts = mesh.instances.clone();
-        let entries: Vec<u32> = mesh.lod_entry.iter().copied().filter(|&e| e != NONE).collect();
+        let entries: Vec<u32> = mesh
+            .lod_entry
+            .iter()
+            .copied()
+            .filter(|&e| e != NONE)
+            .collect();
         for &i in &insts {
             self.apply_remove(i);
         }
@@ -106,9 +117,16 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     fn apply_add(&mut self, id: InstanceId, desc: InstanceDesc) {
-        let Some(Some(mesh)) = self.t.meshes.get_mut(desc.mesh.index as usize) else { return };
+        let Some(Some(mesh)) = self.t.meshes.get_mut(desc.mesh.index as usize) else {
+            return;
+        };
         let (center, radius, scale) = world_sphere(&mesh.desc, &desc.transform);
-        let flags = desc.flags | if mesh.desc.opaque { INSTANCE_FORCE_OPAQUE } else { 0 };
+        let flags = desc.flags
+            | if mesh.desc.opaque {
+                INSTANCE_FORCE_OPAQUE
+            } else {
+                0
+            };
         let mesh_pos = mesh.instances.len() as u32;
         mesh.instances.push(id.index);
         let slot = id.index as usize;
@@ -127,7 +145,14 @@ impl<B: AsBackend> AsManager<B> {
             seed_has: false,
         });
         let hot = Hot {
-            template: TlasInstance::new(&desc.transform, desc.custom_index, desc.mask, desc.sbt_offset, flags, 0),
+            template: TlasInstance::new(
+                &desc.transform,
+                desc.custom_index,
+                desc.mask,
+                desc.sbt_offset,
+                flags,
+                0,
+            ),
             mesh: desc.mesh.index,
             scale,
             shown: (NONE, 0),
@@ -144,9 +169,15 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     fn apply_transform(&mut self, id: InstanceId, t: Affine3A) {
-        let Some(Some(inst)) = self.t.instances.get_mut(id.index as usize) else { return };
-        let Some(Some(mesh)) = self.t.meshes.get(inst.mesh as usize) else { return };
-        let Some(e) = self.grid.get(id.index) else { return };
+        let Some(Some(inst)) = self.t.instances.get_mut(id.index as usize) else {
+            return;
+        };
+        let Some(Some(mesh)) = self.t.meshes.get(inst.mesh as usize) else {
+            return;
+        };
+        let Some(e) = self.grid.get(id.index) else {
+            return;
+        };
         let (center, radius, scale) = world_sphere(&mesh.desc, &t);
         inst.center = center;
         inst.radius = radius;
@@ -158,9 +189,14 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Removes an instance's state; returns whether it existed.
     fn apply_remove(&mut self, slot: u32) -> bool {
-        let Some(Some(inst)) = self.t.instances.get(slot as usize) else { return false };
+        let Some(Some(inst)) = self.t.instances.get(slot as usize) else {
+            return false;
+        };
         let (mesh, mesh_pos, seed_has) = (inst.mesh, inst.mesh_pos, inst.seed_has);
-        let (own, shown) = self.grid.get(slot).map_or(((NONE, 0), (NONE, 0)), |e| (e.data.own, e.data.shown));
+        let (own, shown) = self
+            .grid
+            .get(slot)
+            .map_or(((NONE, 0), (NONE, 0)), |e| (e.data.own, e.data.shown));
         if let Some(Some(m)) = self.t.meshes.get_mut(mesh as usize) {
             m.instances.swap_remove(mesh_pos as usize);
             if let Some(&moved) = m.instances.get(mesh_pos as usize) {
@@ -180,7 +216,13 @@ impl<B: AsBackend> AsManager<B> {
                     self.release_entry(key.0);
                 }
             }
-            let owned: Vec<u32> = self.t.active.iter().copied().filter(|&e| self.t.entries[e as usize].owner == slot).collect();
+            let owned: Vec<u32> = self
+                .t
+                .active
+                .iter()
+                .copied()
+                .filter(|&e| self.t.entries[e as usize].owner == slot)
+                .collect();
             for e in owned {
                 self.release_entry(e);
             }

@@ -11,7 +11,9 @@ use crate::Result;
 impl<B: AsBackend> AsManager<B> {
     /// Naive: every LOD of a static mesh gets a BLAS as soon as it is registered.
     pub(crate) fn naive_register_mesh(&mut self, mesh: u32) {
-        let m = self.t.meshes[mesh as usize].as_ref().expect("just registered");
+        let m = self.t.meshes[mesh as usize]
+            .as_ref()
+            .expect("just registered");
         if m.kind() != MeshKind::Static {
             return;
         }
@@ -19,13 +21,18 @@ impl<B: AsBackend> AsManager<B> {
         for (lod, t) in tris.into_iter().enumerate() {
             let s = self.t.new_entry(mesh, lod as u8, NONE, t, self.frame);
             self.t.entries[s as usize].state = EntryState::Queued;
-            self.t.meshes[mesh as usize].as_mut().expect("live").lod_entry[lod] = s;
+            self.t.meshes[mesh as usize]
+                .as_mut()
+                .expect("live")
+                .lod_entry[lod] = s;
         }
     }
 
     /// Naive: a skinned instance gets its LOD-0 BLAS at once.
     pub(crate) fn naive_add_instance(&mut self, slot: u32) {
-        let inst = self.t.instances[slot as usize].as_ref().expect("just added");
+        let inst = self.t.instances[slot as usize]
+            .as_ref()
+            .expect("just added");
         let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
         if m.kind() != MeshKind::Skinned {
             return;
@@ -44,11 +51,20 @@ impl<B: AsBackend> AsManager<B> {
         self.schedule_refits(false)?;
         self.tlas_list.clear();
         for slot in 0..self.t.instances.len() {
-            let Some(inst) = self.t.instances[slot].as_ref() else { continue };
+            let Some(inst) = self.t.instances[slot].as_ref() else {
+                continue;
+            };
             let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
             let loc = self.grid.loc(slot as u32).expect("indexed");
             let key = match m.kind() {
-                MeshKind::Static => (m.lod_entry[0], if m.lod_entry[0] == NONE { 0 } else { self.t.entries[m.lod_entry[0] as usize].generation }),
+                MeshKind::Static => (
+                    m.lod_entry[0],
+                    if m.lod_entry[0] == NONE {
+                        0
+                    } else {
+                        self.t.entries[m.lod_entry[0] as usize].generation
+                    },
+                ),
                 MeshKind::Skinned => self.grid.at(loc).data.own,
             };
             if self.t.built(key) {
@@ -65,7 +81,10 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Seed: drop an instance's reference to its (mesh, LOD 0) BLAS; free it at zero.
     pub(crate) fn seed_drop_ref(&mut self, slot: u32) {
-        self.t.instances[slot as usize].as_mut().expect("live").seed_has = false;
+        self.t.instances[slot as usize]
+            .as_mut()
+            .expect("live")
+            .seed_has = false;
         let h = &mut self.grid.get_mut(slot).expect("indexed").data;
         let key = h.shown;
         h.shown = (NONE, 0);
@@ -100,9 +119,15 @@ impl<B: AsBackend> AsManager<B> {
             }
         }
         for slot in 0..n {
-            let Some(inst) = self.t.instances[slot].as_ref() else { continue };
-            let recent = inst.seed_request.is_some_and(|f| frame - f <= rc.create_threshold as u64);
-            let stale = inst.seed_keep.is_none_or(|f| frame - f > rc.release_threshold as u64);
+            let Some(inst) = self.t.instances[slot].as_ref() else {
+                continue;
+            };
+            let recent = inst
+                .seed_request
+                .is_some_and(|f| frame - f <= rc.create_threshold as u64);
+            let stale = inst
+                .seed_keep
+                .is_none_or(|f| frame - f > rc.release_threshold as u64);
             if recent && !inst.seed_has {
                 let mesh_ix = inst.mesh;
                 let m = self.t.meshes[mesh_ix as usize].as_ref().expect("live");
@@ -111,7 +136,10 @@ impl<B: AsBackend> AsManager<B> {
                     MeshKind::Static if m.lod_entry[0] != NONE => m.lod_entry[0],
                     MeshKind::Static => {
                         let s = self.t.new_entry(mesh_ix, 0, NONE, tris, frame);
-                        self.t.meshes[mesh_ix as usize].as_mut().expect("live").lod_entry[0] = s;
+                        self.t.meshes[mesh_ix as usize]
+                            .as_mut()
+                            .expect("live")
+                            .lod_entry[0] = s;
                         s
                     }
                     MeshKind::Skinned => self.t.new_entry(mesh_ix, 0, slot as u32, tris, frame),
@@ -143,7 +171,9 @@ impl<B: AsBackend> AsManager<B> {
         self.tlas_list.clear();
         let mut culled = 0;
         for slot in 0..n {
-            let Some(inst) = self.t.instances[slot].as_ref() else { continue };
+            let Some(inst) = self.t.instances[slot].as_ref() else {
+                continue;
+            };
             if !inst.seed_has {
                 continue;
             }

@@ -41,7 +41,15 @@ impl<B: AsBackend> AsManager<B> {
         let r2 = self.config.residency.r2;
         let r1 = self.config.residency.r1;
         let frame = self.frame;
-        let Self { grid, visits, cam_pos, cam_fwd, t, lod, .. } = self;
+        let Self {
+            grid,
+            visits,
+            cam_pos,
+            cam_fwd,
+            t,
+            lod,
+            ..
+        } = self;
         visits.clear();
         let cams: &[Vec3] = cam_pos;
         let fwds: &[Vec3] = cam_fwd;
@@ -51,17 +59,30 @@ impl<B: AsBackend> AsManager<B> {
             for p in cams {
                 d2 = d2.min(p.distance_squared(c));
             }
+            let reach = r2 + ge.radius;
+            if d2 > reach * reach {
+                return; // no square root for the rejected
+            }
             let center_dist = d2.sqrt();
             let surface_dist = (center_dist - ge.radius).max(0.0);
-            if surface_dist > r2 {
-                return;
-            }
             visits.push(Visit { loc, center_dist });
             let h = &mut ge.data;
-            let mesh = t.meshes[h.mesh as usize].as_ref().expect("instance of a live mesh");
+            let mesh = t.meshes[h.mesh as usize]
+                .as_ref()
+                .expect("instance of a live mesh");
             let was_visited = h.last_visit == frame.wrapping_sub(1);
-            let current = if was_visited { h.lod_target as usize } else { mesh.nlods as usize - 1 };
-            let lodi = lod.select(mesh.errors(), h.scale, surface_dist, current, mesh.lod_floor as usize);
+            let current = if was_visited {
+                h.lod_target as usize
+            } else {
+                mesh.nlods as usize - 1
+            };
+            let lodi = lod.select(
+                mesh.errors(),
+                h.scale,
+                surface_dist,
+                current,
+                mesh.lod_floor as usize,
+            );
             h.lod_target = lodi as u8;
             h.last_visit = frame;
             if !was_visited {
@@ -71,14 +92,24 @@ impl<B: AsBackend> AsManager<B> {
             let tris = mesh.lod_tris[lodi];
             let mut slot = match kind {
                 MeshKind::Static => mesh.lod_entry[lodi],
-                MeshKind::Skinned if t.entry_valid(h.own) && t.entries[h.own.0 as usize].lod as usize == lodi => h.own.0,
+                MeshKind::Skinned
+                    if t.entry_valid(h.own) && t.entries[h.own.0 as usize].lod as usize == lodi =>
+                {
+                    h.own.0
+                }
                 MeshKind::Skinned => NONE,
             };
             if slot == NONE {
-                let owner = if kind == MeshKind::Skinned { ge.slot } else { NONE };
+                let owner = if kind == MeshKind::Skinned {
+                    ge.slot
+                } else {
+                    NONE
+                };
                 slot = t.new_entry(h.mesh, lodi as u8, owner, tris, frame);
                 match kind {
-                    MeshKind::Static => t.meshes[h.mesh as usize].as_mut().expect("live").lod_entry[lodi] = slot,
+                    MeshKind::Static => {
+                        t.meshes[h.mesh as usize].as_mut().expect("live").lod_entry[lodi] = slot
+                    }
                     MeshKind::Skinned => h.own = t.key(slot),
                 }
             }
@@ -112,7 +143,11 @@ impl<B: AsBackend> AsManager<B> {
     fn upkeep_entries(&mut self) {
         let frame = self.frame;
         let rc = &self.config.residency;
-        let (create, release, min_life) = (rc.create_threshold as u64, rc.release_threshold as u64, rc.min_resident_frames as u64);
+        let (create, release, min_life) = (
+            rc.create_threshold as u64,
+            rc.release_threshold as u64,
+            rc.min_resident_frames as u64,
+        );
         let mut i = self.t.active.len();
         while i > 0 {
             i -= 1;
@@ -199,7 +234,8 @@ impl<B: AsBackend> AsManager<B> {
                     e.last_in_tlas = Some(frame);
                     e.last_keep = frame;
                     let handle = e.handle.expect("built entry has a handle");
-                    self.tlas_list.push((v.loc, self.backend.blas_address(handle)));
+                    self.tlas_list
+                        .push((v.loc, self.backend.blas_address(handle)));
                 }
             }
         }
@@ -211,12 +247,18 @@ impl<B: AsBackend> AsManager<B> {
         let list = &self.tlas_list;
         let grid = &self.grid;
         let a = &self.config.assembly;
-        assemble(list.len(), &mut self.records, a.threads, a.parallel_threshold, |i| {
-            let (loc, address) = list[i];
-            TlasInstance {
-                blas_address: address,
-                ..grid.at(loc).data.template
-            }
-        });
+        assemble(
+            list.len(),
+            &mut self.records,
+            a.threads,
+            a.parallel_threshold,
+            |i| {
+                let (loc, address) = list[i];
+                TlasInstance {
+                    blas_address: address,
+                    ..grid.at(loc).data.template
+                }
+            },
+        );
     }
 }

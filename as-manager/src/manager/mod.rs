@@ -239,7 +239,11 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     /// See [`Registrar::set_skinned_pose`].
-    pub fn set_skinned_pose(&self, id: InstanceId, positions: std::sync::Arc<Vec<[f32; 3]>>) -> Result<()> {
+    pub fn set_skinned_pose(
+        &self,
+        id: InstanceId,
+        positions: std::sync::Arc<Vec<[f32; 3]>>,
+    ) -> Result<()> {
         self.registrar.set_skinned_pose(id, positions)
     }
 
@@ -319,9 +323,15 @@ impl<B: AsBackend> AsManager<B> {
     pub fn update(&mut self, input: FrameInput<'_>) -> Result<FrameOutput<'_>> {
         let frame = input.frame;
         if self.last_frame.is_some_and(|l| frame <= l) {
-            return Err(AsError::InvalidConfig(format!("frame {frame} does not increase")));
+            return Err(AsError::InvalidConfig(format!(
+                "frame {frame} does not increase"
+            )));
         }
-        if input.cameras.iter().any(|c| !c.position.is_finite() || !c.forward.is_finite()) {
+        if input
+            .cameras
+            .iter()
+            .any(|c| !c.position.is_finite() || !c.forward.is_finite())
+        {
             return Err(AsError::InvalidTransform);
         }
         let _span = tracing::debug_span!("update", frame).entered();
