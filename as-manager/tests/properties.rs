@@ -153,6 +153,7 @@ impl Harness {
             .map_err(|e| TestCaseError::fail(e.to_string()))?;
         let s = out.stats.clone();
         let addrs: Vec<u64> = out.instances.iter().map(|r| r.blas_address).collect();
+        self.m.check_invariants().map_err(TestCaseError::fail)?;
         // TLAS references only live, built BLASes.
         for a in addrs {
             prop_assert!(

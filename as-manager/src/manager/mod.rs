@@ -169,6 +169,7 @@ pub struct AsManager<B: AsBackend> {
     live_bytes: u64,
     built_count: u32,
     oom_cap: Option<u64>,
+    oom_frame: u64,
     floors: Vec<u32>,
     live_instances: u32,
     last_frame: Option<u64>,
@@ -200,6 +201,7 @@ impl<B: AsBackend> AsManager<B> {
             live_bytes: 0,
             built_count: 0,
             oom_cap: None,
+            oom_frame: 0,
             floors: Vec::new(),
             live_instances: 0,
             last_frame: None,
@@ -262,6 +264,11 @@ impl<B: AsBackend> AsManager<B> {
     /// backend's frames in flight).
     pub fn set_config(&mut self, config: Config) -> Result<()> {
         config.validate()?;
+        if config.policy != self.config.policy {
+            return Err(AsError::InvalidConfig(
+                "policy cannot change on a live manager".into(),
+            ));
+        }
         if config.residency.cell_size != self.config.residency.cell_size {
             let mut grid = GridIndex::new(config.residency.cell_size);
             for (slot, inst) in self.t.instances.iter().enumerate() {
@@ -308,6 +315,59 @@ impl<B: AsBackend> AsManager<B> {
         }
     }
 
+    /// Checks internal consistency (for tests): byte accounting matches the built entries,
+    /// every built entry has a handle, no two live entries hold the same static (mesh, LOD),
+    /// every mesh's LOD table points at live entries of that mesh and LOD.
+    #[doc(hidden)]
+    pub fn check_invariants(&self) -> std::result::Result<(), String> {
+        let mut bytes = 0;
+        let mut built = 0;
+        let mut seen = std::collections::HashSet::new();
+        for &slot in &self.t.active {
+            let e = &self.t.entries[slot as usize];
+            if !e.live {
+                return Err(format!("inactive entry {slot} in the active list"));
+            }
+            if e.state == EntryState::Built {
+                if e.handle.is_none() {
+                    return Err(format!("built entry {slot} without a handle"));
+                }
+                bytes += e.bytes;
+                built += 1;
+            } else if e.handle.is_some() {
+                return Err(format!("unbuilt entry {slot} holds a handle"));
+            }
+            if e.owner == state::NONE && !seen.insert((e.mesh, e.lod)) {
+                return Err(format!(
+                    "two live entries for static mesh {} LOD {}",
+                    e.mesh, e.lod
+                ));
+            }
+        }
+        if bytes != self.live_bytes || built != self.built_count {
+            return Err(format!(
+                "accounting: {bytes} B / {built} built vs {} B / {}",
+                self.live_bytes, self.built_count
+            ));
+        }
+        for (i, m) in self.t.meshes.iter().enumerate() {
+            let Some(m) = m else { continue };
+            for (lod, &s) in m.lod_entry.iter().enumerate() {
+                if s != state::NONE {
+                    let e = &self.t.entries[s as usize];
+                    if !e.live
+                        || e.mesh != i as u32
+                        || e.lod as usize != lod
+                        || e.owner != state::NONE
+                    {
+                        return Err(format!("mesh {i} LOD {lod} points at a wrong entry"));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Bytes counted against the memory budget now (built + retiring).
     pub fn memory_in_use(&self) -> u64 {
         self.live_bytes + self.retiring_bytes
@@ -345,6 +405,7 @@ impl<B: AsBackend> AsManager<B> {
         self.backend.begin_frame(frame)?;
         self.drain_retiring();
         self.refine_costs();
+        self.recover_oom_cap();
         {
             let _s = tracing::trace_span!("apply").entered();
             self.apply_commands();
@@ -377,6 +438,18 @@ impl<B: AsBackend> AsManager<B> {
             instances: &self.records,
             stats: &self.stats,
         })
+    }
+
+    /// After an OOM the budget is capped; every 300 quiet frames the cap grows by 10% until
+    /// the configured budget is back (the device may have freed memory elsewhere).
+    fn recover_oom_cap(&mut self) {
+        if let Some(cap) = self.oom_cap {
+            if self.frame.saturating_sub(self.oom_frame) >= 300 {
+                self.oom_frame = self.frame;
+                let grown = (cap as f64 * 1.1) as u64 + 1;
+                self.oom_cap = (grown < self.config.memory.blas_bytes).then_some(grown);
+            }
+        }
     }
 
     fn drain_retiring(&mut self) {

@@ -292,6 +292,7 @@ impl<B: AsBackend> AsManager<B> {
     /// (minus 10%) and evict down to it; the queue retries on later frames.
     fn on_oom(&mut self) {
         self.stats.oom_events += 1;
+        self.oom_frame = self.frame;
         let cap = (self.memory_in_use() as f64 * 0.9) as u64;
         self.oom_cap = Some(self.oom_cap.map_or(cap, |c| c.min(cap)).max(1));
         tracing::warn!(cap, "backend out of memory; budget capped");
