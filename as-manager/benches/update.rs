@@ -23,9 +23,21 @@ const SPEED: f32 = 0.5;
 const WARMUP_FRAMES: u64 = 300;
 
 /// Four cameras: a squad around the lead camera (split-screen co-op / nearby probes), within
-/// 60 m of it.
+/// 60 m of it. `n == 5` means four cameras spread ~1 km apart (informative: nothing shared).
 fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
     let lead = world.camera_on_path(frame, SPEED);
+    if n == 5 {
+        let spread = [
+            Vec3::ZERO,
+            Vec3::new(1000.0, 0.0, 0.0),
+            Vec3::new(0.0, 0.0, 1000.0),
+            Vec3::new(-1000.0, 0.0, -500.0),
+        ];
+        return spread
+            .iter()
+            .map(|o| Camera::new(lead.position + *o, lead.forward))
+            .collect();
+    }
     let offsets = [
         Vec3::ZERO,
         Vec3::new(40.0, 0.0, 0.0),
@@ -115,21 +127,27 @@ fn bench_update(c: &mut Criterion) {
             ("managed", PolicyKind::Managed),
             ("seed_r1r2", PolicyKind::SeedR1R2),
         ] {
-            for cams in [1usize, 4] {
-                if wname == "million" && cams == 4 {
+            for cams in [1usize, 4, 5] {
+                if (wname == "million" && cams != 1) || (policy != PolicyKind::Managed && cams == 5)
+                {
                     continue;
                 }
                 // Built lazily: a filtered-out benchmark costs no setup.
                 let mut run: Option<Run> = None;
-                let id = BenchmarkId::new(format!("{wname}/{pname}"), format!("{cams}cam"));
+                let cam_label = if cams == 5 {
+                    "4cam_spread".to_string()
+                } else {
+                    format!("{cams}cam")
+                };
+                let id = BenchmarkId::new(format!("{wname}/{pname}"), &cam_label);
                 g.bench_function(id, |b| {
                     let run = run.get_or_insert_with(|| {
                         let mut r = Run::new(world, policy, cams);
                         let n = if policy == PolicyKind::Managed { 2000 } else if wname == "million" { 30 } else { 200 };
-                        r.per_frame(&format!("{wname}/{pname}/{cams}cam"), n);
+                        r.per_frame(&format!("{wname}/{pname}/{cam_label}"), n);
                         let s = r.manager.stats().clone();
                         eprintln!(
-                            "[{wname}/{pname}/{cams}cam] instances {} visited {} tlas {} blas {} bytes {:.1} MiB",
+                            "[{wname}/{pname}/{cam_label}] instances {} visited {} tlas {} blas {} bytes {:.1} MiB",
                             s.instances,
                             s.instances_visited,
                             s.tlas_instances,

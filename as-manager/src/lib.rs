@@ -16,6 +16,11 @@
 //!   frame's cost follows what is near the cameras, not the world's size. Only instances
 //!   within r2 of a camera can be in the TLAS. Cameras share one TLAS and one query (cells
 //!   deduplicated); distances are to the nearest camera.
+//! - The per-instance state a frame touches (LOD target, shown BLAS, cull state and the
+//!   64-byte record template) is stored in the grid cells next to the bounding sphere, so a
+//!   frame streams through the cells near the cameras instead of chasing instance slots over
+//!   the whole world; cold state (skinned poses, the baselines' marks) stays in a slot table.
+//!   The benchmark keeps an rstar R*-tree query as the peer design; the grid is ~5x faster.
 //! - Registration is queued ([`Registrar`], one mutex, the only lock) and applied at the start
 //!   of `update` in call order, so a frame is deterministic for a given command order.
 //! - One frame: apply → residency (request within r1, keep within r2, create after
