@@ -5,7 +5,7 @@
 //!
 //! Design choices:
 //! - The policy core is plain Rust behind a narrow backend trait ([`backend::AsBackend`]);
-//!   only [`backend::vulkan`] (cargo feature `vulkan`, on by default) touches ash. The
+//!   only `backend::vulkan` (cargo feature `vulkan`, on by default) touches ash. The
 //!   [`backend::model::ModelBackend`] accounts sizes and costs from a fitted model
 //!   ([`backend::model::SizeModel`], [`backend::model::CostModel`]) so million-instance worlds
 //!   run without a GPU.

@@ -521,3 +521,11 @@ fn measured_costs_refine_the_model() {
     let learned = m.cost_model().build_static_ms_per_mtri;
     assert!(learned > prior * 1.5, "learned {learned}");
 }
+
+#[test]
+fn thread_safety_bounds() {
+    fn send<T: Send>() {}
+    fn send_sync<T: Send + Sync>() {}
+    send::<AsManager<ModelBackend>>();
+    send_sync::<Registrar>();
+}
