@@ -32,6 +32,7 @@
 
 use crate::record::TlasInstance;
 
+mod calibration;
 pub mod model;
 
 #[cfg(feature = "vulkan")]
