@@ -38,6 +38,18 @@
 //! - tracing: a span per frame phase (`apply`, `residency`, `schedule`, `cull`, `assemble`,
 //!   `record`); BLAS lifecycle events at `trace`.
 
+//!
+//! # Wiring (facade / engine)
+//! - At start: `AsManager::new(config, backend)`; hand `registrar()` clones to loader threads.
+//! - When a mesh's LOD chain is loaded: `register_mesh(MeshDesc { lods, kind, bounds, opaque })`
+//!   (data as `Arc<GeometryData>` for a real GPU, counts for the model backend); when a level
+//!   places it: `add_instance(InstanceDesc { mesh, transform, custom_index, mask, sbt_offset })`.
+//!   Level unload: `remove_instance` / `unregister_mesh` (removes its instances too).
+//! - Skinned instances: `set_skinned_pose(id, positions)` for the LOD `instance_lod(id)`
+//!   reports (or `mark_deformed` without data).
+//! - Each frame: `update(FrameInput { frame, cameras })` → `FrameOutput { tlas, instances,
+//!   stats }`; the renderer takes the TLAS from the backend (`backend()`).
+
 pub mod backend;
 pub mod config;
 pub mod cull;
