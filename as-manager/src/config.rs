@@ -118,12 +118,16 @@ impl Default for BuildBudget {
 pub struct MemoryBudget {
     /// Bytes of BLAS storage (including compaction copies and freed-but-in-flight BLASes).
     pub blas_bytes: u64,
+    /// Fraction of the budget that builds leave free so compaction (which needs the original
+    /// and the copy at once) can still run when memory is full.
+    pub compaction_headroom: f32,
 }
 
 impl Default for MemoryBudget {
     fn default() -> Self {
         Self {
             blas_bytes: 512 << 20,
+            compaction_headroom: 0.1,
         }
     }
 }
@@ -239,27 +243,59 @@ impl Config {
     /// Checks ranges: finite values, 0 < r1 <= r2, positive budgets, 0 < fov < pi, ...
     pub fn validate(&self) -> Result<()> {
         let r = &self.residency;
-        check(pos(r.r1) && pos(r.r2), "residency.r1/r2 must be finite and > 0")?;
+        check(
+            pos(r.r1) && pos(r.r2),
+            "residency.r1/r2 must be finite and > 0",
+        )?;
         check(r.r1 <= r.r2, "residency.r1 must be <= r2")?;
-        check(pos(r.cell_size), "residency.cell_size must be finite and > 0")?;
-        check(r.create_threshold <= 1_000_000 && r.release_threshold <= 1_000_000, "thresholds must be <= 1e6 frames")?;
+        check(
+            pos(r.cell_size),
+            "residency.cell_size must be finite and > 0",
+        )?;
+        check(
+            r.create_threshold <= 1_000_000 && r.release_threshold <= 1_000_000,
+            "thresholds must be <= 1e6 frames",
+        )?;
         let l = &self.lod;
         check(pos(l.max_pixel_error), "lod.max_pixel_error must be > 0")?;
         check(pos(l.screen_height_px), "lod.screen_height_px must be > 0")?;
-        check(pos(l.vertical_fov) && l.vertical_fov < std::f32::consts::PI, "lod.vertical_fov must be in (0, pi)")?;
+        check(
+            pos(l.vertical_fov) && l.vertical_fov < std::f32::consts::PI,
+            "lod.vertical_fov must be in (0, pi)",
+        )?;
         check(nonneg(l.hysteresis), "lod.hysteresis must be >= 0")?;
         let b = &self.build;
         check(b.max_primitives > 0, "build.max_primitives must be > 0")?;
         check(pos(b.max_gpu_ms), "build.max_gpu_ms must be > 0")?;
-        check(nonneg(b.aging_per_frame) && nonneg(b.in_view_bonus), "build.aging/in_view_bonus must be >= 0")?;
-        check(nonneg(b.max_compaction_ms), "build.max_compaction_ms must be >= 0")?;
-        check(b.rebuild_quality_bound.is_finite() && b.rebuild_quality_bound >= 1.0, "build.rebuild_quality_bound must be >= 1")?;
+        check(
+            nonneg(b.aging_per_frame) && nonneg(b.in_view_bonus),
+            "build.aging/in_view_bonus must be >= 0",
+        )?;
+        check(
+            nonneg(b.max_compaction_ms),
+            "build.max_compaction_ms must be >= 0",
+        )?;
+        check(
+            b.rebuild_quality_bound.is_finite() && b.rebuild_quality_bound >= 1.0,
+            "build.rebuild_quality_bound must be >= 1",
+        )?;
         check(self.memory.blas_bytes > 0, "memory.blas_bytes must be > 0")?;
+        let h = self.memory.compaction_headroom;
+        check(
+            h.is_finite() && (0.0..0.9).contains(&h),
+            "memory.compaction_headroom must be in [0, 0.9)",
+        )?;
         let c = &self.cull;
         check(pos(c.far_distance), "cull.far_distance must be > 0")?;
-        check(nonneg(c.min_angle) && c.min_angle < std::f32::consts::FRAC_PI_2, "cull.min_angle must be in [0, pi/2)")?;
+        check(
+            nonneg(c.min_angle) && c.min_angle < std::f32::consts::FRAC_PI_2,
+            "cull.min_angle must be in [0, pi/2)",
+        )?;
         check(nonneg(c.near_distance), "cull.near_distance must be >= 0")?;
-        check(nonneg(c.hysteresis) && c.hysteresis < 1.0, "cull.hysteresis must be in [0, 1)")?;
+        check(
+            nonneg(c.hysteresis) && c.hysteresis < 1.0,
+            "cull.hysteresis must be in [0, 1)",
+        )?;
         check(self.assembly.threads >= 1, "assembly.threads must be >= 1")?;
         self.cost_prior.validate()
     }

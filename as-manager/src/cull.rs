@@ -48,7 +48,11 @@ impl InstanceCuller {
         if surface <= self.near {
             return false;
         }
-        let (far_d, tan2) = if was_culled { (self.far_back, self.tan2_back) } else { (self.far, self.tan2) };
+        let (far_d, tan2) = if was_culled {
+            (self.far_back, self.tan2_back)
+        } else {
+            (self.far, self.tan2)
+        };
         let far = surface > far_d;
         let small = radius * radius < tan2 * center_dist * center_dist;
         match self.mode {

@@ -29,9 +29,12 @@ impl LodSelector {
     }
 
     fn coarsest_within(&self, errors: &[f32], scale: f32, distance: f32, limit: f32) -> usize {
+        // pixels(e * scale, d) <= limit without a division per LOD
+        let rhs = limit * distance.max(1e-3);
+        let ks = self.k * scale;
         let mut best = 0;
         for (i, &e) in errors.iter().enumerate() {
-            if self.pixels(e * scale, distance) <= limit {
+            if e * ks <= rhs {
                 best = i;
             } else {
                 break;
@@ -50,12 +53,19 @@ impl LodSelector {
     /// assert_eq!(s.select(&errors, 1.0, 1.0, 0, 0), 0);
     /// assert_eq!(s.select(&errors, 1.0, 10_000.0, 0, 0), 3);
     /// ```
-    pub fn select(&self, errors: &[f32], scale: f32, distance: f32, current: usize, floor: usize) -> usize {
+    pub fn select(
+        &self,
+        errors: &[f32],
+        scale: f32,
+        distance: f32,
+        current: usize,
+        floor: usize,
+    ) -> usize {
         let current = current.min(errors.len() - 1);
         let coarser = self.coarsest_within(errors, scale, distance, self.coarsen_below);
         let lod = if coarser > current {
             coarser
-        } else if self.pixels(errors[current] * scale, distance) > self.refine_above {
+        } else if errors[current] * self.k * scale > self.refine_above * distance.max(1e-3) {
             self.coarsest_within(errors, scale, distance, self.threshold)
         } else {
             current
@@ -74,10 +84,26 @@ mod tests {
         let errors = [0.0, 0.1];
         // distance where LOD 1 projects to exactly 1 px
         let d1 = 0.1 * s.k;
-        assert_eq!(s.select(&errors, 1.0, d1 * 1.1, 0, 0), 0, "inside band: stays fine");
-        assert_eq!(s.select(&errors, 1.0, d1 * 1.3, 0, 0), 1, "beyond band: coarsens");
-        assert_eq!(s.select(&errors, 1.0, d1 * 0.9, 1, 0), 1, "inside band: stays coarse");
-        assert_eq!(s.select(&errors, 1.0, d1 * 0.7, 1, 0), 0, "beyond band: refines");
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 1.1, 0, 0),
+            0,
+            "inside band: stays fine"
+        );
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 1.3, 0, 0),
+            1,
+            "beyond band: coarsens"
+        );
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 0.9, 1, 0),
+            1,
+            "inside band: stays coarse"
+        );
+        assert_eq!(
+            s.select(&errors, 1.0, d1 * 0.7, 1, 0),
+            0,
+            "beyond band: refines"
+        );
         assert_eq!(s.select(&errors, 1.0, 0.0, 0, 1), 1, "floor wins");
     }
 }

@@ -119,17 +119,23 @@ impl MeshDesc {
             reason,
         };
         if self.lods.is_empty() || self.lods.len() > MAX_LODS {
-            return Err(bad(format!("needs 1..={MAX_LODS} LODs, has {}", self.lods.len())));
+            return Err(bad(format!(
+                "needs 1..={MAX_LODS} LODs, has {}",
+                self.lods.len()
+            )));
         }
-        if !(self.bounds_radius.is_finite() && self.bounds_radius > 0.0)
-            || !self.bounds_center.iter().all(|v| v.is_finite())
+        if !(self.bounds_radius.is_finite()
+            && self.bounds_radius > 0.0
+            && self.bounds_center.iter().all(|v| v.is_finite()))
         {
             return Err(bad("bounds must be finite with radius > 0".into()));
         }
         let mut prev = f32::NEG_INFINITY;
         for (i, lod) in self.lods.iter().enumerate() {
             if !(lod.geometric_error.is_finite() && lod.geometric_error >= 0.0) {
-                return Err(bad(format!("LOD {i}: geometric error must be finite and >= 0")));
+                return Err(bad(format!(
+                    "LOD {i}: geometric error must be finite and >= 0"
+                )));
             }
             if lod.geometric_error < prev {
                 return Err(bad(format!("LOD {i}: geometric error decreases")));

@@ -71,14 +71,18 @@ impl RefitQuality {
         let mut keyed: Vec<(u32, u32)> = (0..tris)
             .map(|t| {
                 let q = (centroid(t) - bounds.min) / ext * 1023.0;
-                let code = spread(q.x as u32) | (spread(q.y as u32) << 1) | (spread(q.z as u32) << 2);
+                let code =
+                    spread(q.x as u32) | (spread(q.y as u32) << 1) | (spread(q.z as u32) << 2);
                 (code, t as u32)
             })
             .collect();
         keyed.sort_unstable();
         let order: Vec<u32> = keyed.into_iter().map(|(_, t)| t).collect();
         let built_metric = metric(&order, positions, indices);
-        Self { order, built_metric }
+        Self {
+            order,
+            built_metric,
+        }
     }
 
     /// Quality ratio (>= ~1; larger is worse) of a refit to `positions`.
@@ -145,10 +149,23 @@ mod tests {
     fn rigid_motion_keeps_quality_and_scrambling_degrades_it() {
         let (p, ix) = grid(32);
         let q = RefitQuality::at_build(&p, &ix);
-        let moved: Vec<[f32; 3]> = p.iter().map(|v| [v[0] * 2.0 + 5.0, v[1], v[2] * 2.0]).collect();
+        let moved: Vec<[f32; 3]> = p
+            .iter()
+            .map(|v| [v[0] * 2.0 + 5.0, v[1], v[2] * 2.0])
+            .collect();
         assert!((q.ratio(&moved, &ix) - 1.0).abs() < 1e-3);
         // fold the grid: far-apart vertices swap places
-        let folded: Vec<[f32; 3]> = p.iter().enumerate().map(|(i, v)| if i % 2 == 0 { [32.0 - v[0], v[1], 32.0 - v[2]] } else { *v }).collect();
+        let folded: Vec<[f32; 3]> = p
+            .iter()
+            .enumerate()
+            .map(|(i, v)| {
+                if i % 2 == 0 {
+                    [32.0 - v[0], v[1], 32.0 - v[2]]
+                } else {
+                    *v
+                }
+            })
+            .collect();
         assert!(q.ratio(&folded, &ix) > 2.0);
         let q2 = RefitQuality::at_build(&folded, &ix);
         assert!((q2.ratio(&folded, &ix) - 1.0).abs() < 1e-6);

@@ -49,7 +49,14 @@ pub fn transform_rows(t: &Affine3A) -> [f32; 12] {
 
 impl TlasInstance {
     /// Packs a record. `custom_index` and `sbt_offset` must fit in 24 bits.
-    pub fn new(t: &Affine3A, custom_index: u32, mask: u8, sbt_offset: u32, flags: u8, blas_address: u64) -> Self {
+    pub fn new(
+        t: &Affine3A,
+        custom_index: u32,
+        mask: u8,
+        sbt_offset: u32,
+        flags: u8,
+        blas_address: u64,
+    ) -> Self {
         debug_assert!(custom_index < (1 << 24), "customIndex must fit in 24 bits");
         debug_assert!(sbt_offset < (1 << 24), "SBT offset must fit in 24 bits");
         Self {
@@ -83,8 +90,13 @@ impl TlasInstance {
 
 /// Fills `out` with `n` records from `f(i)`, split over `threads` crossbeam scoped threads
 /// when `n >= parallel_threshold`.
-pub fn assemble<F>(n: usize, out: &mut Vec<TlasInstance>, threads: usize, parallel_threshold: usize, f: F)
-where
+pub fn assemble<F>(
+    n: usize,
+    out: &mut Vec<TlasInstance>,
+    threads: usize,
+    parallel_threshold: usize,
+    f: F,
+) where
     F: Fn(usize) -> TlasInstance + Sync,
 {
     out.clear();
@@ -115,14 +127,37 @@ mod tests {
 
     #[test]
     fn layout_and_transform_rows() {
-        let t = Affine3A::from_scale_rotation_translation(Vec3::splat(2.0), Quat::IDENTITY, Vec3::new(1.0, 2.0, 3.0));
-        let r = TlasInstance::new(&t, 0xab_cdef, 0x81, 0x12_3456, INSTANCE_FORCE_OPAQUE, 0xdead_beef_00);
-        assert_eq!(r.transform, [2.0, 0.0, 0.0, 1.0, 0.0, 2.0, 0.0, 2.0, 0.0, 0.0, 2.0, 3.0]);
+        let t = Affine3A::from_scale_rotation_translation(
+            Vec3::splat(2.0),
+            Quat::IDENTITY,
+            Vec3::new(1.0, 2.0, 3.0),
+        );
+        let r = TlasInstance::new(
+            &t,
+            0xab_cdef,
+            0x81,
+            0x12_3456,
+            INSTANCE_FORCE_OPAQUE,
+            0x00de_adbe_ef00,
+        );
+        assert_eq!(
+            r.transform,
+            [2.0, 0.0, 0.0, 1.0, 0.0, 2.0, 0.0, 2.0, 0.0, 0.0, 2.0, 3.0]
+        );
         let bytes: &[u8] = bytemuck::bytes_of(&r);
         assert_eq!(bytes.len(), 64);
-        assert_eq!(u32::from_le_bytes(bytes[48..52].try_into().unwrap()), 0x81ab_cdef);
-        assert_eq!(u32::from_le_bytes(bytes[52..56].try_into().unwrap()), 0x0412_3456);
-        assert_eq!(u64::from_le_bytes(bytes[56..64].try_into().unwrap()), 0xdead_beef_00);
+        assert_eq!(
+            u32::from_le_bytes(bytes[48..52].try_into().unwrap()),
+            0x81ab_cdef
+        );
+        assert_eq!(
+            u32::from_le_bytes(bytes[52..56].try_into().unwrap()),
+            0x0412_3456
+        );
+        assert_eq!(
+            u64::from_le_bytes(bytes[56..64].try_into().unwrap()),
+            0x00de_adbe_ef00
+        );
     }
 
     #[test]

@@ -9,15 +9,25 @@ use std::hash::{BuildHasherDefault, Hasher};
 
 use glam::Vec3;
 
-/// One indexed sphere; `slot` is the caller's instance slot.
+/// One indexed sphere; `slot` is the caller's instance slot; `data` is the caller's payload,
+/// stored in the cell so that a query streams through memory instead of chasing slots.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GridEntry {
+pub struct GridEntry<T = ()> {
     /// World-space centre.
     pub center: [f32; 3],
     /// World-space radius.
     pub radius: f32,
     /// Caller's slot.
     pub slot: u32,
+    /// Caller's payload.
+    pub data: T,
+}
+
+/// Where an entry sits now (valid until the next insert/remove).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GridLoc {
+    cell: u32,
+    index: u32,
 }
 
 /// Multiplicative hasher for the cell keys (two i32s): the std SipHash costs more than the
@@ -31,11 +41,11 @@ impl Hasher for CellHasher {
     }
     fn write(&mut self, bytes: &[u8]) {
         for b in bytes {
-            self.0 = (self.0.rotate_left(5) ^ *b as u64).wrapping_mul(0x51_7cc1_b727_220a_95);
+            self.0 = (self.0.rotate_left(5) ^ *b as u64).wrapping_mul(0x517c_c1b7_2722_0a95);
         }
     }
     fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7cc1_b727_220a_95);
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x517c_c1b7_2722_0a95);
     }
 }
 
@@ -43,24 +53,26 @@ const LARGE: u32 = u32::MAX;
 
 /// The grid. See the module docs.
 #[derive(Debug)]
-pub struct GridIndex {
+pub struct GridIndex<T = ()> {
     cell_size: f32,
     inv_cell: f32,
     cells: HashMap<u64, u32, BuildHasherDefault<CellHasher>>,
     cell_coords: Vec<(i32, i32)>,
-    cell_entries: Vec<Vec<GridEntry>>,
-    large: Vec<GridEntry>,
+    cell_entries: Vec<Vec<GridEntry<T>>>,
+    large: Vec<GridEntry<T>>,
     /// Per slot: (cell or LARGE, index in it); `u32::MAX, u32::MAX` when absent.
     locs: Vec<(u32, u32)>,
     scratch: Vec<u32>,
     len: usize,
+    /// Largest radius among the in-cell entries (<= cell size): the query's slack.
+    max_small_radius: f32,
 }
 
 fn key(x: i32, z: i32) -> u64 {
     ((x as u32 as u64) << 32) | z as u32 as u64
 }
 
-impl GridIndex {
+impl<T: Copy> GridIndex<T> {
     /// An empty grid with square cells of `cell_size` world units.
     pub fn new(cell_size: f32) -> Self {
         assert!(cell_size > 0.0 && cell_size.is_finite());
@@ -74,6 +86,7 @@ impl GridIndex {
             locs: Vec::new(),
             scratch: Vec::new(),
             len: 0,
+            max_small_radius: 0.0,
         }
     }
 
@@ -88,16 +101,19 @@ impl GridIndex {
     }
 
     fn coord(&self, v: f32) -> i32 {
-        (v * self.inv_cell).floor().clamp(i32::MIN as f32 + 1.0, i32::MAX as f32 - 1.0) as i32
+        (v * self.inv_cell)
+            .floor()
+            .clamp(i32::MIN as f32 + 1.0, i32::MAX as f32 - 1.0) as i32
     }
 
-    /// Inserts or moves `slot`.
-    pub fn insert(&mut self, slot: u32, center: Vec3, radius: f32) {
+    /// Inserts or moves `slot` with its payload.
+    pub fn insert(&mut self, slot: u32, center: Vec3, radius: f32, data: T) {
         self.remove(slot);
         let e = GridEntry {
             center: center.to_array(),
             radius,
             slot,
+            data,
         };
         if self.locs.len() <= slot as usize {
             self.locs.resize(slot as usize + 1, (u32::MAX, u32::MAX));
@@ -106,6 +122,7 @@ impl GridIndex {
             self.locs[slot as usize] = (LARGE, self.large.len() as u32);
             self.large.push(e);
         } else {
+            self.max_small_radius = self.max_small_radius.max(radius);
             let (x, z) = (self.coord(center.x), self.coord(center.z));
             let n = self.cell_entries.len() as u32;
             let c = *self.cells.entry(key(x, z)).or_insert(n);
@@ -120,13 +137,57 @@ impl GridIndex {
         self.len += 1;
     }
 
+    /// Where `slot` is now.
+    pub fn loc(&self, slot: u32) -> Option<GridLoc> {
+        match self.locs.get(slot as usize) {
+            Some(&(c, i)) if !(c == u32::MAX && i == u32::MAX) => {
+                Some(GridLoc { cell: c, index: i })
+            }
+            _ => None,
+        }
+    }
+
+    /// The entry at `loc`.
+    pub fn at(&self, loc: GridLoc) -> &GridEntry<T> {
+        if loc.cell == LARGE {
+            &self.large[loc.index as usize]
+        } else {
+            &self.cell_entries[loc.cell as usize][loc.index as usize]
+        }
+    }
+
+    /// The entry at `loc`, mutably.
+    pub fn at_mut(&mut self, loc: GridLoc) -> &mut GridEntry<T> {
+        if loc.cell == LARGE {
+            &mut self.large[loc.index as usize]
+        } else {
+            &mut self.cell_entries[loc.cell as usize][loc.index as usize]
+        }
+    }
+
+    /// The entry of `slot`.
+    pub fn get(&self, slot: u32) -> Option<&GridEntry<T>> {
+        self.loc(slot).map(|l| self.at(l))
+    }
+
+    /// The entry of `slot`, mutably.
+    pub fn get_mut(&mut self, slot: u32) -> Option<&mut GridEntry<T>> {
+        self.loc(slot).map(|l| self.at_mut(l))
+    }
+
     /// Removes `slot` if present.
     pub fn remove(&mut self, slot: u32) {
-        let Some(&(c, i)) = self.locs.get(slot as usize) else { return };
+        let Some(&(c, i)) = self.locs.get(slot as usize) else {
+            return;
+        };
         if c == u32::MAX && i == u32::MAX {
             return;
         }
-        let v = if c == LARGE { &mut self.large } else { &mut self.cell_entries[c as usize] };
+        let v = if c == LARGE {
+            &mut self.large
+        } else {
+            &mut self.cell_entries[c as usize]
+        };
         v.swap_remove(i as usize);
         if let Some(moved) = v.get(i as usize) {
             self.locs[moved.slot as usize] = (c, i);
@@ -136,11 +197,16 @@ impl GridIndex {
     }
 
     /// Calls `visit` for every entry whose centre lies in a cell that a sphere of `range` (plus
-    /// a cell of slack for the entry's own radius) around any of `cameras` touches, and every
-    /// large entry. Cells are deduplicated across cameras; each entry is visited once. The
+    /// the largest in-cell radius as slack) around any of `cameras` touches, and every large
+    /// entry. Cells are deduplicated across cameras; each entry is visited once. The
     /// caller does the exact distance test.
-    pub fn query(&mut self, cameras: &[Vec3], range: f32, mut visit: impl FnMut(&GridEntry)) {
-        let reach = range + self.cell_size;
+    pub fn query(
+        &mut self,
+        cameras: &[Vec3],
+        range: f32,
+        mut visit: impl FnMut(GridLoc, &mut GridEntry<T>),
+    ) {
+        let reach = range + self.max_small_radius;
         let mut cells = std::mem::take(&mut self.scratch);
         cells.clear();
         for cam in cameras {
@@ -170,12 +236,24 @@ impl GridIndex {
             cells.dedup();
         }
         for &c in &cells {
-            for e in &self.cell_entries[c as usize] {
-                visit(e);
+            for (i, e) in self.cell_entries[c as usize].iter_mut().enumerate() {
+                visit(
+                    GridLoc {
+                        cell: c,
+                        index: i as u32,
+                    },
+                    e,
+                );
             }
         }
-        for e in &self.large {
-            visit(e);
+        for (i, e) in self.large.iter_mut().enumerate() {
+            visit(
+                GridLoc {
+                    cell: LARGE,
+                    index: i as u32,
+                },
+                e,
+            );
         }
         self.scratch = cells;
     }
@@ -197,26 +275,26 @@ mod tests {
 
     #[test]
     fn query_finds_everything_within_range() {
-        let mut g = GridIndex::new(10.0);
+        let mut g = GridIndex::<()>::new(10.0);
         let mut pts = Vec::new();
         for i in 0..2000u32 {
             let x = ((i * 7919) % 1000) as f32 - 500.0;
             let z = ((i * 104_729) % 997) as f32 - 498.0;
             let r = if i % 100 == 0 { 25.0 } else { 1.0 };
             pts.push((Vec3::new(x, 0.0, z), r));
-            g.insert(i, Vec3::new(x, 0.0, z), r);
+            g.insert(i, Vec3::new(x, 0.0, z), r, ());
         }
         // move and remove some
         for i in (0..2000u32).step_by(3) {
             pts[i as usize].0.x += 13.0;
-            g.insert(i, pts[i as usize].0, pts[i as usize].1);
+            g.insert(i, pts[i as usize].0, pts[i as usize].1, ());
         }
         for i in (0..2000u32).step_by(5) {
             g.remove(i);
         }
         let cams = [Vec3::new(30.0, 0.0, -40.0), Vec3::new(60.0, 5.0, -40.0)];
         let mut seen = Vec::new();
-        g.query(&cams, 50.0, |e| seen.push(e.slot));
+        g.query(&cams, 50.0, |_, e| seen.push(e.slot));
         let n = seen.len();
         seen.sort_unstable();
         seen.dedup();

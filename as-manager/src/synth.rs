@@ -118,7 +118,11 @@ pub fn counts_chain(tris0: u32, lods: usize, err1: f32) -> Vec<LodDesc> {
                     vertices: t / 2 + 3,
                     triangles: t,
                 },
-                geometric_error: if i == 0 { 0.0 } else { err1 * (1 << (i - 1)) as f32 },
+                geometric_error: if i == 0 {
+                    0.0
+                } else {
+                    err1 * (1 << (i - 1)) as f32
+                },
             }
         })
         .collect()
@@ -130,7 +134,11 @@ pub fn grid_geometry(n: u32, size: f32) -> Arc<GeometryData> {
     let mut indices = Vec::new();
     for z in 0..=n {
         for x in 0..=n {
-            positions.push([(x as f32 / n as f32 - 0.5) * size, 0.0, (z as f32 / n as f32 - 0.5) * size]);
+            positions.push([
+                (x as f32 / n as f32 - 0.5) * size,
+                0.0,
+                (z as f32 / n as f32 - 0.5) * size,
+            ]);
         }
     }
     let w = n + 1;
@@ -152,12 +160,22 @@ impl SynthWorld {
             // log-uniform size and triangle count: many small props, some buildings
             let radius = 0.5 * 40f32.powf(rng.f32());
             let tris0 = (400.0 * 50f32.powf(rng.f32())) as u32;
-            let mut d = MeshDesc::new(format!("static{m}"), MeshKind::Static, radius, counts_chain(tris0, 4, radius * 0.002));
+            let mut d = MeshDesc::new(
+                format!("static{m}"),
+                MeshKind::Static,
+                radius,
+                counts_chain(tris0, 4, radius * 0.002),
+            );
             d.opaque = rng.f32() >= params.non_opaque_fraction;
             meshes.push(d);
         }
         for m in 0..params.skinned_meshes {
-            meshes.push(MeshDesc::new(format!("skinned{m}"), MeshKind::Skinned, 1.0, counts_chain(8_000 + 2_000 * m as u32, 3, 0.004)));
+            meshes.push(MeshDesc::new(
+                format!("skinned{m}"),
+                MeshKind::Skinned,
+                1.0,
+                counts_chain(8_000 + 2_000 * m as u32, 3, 0.004),
+            ));
         }
         let mut instances = Vec::with_capacity(params.instances);
         let half = params.extent * 0.5;
@@ -168,17 +186,35 @@ impl SynthWorld {
             } else {
                 ((rng.f32() * rng.f32()) * params.meshes as f32) as usize % params.meshes.max(1)
             };
-            let p = Vec3::new(rng.range(-half, half), rng.range(0.0, 5.0), rng.range(-half, half));
+            let p = Vec3::new(
+                rng.range(-half, half),
+                rng.range(0.0, 5.0),
+                rng.range(-half, half),
+            );
             let rot = Quat::from_rotation_y(rng.range(0.0, std::f32::consts::TAU));
             let s = rng.range(0.8, 1.2);
-            instances.push((mesh, Affine3A::from_scale_rotation_translation(Vec3::splat(s), rot, p)));
+            instances.push((
+                mesh,
+                Affine3A::from_scale_rotation_translation(Vec3::splat(s), rot, p),
+            ));
         }
-        Self { params, meshes, instances }
+        Self {
+            params,
+            meshes,
+            instances,
+        }
     }
 
     /// Registers every mesh and instance; returns their ids.
-    pub fn populate<B: crate::backend::AsBackend>(&self, m: &AsManager<B>) -> Result<(Vec<MeshId>, Vec<InstanceId>)> {
-        let mesh_ids = self.meshes.iter().map(|d| m.register_mesh(d.clone())).collect::<Result<Vec<_>>>()?;
+    pub fn populate<B: crate::backend::AsBackend>(
+        &self,
+        m: &AsManager<B>,
+    ) -> Result<(Vec<MeshId>, Vec<InstanceId>)> {
+        let mesh_ids = self
+            .meshes
+            .iter()
+            .map(|d| m.register_mesh(d.clone()))
+            .collect::<Result<Vec<_>>>()?;
         let mut ids = Vec::with_capacity(self.instances.len());
         for (i, (mesh, t)) in self.instances.iter().enumerate() {
             let mut d = InstanceDesc::new(mesh_ids[*mesh], *t);

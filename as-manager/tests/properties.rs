@@ -11,16 +11,44 @@ use rtstream_as_manager::*;
 
 #[derive(Debug, Clone)]
 enum Op {
-    Add { mesh: usize, n: usize, x: f32, z: f32 },
-    Remove { k: usize },
-    Move { k: usize, x: f32, z: f32 },
-    Walk { dx: f32, dz: f32, frames: u64 },
-    Teleport { x: f32, z: f32 },
-    MemoryBudget { bytes: u64 },
-    BuildBudget { prims: u64 },
-    Deform { k: usize },
-    Unregister { mesh: usize },
-    Frames { n: u64 },
+    Add {
+        mesh: usize,
+        n: usize,
+        x: f32,
+        z: f32,
+    },
+    Remove {
+        k: usize,
+    },
+    Move {
+        k: usize,
+        x: f32,
+        z: f32,
+    },
+    Walk {
+        dx: f32,
+        dz: f32,
+        frames: u64,
+    },
+    Teleport {
+        x: f32,
+        z: f32,
+    },
+    MemoryBudget {
+        bytes: u64,
+    },
+    BuildBudget {
+        prims: u64,
+    },
+    Deform {
+        k: usize,
+    },
+    Unregister {
+        mesh: usize,
+    },
+    Frames {
+        n: u64,
+    },
 }
 
 fn op() -> impl Strategy<Value = Op> {
@@ -39,8 +67,16 @@ fn op() -> impl Strategy<Value = Op> {
 }
 
 fn config() -> impl Strategy<Value = Config> {
-    (20f32..150.0, 0f32..80.0, 0u32..4, 0u32..12, 0u32..10, 1_000u64..60_000, 500_000u64..10_000_000).prop_map(
-        |(r1, extra, create, release, min_life, prims, bytes)| {
+    (
+        20f32..150.0,
+        0f32..80.0,
+        0u32..4,
+        0u32..12,
+        0u32..10,
+        1_000u64..60_000,
+        500_000u64..10_000_000,
+    )
+        .prop_map(|(r1, extra, create, release, min_life, prims, bytes)| {
             let mut c = Config::default();
             c.residency.r1 = r1;
             c.residency.r2 = r1 + extra;
@@ -52,8 +88,7 @@ fn config() -> impl Strategy<Value = Config> {
             c.build.max_gpu_ms = 5.0;
             c.memory.blas_bytes = bytes;
             c
-        },
-    )
+        })
 }
 
 struct Harness {
@@ -83,7 +118,12 @@ impl Harness {
                     }],
                 )
             } else {
-                MeshDesc::new(format!("m{i}"), MeshKind::Static, 0.5 + i as f32, counts_chain(500 << (i % 6), 4, 0.01))
+                MeshDesc::new(
+                    format!("m{i}"),
+                    MeshKind::Static,
+                    0.5 + i as f32,
+                    counts_chain(500 << (i % 6), 4, 0.01),
+                )
             };
             skinned.push(i >= 8);
             meshes.push(Some(m.register_mesh(desc).unwrap()));
@@ -104,16 +144,27 @@ impl Harness {
         let f = self.frame;
         self.frame += 1;
         let cfg = self.m.config().clone();
-        let out = self.m.update(FrameInput { frame: f, cameras: &cams }).map_err(|e| TestCaseError::fail(e.to_string()))?;
+        let out = self
+            .m
+            .update(FrameInput {
+                frame: f,
+                cameras: &cams,
+            })
+            .map_err(|e| TestCaseError::fail(e.to_string()))?;
         let s = out.stats.clone();
         let addrs: Vec<u64> = out.instances.iter().map(|r| r.blas_address).collect();
+        self.m.check_invariants().map_err(TestCaseError::fail)?;
         // TLAS references only live, built BLASes.
         for a in addrs {
-            prop_assert!(self.m.backend().is_live_address(a), "frame {f}: dead BLAS in TLAS");
+            prop_assert!(
+                self.m.backend().is_live_address(a),
+                "frame {f}: dead BLAS in TLAS"
+            );
         }
         // Build budget, except one oversized item alone.
         prop_assert!(
-            s.build_primitives <= cfg.build.max_primitives || (s.oversized_admitted && s.builds == 1),
+            s.build_primitives <= cfg.build.max_primitives
+                || (s.oversized_admitted && s.builds == 1),
             "frame {f}: {} prims over budget {}",
             s.build_primitives,
             cfg.build.max_primitives
@@ -122,7 +173,12 @@ impl Harness {
         // backend's frames in flight).
         let settled = self.budget_cut_at.is_none_or(|c| f > c + 3);
         if settled {
-            prop_assert!(s.memory_in_use() <= cfg.memory.blas_bytes, "frame {f}: {} > {}", s.memory_in_use(), cfg.memory.blas_bytes);
+            prop_assert!(
+                s.memory_in_use() <= cfg.memory.blas_bytes,
+                "frame {f}: {} > {}",
+                s.memory_in_use(),
+                cfg.memory.blas_bytes
+            );
             prop_assert!(self.m.backend().allocated_bytes() <= cfg.memory.blas_bytes);
         }
         prop_assert!(s.blas_bytes <= cfg.memory.blas_bytes || !settled);
@@ -134,7 +190,11 @@ impl Harness {
             Op::Add { mesh, n, x, z } => {
                 if let Some(id) = self.meshes[mesh] {
                     for i in 0..n {
-                        let t = Affine3A::from_translation(Vec3::new(x + (i % 7) as f32 * 3.0, 0.0, z + (i / 7) as f32 * 3.0));
+                        let t = Affine3A::from_translation(Vec3::new(
+                            x + (i % 7) as f32 * 3.0,
+                            0.0,
+                            z + (i / 7) as f32 * 3.0,
+                        ));
                         let iid = self.m.add_instance(InstanceDesc::new(id, t)).unwrap();
                         self.instances.push((iid, mesh));
                     }
@@ -146,7 +206,9 @@ impl Harness {
             }
             Op::Move { k, x, z } if !self.instances.is_empty() => {
                 let (id, _) = self.instances[k % self.instances.len()];
-                self.m.set_transform(id, Affine3A::from_translation(Vec3::new(x, 0.0, z))).unwrap();
+                self.m
+                    .set_transform(id, Affine3A::from_translation(Vec3::new(x, 0.0, z)))
+                    .unwrap();
             }
             Op::Walk { dx, dz, frames } => {
                 for _ in 0..frames {
@@ -172,12 +234,21 @@ impl Harness {
                 self.m.set_config(c).unwrap();
             }
             Op::Deform { k } => {
-                let sk: Vec<InstanceId> = self.instances.iter().filter(|(_, m)| self.skinned[*m]).map(|(i, _)| *i).collect();
+                let sk: Vec<InstanceId> = self
+                    .instances
+                    .iter()
+                    .filter(|(_, m)| self.skinned[*m])
+                    .map(|(i, _)| *i)
+                    .collect();
                 if !sk.is_empty() {
                     let id = sk[k % sk.len()];
                     let g = grid_geometry(8, 2.0);
                     let t = k as f32 * 0.37;
-                    let p: Vec<[f32; 3]> = g.positions.iter().map(|v| [v[0] * (1.0 + t.sin()), (v[0] * 5.0 + t).sin() * t, v[2]]).collect();
+                    let p: Vec<[f32; 3]> = g
+                        .positions
+                        .iter()
+                        .map(|v| [v[0] * (1.0 + t.sin()), (v[0] * 5.0 + t).sin() * t, v[2]])
+                        .collect();
                     self.m.set_skinned_pose(id, Arc::new(p)).unwrap();
                 }
             }

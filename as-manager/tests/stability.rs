@@ -16,15 +16,34 @@ use rtstream_as_manager::*;
 fn oscillate(config: Config, frames: u64) -> (u64, u64) {
     let r = config.residency.r1;
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
-    let mesh = m.register_mesh(MeshDesc::new("rock", MeshKind::Static, 1.0, counts_chain(2000, 1, 0.0))).unwrap();
-    m.add_instance(InstanceDesc::new(mesh, Affine3A::IDENTITY)).unwrap();
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "rock",
+            MeshKind::Static,
+            1.0,
+            counts_chain(2000, 1, 0.0),
+        ))
+        .unwrap();
+    m.add_instance(InstanceDesc::new(mesh, Affine3A::IDENTITY))
+        .unwrap();
     let (mut builds, mut releases) = (0, 0);
     for f in 0..frames {
         // approach (10 frames well inside r1), then the distance to the bounding sphere
         // alternates r - 0.5 and r + 0.5
-        let d = if f < 10 { r - 10.0 } else { 1.0 + r + if f % 2 == 0 { -0.5 } else { 0.5 } };
+        let d = if f < 10 {
+            r - 10.0
+        } else {
+            1.0 + r + if f % 2 == 0 { -0.5 } else { 0.5 }
+        };
         let cams = [Camera::new(Vec3::new(d, 0.0, 0.0), -Vec3::X)];
-        let s = m.update(FrameInput { frame: f, cameras: &cams }).unwrap().stats.clone();
+        let s = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &cams,
+            })
+            .unwrap()
+            .stats
+            .clone();
         builds += s.builds as u64;
         releases += s.releases as u64;
     }
@@ -41,7 +60,10 @@ fn r1_equals_r2_zero_thresholds_thrashes_seed_not_managed() {
     seed.residency.release_threshold = 0;
     let (b, r) = oscillate(seed.clone(), frames);
     // a create and a destroy every two frames once oscillating
-    assert!(b >= (frames - 10) / 2 && r >= (frames - 10) / 2 - 1, "seed: {b} builds, {r} releases");
+    assert!(
+        b >= (frames - 10) / 2 && r >= (frames - 10) / 2 - 1,
+        "seed: {b} builds, {r} releases"
+    );
 
     let mut managed = Config::default();
     managed.residency.r1 = 100.0;
@@ -55,7 +77,10 @@ fn r1_equals_r2_zero_thresholds_thrashes_seed_not_managed() {
     };
     let (b, r) = oscillate(degenerate.clone(), frames);
     let bound = frames / (degenerate.residency.min_resident_frames as u64 + 1) + 1;
-    assert!(b <= bound && r <= bound, "managed degenerate: {b} builds, {r} releases, bound {bound}");
+    assert!(
+        b <= bound && r <= bound,
+        "managed degenerate: {b} builds, {r} releases, bound {bound}"
+    );
 }
 
 #[test]
@@ -75,11 +100,23 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
             }],
         ))
         .unwrap();
-    let id = m.add_instance(InstanceDesc::new(mesh, Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)))).unwrap();
+    let id = m
+        .add_instance(InstanceDesc::new(
+            mesh,
+            Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)),
+        ))
+        .unwrap();
     let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
     let mut frame = 0;
     let mut step = |m: &mut AsManager<ModelBackend>| {
-        let s = m.update(FrameInput { frame, cameras: &cams }).unwrap().stats.clone();
+        let s = m
+            .update(FrameInput {
+                frame,
+                cameras: &cams,
+            })
+            .unwrap()
+            .stats
+            .clone();
         frame += 1;
         s
     };
@@ -90,7 +127,11 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
     let (mut refits, mut rebuilds) = (0, 0);
     for k in 0..60 {
         let t = k as f32 * 0.1;
-        let p: Vec<[f32; 3]> = geo.positions.iter().map(|v| [v[0], 0.1 * (v[0] * 4.0 + t).sin(), v[2]]).collect();
+        let p: Vec<[f32; 3]> = geo
+            .positions
+            .iter()
+            .map(|v| [v[0], 0.1 * (v[0] * 4.0 + t).sin(), v[2]])
+            .collect();
         m.set_skinned_pose(id, Arc::new(p)).unwrap();
         let s = step(&mut m);
         refits += s.refits;
@@ -110,16 +151,27 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
             .map(|(i, v)| {
                 let a = twist * (1.0 + (i % 7) as f32);
                 let (s, c) = a.sin_cos();
-                [v[0] * c - v[2] * s, 0.3 * ((i % 5) as f32) * (k as f32 * 0.05), v[0] * s + v[2] * c]
+                [
+                    v[0] * c - v[2] * s,
+                    0.3 * ((i % 5) as f32) * (k as f32 * 0.05),
+                    v[0] * s + v[2] * c,
+                ]
             })
             .collect();
         m.set_skinned_pose(id, Arc::new(p)).unwrap();
         let s = step(&mut m);
         refits += s.refits;
         rebuilds += s.rebuilds;
-        assert!(s.worst_refit_quality <= bound, "quality {} over bound {bound}", s.worst_refit_quality);
+        assert!(
+            s.worst_refit_quality <= bound,
+            "quality {} over bound {bound}",
+            s.worst_refit_quality
+        );
     }
-    assert!(rebuilds >= 3, "extreme deformation must trigger rebuilds: {rebuilds}");
+    assert!(
+        rebuilds >= 3,
+        "extreme deformation must trigger rebuilds: {rebuilds}"
+    );
     assert!(refits > 0, "and not every frame needs one: {refits} refits");
     assert_eq!(m.backend().counters().rebuilds, rebuilds as u64);
 }

@@ -22,12 +22,17 @@
 //!   Both copies count against the memory budget until the original is retired.
 //! - Measured GPU costs arrive late (timestamps of finished frames) through
 //!   [`AsBackend::take_measurements`]; the manager refines its cost model with them.
+//! - Oversized meshes: a backend that splits a geometry (primitive count, scratch size or a
+//!   configured cap) still answers with one [`BlasSizes`] (summed) and one [`BlasHandle`];
+//!   if the parts are separate BLASes it expands each record that carries that handle's
+//!   address into one record per part in [`AsBackend::build_tlas`].
 //! - Errors: [`BackendError::OutOfDeviceMemory`] fails the whole call and leaves nothing
 //!   allocated; the manager evicts, shrinks its effective budget and retries on a later frame.
 //!   [`BackendError::DeviceLost`] is returned to the caller of `update`.
 
 use crate::record::TlasInstance;
 
+mod calibration;
 pub mod model;
 
 #[cfg(feature = "vulkan")]

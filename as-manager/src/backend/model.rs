@@ -15,188 +15,12 @@
 
 use std::collections::{HashMap, VecDeque};
 
+pub use super::calibration::{CostModel, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
     CostOp, GeometryRef, Measurement, TlasHandle,
 };
 use crate::record::TlasInstance;
-use crate::{AsError, Result};
-
-/// Size coefficients: `bytes = fixed + per_triangle * t + per_vertex * v`, rounded up to `align`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SizeModel {
-    /// BLAS constant bytes.
-    pub blas_fixed: f64,
-    /// BLAS bytes per triangle.
-    pub blas_per_triangle: f64,
-    /// BLAS bytes per vertex.
-    pub blas_per_vertex: f64,
-    /// Build scratch constant bytes.
-    pub scratch_fixed: f64,
-    /// Build scratch bytes per triangle.
-    pub scratch_per_triangle: f64,
-    /// Update scratch bytes per triangle (skinned only).
-    pub update_scratch_per_triangle: f64,
-    /// Skinned (fast-build) size relative to static (fast-trace).
-    pub skinned_factor: f64,
-    /// Compacted / original bytes for static BLASes.
-    pub compaction_ratio: f64,
-    /// TLAS bytes per instance.
-    pub tlas_per_instance: f64,
-    /// Allocation alignment (bytes).
-    pub align: u64,
-}
-
-/// GPU time coefficients (milliseconds).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CostModel {
-    /// Per build call (batch) overhead.
-    pub batch_fixed_ms: f64,
-    /// Static build, per million triangles.
-    pub build_static_ms_per_mtri: f64,
-    /// Skinned build, per million triangles.
-    pub build_skinned_ms_per_mtri: f64,
-    /// Refit, per million triangles.
-    pub refit_ms_per_mtri: f64,
-    /// Compaction copy, per MiB of source.
-    pub compact_ms_per_mib: f64,
-    /// TLAS build, per thousand instances.
-    pub tlas_ms_per_kinst: f64,
-}
-
-impl SizeModel {
-    /// Mesa lavapipe (measured: ~104 B per triangle, 176 B per TLAS instance, 64 B scratch,
-    /// compaction saves nothing).
-    pub fn lavapipe() -> Self {
-        Self {
-            blas_fixed: 256.0,
-            blas_per_triangle: 104.0,
-            blas_per_vertex: 0.0,
-            scratch_fixed: 64.0,
-            scratch_per_triangle: 0.0,
-            update_scratch_per_triangle: 0.0,
-            skinned_factor: 1.0,
-            compaction_ratio: 1.0,
-            tlas_per_instance: 176.0,
-            align: 256,
-        }
-    }
-
-    /// PLACEHOLDER for NVIDIA H100/H200 (driver 580) until issue 5's runs fill it in.
-    pub fn nvidia_placeholder() -> Self {
-        Self {
-            blas_fixed: 1024.0,
-            blas_per_triangle: 64.0,
-            blas_per_vertex: 0.0,
-            scratch_fixed: 4096.0,
-            scratch_per_triangle: 64.0,
-            update_scratch_per_triangle: 8.0,
-            skinned_factor: 1.25,
-            compaction_ratio: 0.55,
-            tlas_per_instance: 128.0,
-            align: 256,
-        }
-    }
-
-    fn round(&self, v: f64) -> u64 {
-        let a = self.align.max(1);
-        (v.max(0.0).ceil() as u64).div_ceil(a) * a
-    }
-
-    /// Predicted sizes for a geometry and class.
-    pub fn blas_sizes(&self, vertices: u32, triangles: u32, class: BlasClass) -> BlasSizes {
-        let (t, v) = (triangles as f64, vertices as f64);
-        let base = self.blas_fixed + self.blas_per_triangle * t + self.blas_per_vertex * v;
-        let factor = if class == BlasClass::Skinned { self.skinned_factor } else { 1.0 };
-        BlasSizes {
-            as_bytes: self.round(base * factor),
-            build_scratch: self.round(self.scratch_fixed + self.scratch_per_triangle * t),
-            update_scratch: match class {
-                BlasClass::Skinned => self.round(self.scratch_fixed + self.update_scratch_per_triangle * t),
-                BlasClass::Static => 0,
-            },
-        }
-    }
-}
-
-impl Default for SizeModel {
-    fn default() -> Self {
-        Self::lavapipe()
-    }
-}
-
-impl CostModel {
-    /// Mesa lavapipe: ~150 ms per million triangles single-threaded; an update costs a rebuild;
-    /// TLAS of 100k instances ~20 ms.
-    pub fn lavapipe() -> Self {
-        Self {
-            batch_fixed_ms: 0.05,
-            build_static_ms_per_mtri: 150.0,
-            build_skinned_ms_per_mtri: 150.0,
-            refit_ms_per_mtri: 150.0,
-            compact_ms_per_mib: 0.5,
-            tlas_ms_per_kinst: 0.2,
-        }
-    }
-
-    /// PLACEHOLDER for NVIDIA H100/H200 until issue 5's runs fill it in.
-    pub fn nvidia_placeholder() -> Self {
-        Self {
-            batch_fixed_ms: 0.01,
-            build_static_ms_per_mtri: 2.5,
-            build_skinned_ms_per_mtri: 1.5,
-            refit_ms_per_mtri: 0.4,
-            compact_ms_per_mib: 0.01,
-            tlas_ms_per_kinst: 0.002,
-        }
-    }
-
-    /// Estimated GPU ms for `units` of `op` (without the batch constant).
-    pub fn estimate(&self, op: CostOp, units: u64) -> f64 {
-        let u = units as f64;
-        match op {
-            CostOp::BuildStatic => self.build_static_ms_per_mtri * u / 1e6,
-            CostOp::BuildSkinned => self.build_skinned_ms_per_mtri * u / 1e6,
-            CostOp::Refit => self.refit_ms_per_mtri * u / 1e6,
-            CostOp::Compact => self.compact_ms_per_mib * u / (1u64 << 20) as f64,
-            CostOp::Tlas => self.tlas_ms_per_kinst * u / 1e3,
-        }
-    }
-
-    /// Coefficient for `op` (per its unit scale).
-    pub fn coefficient_mut(&mut self, op: CostOp) -> &mut f64 {
-        match op {
-            CostOp::BuildStatic => &mut self.build_static_ms_per_mtri,
-            CostOp::BuildSkinned => &mut self.build_skinned_ms_per_mtri,
-            CostOp::Refit => &mut self.refit_ms_per_mtri,
-            CostOp::Compact => &mut self.compact_ms_per_mib,
-            CostOp::Tlas => &mut self.tlas_ms_per_kinst,
-        }
-    }
-
-    /// All coefficients finite and >= 0.
-    pub fn validate(&self) -> Result<()> {
-        let all = [
-            self.batch_fixed_ms,
-            self.build_static_ms_per_mtri,
-            self.build_skinned_ms_per_mtri,
-            self.refit_ms_per_mtri,
-            self.compact_ms_per_mib,
-            self.tlas_ms_per_kinst,
-        ];
-        if all.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            Ok(())
-        } else {
-            Err(AsError::InvalidConfig("cost model coefficients must be finite and >= 0".into()))
-        }
-    }
-}
-
-impl Default for CostModel {
-    fn default() -> Self {
-        Self::lavapipe()
-    }
-}
 
 #[derive(Debug, Clone)]
 struct ModelBlas {
@@ -318,7 +142,8 @@ impl ModelBackend {
     }
 
     fn fits(&self, extra: u64) -> bool {
-        self.device_bytes.is_none_or(|cap| self.allocated_bytes() + extra <= cap)
+        self.device_bytes
+            .is_none_or(|cap| self.allocated_bytes() + extra <= cap)
     }
 
     fn alloc(&mut self, b: ModelBlas) -> BlasHandle {
@@ -358,7 +183,8 @@ impl AsBackend for ModelBackend {
     }
 
     fn blas_sizes(&self, g: &GeometryRef<'_>, class: BlasClass) -> BlasSizes {
-        self.sizes.blas_sizes(g.vertex_count, g.triangle_count, class)
+        self.sizes
+            .blas_sizes(g.vertex_count, g.triangle_count, class)
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
@@ -399,7 +225,10 @@ impl AsBackend for ModelBackend {
         self.lost()?;
         let (mut rf, mut rb) = (0u64, 0u64);
         for r in refits {
-            let b = self.blases.get(&r.blas).ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+            let b = self
+                .blases
+                .get(&r.blas)
+                .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
             debug_assert_eq!(b.class, BlasClass::Skinned);
             if r.rebuild {
                 rb += b.triangles as u64;
@@ -423,12 +252,18 @@ impl AsBackend for ModelBackend {
         if b.class != BlasClass::Static || self.completed.is_none_or(|c| c < b.built_frame) {
             return None;
         }
-        Some(self.sizes.round(b.bytes as f64 * self.sizes.compaction_ratio).min(b.bytes))
+        Some(
+            self.sizes
+                .round(b.bytes as f64 * self.sizes.compaction_ratio)
+                .min(b.bytes),
+        )
     }
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
         self.lost()?;
-        let size = self.compacted_size(blas).ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
+        let size = self
+            .compacted_size(blas)
+            .ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
         if !self.fits(size) {
             self.counters.oom_failures += 1;
             return Err(BackendError::OutOfDeviceMemory);
@@ -502,7 +337,13 @@ mod tests {
         let s = b.blas_sizes(&g, BlasClass::Static);
         assert!((s.as_bytes as f64 - 1_040_256.0).abs() < 512.0);
         b.begin_frame(0).unwrap();
-        let h = b.build_blases(&[BlasBuild { geometry: g, class: BlasClass::Static, sizes: s }]).unwrap();
+        let h = b
+            .build_blases(&[BlasBuild {
+                geometry: g,
+                class: BlasClass::Static,
+                sizes: s,
+            }])
+            .unwrap();
         b.end_frame(0).unwrap();
         b.free_blas(h[0], 0);
         assert_eq!(b.allocated_bytes(), s.as_bytes, "still in flight");

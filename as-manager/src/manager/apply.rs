@@ -5,28 +5,28 @@ use std::sync::Arc;
 use glam::Affine3A;
 
 use super::registrar::{Command, InstanceDesc};
-use super::state::{InstanceState, MeshState, NONE};
+use super::state::{Hot, InstanceState, MeshState, NONE};
 use super::AsManager;
 use crate::backend::AsBackend;
 use crate::config::PolicyKind;
 use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
-use crate::record::INSTANCE_FORCE_OPAQUE;
+use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use crate::{InstanceId, MeshId};
 
 fn world_sphere(desc: &MeshDesc, t: &Affine3A) -> (glam::Vec3, f32, f32) {
     let c = t.transform_point3(glam::Vec3::from(desc.bounds_center));
     let m = t.matrix3;
-    let scale = m.x_axis.length().max(m.y_axis.length()).max(m.z_axis.length());
+    let scale = m
+        .x_axis
+        .length()
+        .max(m.y_axis.length())
+        .max(m.z_axis.length());
     (c, desc.bounds_radius * scale, scale)
 }
 
 impl<B: AsBackend> AsManager<B> {
     pub(crate) fn apply_commands(&mut self) {
-        let (commands, recycled) = {
-            let mut p = self.registrar.pending.lock();
-            (std::mem::take(&mut p.commands), ())
-        };
-        let _ = recycled;
+        let commands = std::mem::take(&mut self.registrar.pending.lock().commands);
         self.stats.commands_applied = commands.len() as u32;
         let mut dead_meshes = Vec::new();
         let mut dead_instances = Vec::new();
@@ -69,10 +69,18 @@ impl<B: AsBackend> AsManager<B> {
         if self.t.meshes.len() <= slot {
             self.t.meshes.resize_with(slot + 1, || None);
         }
-        let errors = desc.lods.iter().map(|l| l.geometric_error).collect();
+        let mut errors = [0.0; MAX_LODS];
+        let mut lod_tris = [0; MAX_LODS];
+        for (i, l) in desc.lods.iter().enumerate() {
+            errors[i] = l.geometric_error;
+            lod_tris[i] = l.geometry.triangles();
+        }
         self.t.meshes[slot] = Some(MeshState {
-            desc,
+            kind: desc.kind,
+            nlods: desc.lods.len() as u8,
             errors,
+            lod_tris,
+            desc,
             lod_entry: [NONE; MAX_LODS],
             lod_floor: 0,
             floor_since: 0,
@@ -85,9 +93,16 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Removes the mesh's instances and BLASes; returns the instance slots removed.
     fn apply_unregister(&mut self, id: MeshId) -> Vec<u32> {
-        let Some(Some(mesh)) = self.t.meshes.get(id.index as usize) else { return Vec::new() };
+        let Some(Some(mesh)) = self.t.meshes.get(id.index as usize) else {
+            return Vec::new();
+        };
         let insts = mesh.instances.clone();
-        let entries: Vec<u32> = mesh.lod_entry.iter().copied().filter(|&e| e != NONE).collect();
+        let entries: Vec<u32> = mesh
+            .lod_entry
+            .iter()
+            .copied()
+            .filter(|&e| e != NONE)
+            .collect();
         for &i in &insts {
             self.apply_remove(i);
         }
@@ -102,9 +117,16 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     fn apply_add(&mut self, id: InstanceId, desc: InstanceDesc) {
-        let Some(Some(mesh)) = self.t.meshes.get_mut(desc.mesh.index as usize) else { return };
+        let Some(Some(mesh)) = self.t.meshes.get_mut(desc.mesh.index as usize) else {
+            return;
+        };
         let (center, radius, scale) = world_sphere(&mesh.desc, &desc.transform);
-        let flags = desc.flags | if mesh.desc.opaque { INSTANCE_FORCE_OPAQUE } else { 0 };
+        let flags = desc.flags
+            | if mesh.desc.opaque {
+                INSTANCE_FORCE_OPAQUE
+            } else {
+                0
+            };
         let mesh_pos = mesh.instances.len() as u32;
         mesh.instances.push(id.index);
         let slot = id.index as usize;
@@ -114,27 +136,32 @@ impl<B: AsBackend> AsManager<B> {
         self.t.instances[slot] = Some(InstanceState {
             mesh: desc.mesh.index,
             mesh_pos,
-            transform: desc.transform,
-            rows: crate::record::transform_rows(&desc.transform),
             center,
             radius,
-            scale,
-            custom_index: desc.custom_index,
-            mask: desc.mask,
-            sbt_offset: desc.sbt_offset,
-            flags,
-            lod_target: (MAX_LODS - 1) as u8,
-            shown: (NONE, 0),
-            own: (NONE, 0),
-            culled: true,
-            last_visit: u64::MAX,
             pose: None,
             pose_version: 0,
             seed_request: None,
             seed_keep: None,
             seed_has: false,
         });
-        self.grid.insert(id.index, center, radius);
+        let hot = Hot {
+            template: TlasInstance::new(
+                &desc.transform,
+                desc.custom_index,
+                desc.mask,
+                desc.sbt_offset,
+                flags,
+                0,
+            ),
+            mesh: desc.mesh.index,
+            scale,
+            shown: (NONE, 0),
+            own: (NONE, 0),
+            last_visit: u64::MAX,
+            lod_target: (MAX_LODS - 1) as u8,
+            culled: true,
+        };
+        self.grid.insert(id.index, center, radius, hot);
         self.live_instances += 1;
         if self.config.policy == PolicyKind::Naive {
             self.naive_add_instance(id.index);
@@ -142,21 +169,34 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     fn apply_transform(&mut self, id: InstanceId, t: Affine3A) {
-        let Some(Some(inst)) = self.t.instances.get_mut(id.index as usize) else { return };
-        let Some(Some(mesh)) = self.t.meshes.get(inst.mesh as usize) else { return };
+        let Some(Some(inst)) = self.t.instances.get_mut(id.index as usize) else {
+            return;
+        };
+        let Some(Some(mesh)) = self.t.meshes.get(inst.mesh as usize) else {
+            return;
+        };
+        let Some(e) = self.grid.get(id.index) else {
+            return;
+        };
         let (center, radius, scale) = world_sphere(&mesh.desc, &t);
-        inst.transform = t;
-        inst.rows = crate::record::transform_rows(&t);
         inst.center = center;
         inst.radius = radius;
-        inst.scale = scale;
-        self.grid.insert(id.index, center, radius);
+        let mut hot = e.data;
+        hot.template.transform = crate::record::transform_rows(&t);
+        hot.scale = scale;
+        self.grid.insert(id.index, center, radius, hot);
     }
 
     /// Removes an instance's state; returns whether it existed.
     fn apply_remove(&mut self, slot: u32) -> bool {
-        let Some(Some(inst)) = self.t.instances.get(slot as usize) else { return false };
-        let (mesh, mesh_pos, own, shown, seed_has) = (inst.mesh, inst.mesh_pos, inst.own, inst.shown, inst.seed_has);
+        let Some(Some(inst)) = self.t.instances.get(slot as usize) else {
+            return false;
+        };
+        let (mesh, mesh_pos, seed_has) = (inst.mesh, inst.mesh_pos, inst.seed_has);
+        let (own, shown) = self
+            .grid
+            .get(slot)
+            .map_or(((NONE, 0), (NONE, 0)), |e| (e.data.own, e.data.shown));
         if let Some(Some(m)) = self.t.meshes.get_mut(mesh as usize) {
             m.instances.swap_remove(mesh_pos as usize);
             if let Some(&moved) = m.instances.get(mesh_pos as usize) {
@@ -176,7 +216,13 @@ impl<B: AsBackend> AsManager<B> {
                     self.release_entry(key.0);
                 }
             }
-            let owned: Vec<u32> = self.t.active.iter().copied().filter(|&e| self.t.entries[e as usize].owner == slot).collect();
+            let owned: Vec<u32> = self
+                .t
+                .active
+                .iter()
+                .copied()
+                .filter(|&e| self.t.entries[e as usize].owner == slot)
+                .collect();
             for e in owned {
                 self.release_entry(e);
             }

@@ -11,7 +11,9 @@ use crate::Result;
 impl<B: AsBackend> AsManager<B> {
     /// Naive: every LOD of a static mesh gets a BLAS as soon as it is registered.
     pub(crate) fn naive_register_mesh(&mut self, mesh: u32) {
-        let m = self.t.meshes[mesh as usize].as_ref().expect("just registered");
+        let m = self.t.meshes[mesh as usize]
+            .as_ref()
+            .expect("just registered");
         if m.kind() != MeshKind::Static {
             return;
         }
@@ -19,13 +21,18 @@ impl<B: AsBackend> AsManager<B> {
         for (lod, t) in tris.into_iter().enumerate() {
             let s = self.t.new_entry(mesh, lod as u8, NONE, t, self.frame);
             self.t.entries[s as usize].state = EntryState::Queued;
-            self.t.meshes[mesh as usize].as_mut().expect("live").lod_entry[lod] = s;
+            self.t.meshes[mesh as usize]
+                .as_mut()
+                .expect("live")
+                .lod_entry[lod] = s;
         }
     }
 
     /// Naive: a skinned instance gets its LOD-0 BLAS at once.
     pub(crate) fn naive_add_instance(&mut self, slot: u32) {
-        let inst = self.t.instances[slot as usize].as_ref().expect("just added");
+        let inst = self.t.instances[slot as usize]
+            .as_ref()
+            .expect("just added");
         let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
         if m.kind() != MeshKind::Skinned {
             return;
@@ -34,7 +41,7 @@ impl<B: AsBackend> AsManager<B> {
         let s = self.t.new_entry(mesh, 0, slot, t, self.frame);
         self.t.entries[s as usize].state = EntryState::Queued;
         let key = self.t.key(s);
-        self.t.instances[slot as usize].as_mut().expect("live").own = key;
+        self.grid.get_mut(slot).expect("indexed").data.own = key;
     }
 
     /// Naive frame: build everything queued (no budget), refit everything, no culling: every
@@ -44,17 +51,27 @@ impl<B: AsBackend> AsManager<B> {
         self.schedule_refits(false)?;
         self.tlas_list.clear();
         for slot in 0..self.t.instances.len() {
-            let Some(inst) = self.t.instances[slot].as_ref() else { continue };
+            let Some(inst) = self.t.instances[slot].as_ref() else {
+                continue;
+            };
             let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
+            let loc = self.grid.loc(slot as u32).expect("indexed");
             let key = match m.kind() {
-                MeshKind::Static => (m.lod_entry[0], if m.lod_entry[0] == NONE { 0 } else { self.t.entries[m.lod_entry[0] as usize].generation }),
-                MeshKind::Skinned => inst.own,
+                MeshKind::Static => (
+                    m.lod_entry[0],
+                    if m.lod_entry[0] == NONE {
+                        0
+                    } else {
+                        self.t.entries[m.lod_entry[0] as usize].generation
+                    },
+                ),
+                MeshKind::Skinned => self.grid.at(loc).data.own,
             };
             if self.t.built(key) {
                 let e = &mut self.t.entries[key.0 as usize];
                 e.last_in_tlas = Some(self.frame);
                 let addr = self.backend.blas_address(e.handle.expect("built"));
-                self.tlas_list.push((slot as u32, addr));
+                self.tlas_list.push((loc, addr));
             }
         }
         self.stats.instances_visited = self.live_instances;
@@ -64,10 +81,13 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Seed: drop an instance's reference to its (mesh, LOD 0) BLAS; free it at zero.
     pub(crate) fn seed_drop_ref(&mut self, slot: u32) {
-        let inst = self.t.instances[slot as usize].as_mut().expect("live");
-        let key = inst.shown;
-        inst.seed_has = false;
-        inst.shown = (NONE, 0);
+        self.t.instances[slot as usize]
+            .as_mut()
+            .expect("live")
+            .seed_has = false;
+        let h = &mut self.grid.get_mut(slot).expect("indexed").data;
+        let key = h.shown;
+        h.shown = (NONE, 0);
         if self.t.entry_valid(key) {
             let e = &mut self.t.entries[key.0 as usize];
             e.refs = e.refs.saturating_sub(1);
@@ -99,9 +119,15 @@ impl<B: AsBackend> AsManager<B> {
             }
         }
         for slot in 0..n {
-            let Some(inst) = self.t.instances[slot].as_ref() else { continue };
-            let recent = inst.seed_request.is_some_and(|f| frame - f <= rc.create_threshold as u64);
-            let stale = inst.seed_keep.is_none_or(|f| frame - f > rc.release_threshold as u64);
+            let Some(inst) = self.t.instances[slot].as_ref() else {
+                continue;
+            };
+            let recent = inst
+                .seed_request
+                .is_some_and(|f| frame - f <= rc.create_threshold as u64);
+            let stale = inst
+                .seed_keep
+                .is_none_or(|f| frame - f > rc.release_threshold as u64);
             if recent && !inst.seed_has {
                 let mesh_ix = inst.mesh;
                 let m = self.t.meshes[mesh_ix as usize].as_ref().expect("live");
@@ -110,7 +136,10 @@ impl<B: AsBackend> AsManager<B> {
                     MeshKind::Static if m.lod_entry[0] != NONE => m.lod_entry[0],
                     MeshKind::Static => {
                         let s = self.t.new_entry(mesh_ix, 0, NONE, tris, frame);
-                        self.t.meshes[mesh_ix as usize].as_mut().expect("live").lod_entry[0] = s;
+                        self.t.meshes[mesh_ix as usize]
+                            .as_mut()
+                            .expect("live")
+                            .lod_entry[0] = s;
                         s
                     }
                     MeshKind::Skinned => self.t.new_entry(mesh_ix, 0, slot as u32, tris, frame),
@@ -121,10 +150,13 @@ impl<B: AsBackend> AsManager<B> {
                     e.state = EntryState::Queued;
                 }
                 let key = self.t.key(s);
-                let inst = self.t.instances[slot].as_mut().expect("live");
-                inst.seed_has = true;
-                inst.shown = key;
-                inst.own = if inst.own.0 == NONE && self.t.entries[s as usize].owner != NONE { key } else { inst.own };
+                let owned = self.t.entries[s as usize].owner != NONE;
+                self.t.instances[slot].as_mut().expect("live").seed_has = true;
+                let h = &mut self.grid.get_mut(slot as u32).expect("indexed").data;
+                h.shown = key;
+                if owned {
+                    h.own = key;
+                }
             } else if inst.seed_has && stale {
                 self.seed_drop_ref(slot as u32);
             }
@@ -139,8 +171,15 @@ impl<B: AsBackend> AsManager<B> {
         self.tlas_list.clear();
         let mut culled = 0;
         for slot in 0..n {
-            let Some(inst) = self.t.instances[slot].as_ref() else { continue };
-            if !inst.seed_has || !self.t.built(inst.shown) {
+            let Some(inst) = self.t.instances[slot].as_ref() else {
+                continue;
+            };
+            if !inst.seed_has {
+                continue;
+            }
+            let loc = self.grid.loc(slot as u32).expect("indexed");
+            let shown = self.grid.at(loc).data.shown;
+            if !self.t.built(shown) {
                 continue;
             }
             let mut d2 = f32::INFINITY;
@@ -151,10 +190,10 @@ impl<B: AsBackend> AsManager<B> {
                 culled += 1;
                 continue;
             }
-            let e = &mut self.t.entries[inst.shown.0 as usize];
+            let e = &mut self.t.entries[shown.0 as usize];
             e.last_in_tlas = Some(frame);
             let addr = self.backend.blas_address(e.handle.expect("built"));
-            self.tlas_list.push((slot as u32, addr));
+            self.tlas_list.push((loc, addr));
         }
         self.stats.culled = culled;
         self.stats.instances_visited = self.live_instances;

@@ -8,6 +8,7 @@ use super::{AsManager, Visit};
 use crate::backend::AsBackend;
 use crate::mesh::MeshKind;
 use crate::record::{assemble, TlasInstance};
+
 use crate::Result;
 
 impl<B: AsBackend> AsManager<B> {
@@ -34,71 +35,87 @@ impl<B: AsBackend> AsManager<B> {
         Ok(())
     }
 
-    /// Visits instances within r2 of any camera; picks LODs; marks request/keep.
+    /// Visits instances within r2 of any camera; picks LODs; marks request/keep. One pass
+    /// through the grid cells near the cameras (the per-instance state lives there).
     fn residency_pass(&mut self) {
         let r2 = self.config.residency.r2;
         let r1 = self.config.residency.r1;
         let frame = self.frame;
-        let Self { grid, visits, cam_pos, .. } = self;
+        let Self {
+            grid,
+            visits,
+            cam_pos,
+            cam_fwd,
+            t,
+            lod,
+            ..
+        } = self;
         visits.clear();
         let cams: &[Vec3] = cam_pos;
-        grid.query(cams, r2, |e| {
-            let c = Vec3::from(e.center);
+        let fwds: &[Vec3] = cam_fwd;
+        grid.query(cams, r2, |loc, ge| {
+            let c = Vec3::from(ge.center);
             let mut d2 = f32::INFINITY;
             for p in cams {
                 d2 = d2.min(p.distance_squared(c));
             }
+            let reach = r2 + ge.radius;
+            if d2 > reach * reach {
+                return; // no square root for the rejected
+            }
             let center_dist = d2.sqrt();
-            let surface_dist = (center_dist - e.radius).max(0.0);
-            if surface_dist <= r2 {
-                visits.push(Visit {
-                    slot: e.slot,
-                    center_dist,
-                    surface_dist,
-                });
-            }
-        });
-        self.stats.instances_visited = self.visits.len() as u32;
-        for vi in 0..self.visits.len() {
-            let v = self.visits[vi];
-            let Some(inst) = self.t.instances[v.slot as usize].as_mut() else { continue };
-            let mesh = self.t.meshes[inst.mesh as usize].as_ref().expect("instance of a live mesh");
-            let was_visited = inst.last_visit == frame.wrapping_sub(1);
-            let current = if was_visited { inst.lod_target as usize } else { mesh.errors.len() - 1 };
-            let lod = self.lod.select(&mesh.errors, inst.scale, v.surface_dist, current, mesh.lod_floor as usize);
-            inst.lod_target = lod as u8;
-            inst.last_visit = frame;
+            let surface_dist = (center_dist - ge.radius).max(0.0);
+            visits.push(Visit { loc, center_dist });
+            let h = &mut ge.data;
+            let mesh = t.meshes[h.mesh as usize]
+                .as_ref()
+                .expect("instance of a live mesh");
+            let was_visited = h.last_visit == frame.wrapping_sub(1);
+            let current = if was_visited {
+                h.lod_target as usize
+            } else {
+                mesh.nlods as usize - 1
+            };
+            let lodi = lod.select(
+                mesh.errors(),
+                h.scale,
+                surface_dist,
+                current,
+                mesh.lod_floor as usize,
+            );
+            h.lod_target = lodi as u8;
+            h.last_visit = frame;
             if !was_visited {
-                inst.culled = true;
+                h.culled = true;
             }
-            let shown = inst.shown;
-            let center = inst.center;
-            let (mesh_ix, own) = (inst.mesh, inst.own);
-            let kind = mesh.kind();
-            let tris = mesh.desc.lods[lod].geometry.triangles();
+            let kind = mesh.kind;
+            let tris = mesh.lod_tris[lodi];
             let mut slot = match kind {
-                MeshKind::Static => mesh.lod_entry[lod],
-                MeshKind::Skinned if self.t.entry_valid(own) && self.t.entries[own.0 as usize].lod as usize == lod => own.0,
+                MeshKind::Static => mesh.lod_entry[lodi],
+                MeshKind::Skinned
+                    if t.entry_valid(h.own) && t.entries[h.own.0 as usize].lod as usize == lodi =>
+                {
+                    h.own.0
+                }
                 MeshKind::Skinned => NONE,
             };
             if slot == NONE {
-                let owner = if kind == MeshKind::Skinned { v.slot } else { NONE };
-                slot = self.t.new_entry(mesh_ix, lod as u8, owner, tris, frame);
-                let key = self.t.key(slot);
+                let owner = if kind == MeshKind::Skinned {
+                    ge.slot
+                } else {
+                    NONE
+                };
+                slot = t.new_entry(h.mesh, lodi as u8, owner, tris, frame);
                 match kind {
-                    MeshKind::Static => self.t.meshes[mesh_ix as usize].as_mut().expect("live").lod_entry[lod] = slot,
-                    MeshKind::Skinned => self.t.instances[v.slot as usize].as_mut().expect("live").own = key,
+                    MeshKind::Static => {
+                        t.meshes[h.mesh as usize].as_mut().expect("live").lod_entry[lodi] = slot
+                    }
+                    MeshKind::Skinned => h.own = t.key(slot),
                 }
             }
-            let requested = v.surface_dist <= r1;
-            let in_view = requested && {
-                let mut any = false;
-                for (p, f) in self.cam_pos.iter().zip(&self.cam_fwd) {
-                    any |= f.dot(center - *p) >= 0.0;
-                }
-                any
-            };
-            let e = &mut self.t.entries[slot as usize];
+            let requested = surface_dist <= r1;
+            let in_view = requested && cams.iter().zip(fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
+            let e = &mut t.entries[slot as usize];
             if requested {
                 if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
                     e.streak_start = frame;
@@ -108,16 +125,17 @@ impl<B: AsBackend> AsManager<B> {
             e.last_keep = frame;
             if e.dist_frame != frame {
                 e.dist_frame = frame;
-                e.min_dist = v.surface_dist;
+                e.min_dist = surface_dist;
                 e.in_view = in_view;
             } else {
-                e.min_dist = e.min_dist.min(v.surface_dist);
+                e.min_dist = e.min_dist.min(surface_dist);
                 e.in_view |= in_view;
             }
-            if self.t.entry_valid(shown) {
-                self.t.entries[shown.0 as usize].last_keep = frame;
+            if t.entry_valid(h.shown) {
+                t.entries[h.shown.0 as usize].last_keep = frame;
             }
-        }
+        });
+        self.stats.instances_visited = self.visits.len() as u32;
     }
 
     /// Creation after `create_threshold` requested frames; release after `release_threshold`
@@ -125,7 +143,11 @@ impl<B: AsBackend> AsManager<B> {
     fn upkeep_entries(&mut self) {
         let frame = self.frame;
         let rc = &self.config.residency;
-        let (create, release, min_life) = (rc.create_threshold as u64, rc.release_threshold as u64, rc.min_resident_frames as u64);
+        let (create, release, min_life) = (
+            rc.create_threshold as u64,
+            rc.release_threshold as u64,
+            rc.min_resident_frames as u64,
+        );
         let mut i = self.t.active.len();
         while i > 0 {
             i -= 1;
@@ -165,33 +187,35 @@ impl<B: AsBackend> AsManager<B> {
         let mut culled_count = 0;
         for vi in 0..self.visits.len() {
             let v = self.visits[vi];
-            let Some(inst) = self.t.instances[v.slot as usize].as_ref() else { continue };
-            let mesh = self.t.meshes[inst.mesh as usize].as_ref().expect("live mesh");
-            let target = match mesh.kind() {
+            let ge = self.grid.at_mut(v.loc);
+            let radius = ge.radius;
+            let h = &mut ge.data;
+            let t = &mut self.t;
+            let mesh = t.meshes[h.mesh as usize].as_ref().expect("live mesh");
+            let target = match mesh.kind {
                 MeshKind::Static => {
-                    let s = mesh.lod_entry[inst.lod_target as usize];
+                    let s = mesh.lod_entry[h.lod_target as usize];
                     if s == NONE {
                         (NONE, 0)
                     } else {
-                        self.t.key(s)
+                        t.key(s)
                     }
                 }
-                MeshKind::Skinned => inst.own,
+                MeshKind::Skinned => h.own,
             };
-            let chosen = if self.t.built(target) {
+            let chosen = if t.built(target) {
                 target
-            } else if self.t.built(inst.shown) && self.t.entries[inst.shown.0 as usize].mesh == inst.mesh {
-                inst.shown
-            } else if mesh.kind() == MeshKind::Static {
+            } else if t.built(h.shown) && t.entries[h.shown.0 as usize].mesh == h.mesh {
+                h.shown
+            } else if mesh.kind == MeshKind::Static {
                 // nearest built LOD, coarser first
-                let t = inst.lod_target as usize;
-                let n = mesh.errors.len();
-                let order = (t..n).chain((0..t).rev());
+                let tl = h.lod_target as usize;
+                let n = mesh.nlods as usize;
                 let mut found = (NONE, 0);
-                for l in order {
+                for l in (tl..n).chain((0..tl).rev()) {
                     let s = mesh.lod_entry[l];
-                    if s != NONE && self.t.entries[s as usize].state == EntryState::Built {
-                        found = self.t.key(s);
+                    if s != NONE && t.entries[s as usize].state == EntryState::Built {
+                        found = t.key(s);
                         break;
                     }
                 }
@@ -199,20 +223,19 @@ impl<B: AsBackend> AsManager<B> {
             } else {
                 (NONE, 0)
             };
-            let was_culled = inst.culled;
-            let culled = self.culler.cull(inst.radius, v.center_dist, was_culled);
-            let inst = self.t.instances[v.slot as usize].as_mut().expect("live");
-            inst.shown = chosen;
-            inst.culled = culled;
+            let culled = self.culler.cull(radius, v.center_dist, h.culled);
+            h.shown = chosen;
+            h.culled = culled;
             if chosen.0 != NONE {
                 if culled {
                     culled_count += 1;
                 } else {
-                    let e = &mut self.t.entries[chosen.0 as usize];
+                    let e = &mut t.entries[chosen.0 as usize];
                     e.last_in_tlas = Some(frame);
                     e.last_keep = frame;
-                    let h = e.handle.expect("built entry has a handle");
-                    self.tlas_list.push((v.slot, self.backend.blas_address(h)));
+                    let handle = e.handle.expect("built entry has a handle");
+                    self.tlas_list
+                        .push((v.loc, self.backend.blas_address(handle)));
                 }
             }
         }
@@ -222,17 +245,20 @@ impl<B: AsBackend> AsManager<B> {
     /// Writes the records for `tlas_list` (parallel when large).
     pub(crate) fn assemble_records(&mut self) {
         let list = &self.tlas_list;
-        let insts = &self.t.instances;
+        let grid = &self.grid;
         let a = &self.config.assembly;
-        assemble(list.len(), &mut self.records, a.threads, a.parallel_threshold, |i| {
-            let (slot, address) = list[i];
-            let inst = insts[slot as usize].as_ref().expect("live instance in TLAS list");
-            TlasInstance {
-                transform: inst.rows,
-                custom_index_and_mask: inst.custom_index | ((inst.mask as u32) << 24),
-                sbt_offset_and_flags: inst.sbt_offset | ((inst.flags as u32) << 24),
-                blas_address: address,
-            }
-        });
+        assemble(
+            list.len(),
+            &mut self.records,
+            a.threads,
+            a.parallel_threshold,
+            |i| {
+                let (loc, address) = list[i];
+                TlasInstance {
+                    blas_address: address,
+                    ..grid.at(loc).data.template
+                }
+            },
+        );
     }
 }

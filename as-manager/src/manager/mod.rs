@@ -20,7 +20,7 @@ use crate::config::{Config, PolicyKind};
 use crate::cull::InstanceCuller;
 use crate::lod::LodSelector;
 use crate::record::TlasInstance;
-use crate::spatial::GridIndex;
+use crate::spatial::{GridIndex, GridLoc};
 use crate::{AsError, InstanceId, Result};
 
 /// A camera: residency, LOD and culling are measured from its position; `forward` (unit)
@@ -124,11 +124,9 @@ pub struct FrameOutput<'a> {
 
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Visit {
-    pub slot: u32,
+    pub loc: GridLoc,
     /// Distance from the nearest camera to the centre.
     pub center_dist: f32,
-    /// Distance from the nearest camera to the bounding sphere.
-    pub surface_dist: f32,
 }
 
 /// The BLAS/TLAS manager. See the crate docs for the frame pipeline.
@@ -156,14 +154,14 @@ pub struct AsManager<B: AsBackend> {
     backend: B,
     registrar: Registrar,
     t: Tables,
-    grid: GridIndex,
+    grid: GridIndex<state::Hot>,
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
     visits: Vec<Visit>,
     cam_pos: Vec<Vec3>,
     cam_fwd: Vec<Vec3>,
-    tlas_list: Vec<(u32, u64)>,
+    tlas_list: Vec<(GridLoc, u64)>,
     records: Vec<TlasInstance>,
     compact_pending: Vec<(u32, u32)>,
     retiring: VecDeque<(u64, u64)>,
@@ -171,6 +169,7 @@ pub struct AsManager<B: AsBackend> {
     live_bytes: u64,
     built_count: u32,
     oom_cap: Option<u64>,
+    oom_frame: u64,
     floors: Vec<u32>,
     live_instances: u32,
     last_frame: Option<u64>,
@@ -202,6 +201,7 @@ impl<B: AsBackend> AsManager<B> {
             live_bytes: 0,
             built_count: 0,
             oom_cap: None,
+            oom_frame: 0,
             floors: Vec::new(),
             live_instances: 0,
             last_frame: None,
@@ -241,7 +241,11 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     /// See [`Registrar::set_skinned_pose`].
-    pub fn set_skinned_pose(&self, id: InstanceId, positions: std::sync::Arc<Vec<[f32; 3]>>) -> Result<()> {
+    pub fn set_skinned_pose(
+        &self,
+        id: InstanceId,
+        positions: std::sync::Arc<Vec<[f32; 3]>>,
+    ) -> Result<()> {
         self.registrar.set_skinned_pose(id, positions)
     }
 
@@ -260,11 +264,16 @@ impl<B: AsBackend> AsManager<B> {
     /// backend's frames in flight).
     pub fn set_config(&mut self, config: Config) -> Result<()> {
         config.validate()?;
+        if config.policy != self.config.policy {
+            return Err(AsError::InvalidConfig(
+                "policy cannot change on a live manager".into(),
+            ));
+        }
         if config.residency.cell_size != self.config.residency.cell_size {
             let mut grid = GridIndex::new(config.residency.cell_size);
             for (slot, inst) in self.t.instances.iter().enumerate() {
-                if let Some(i) = inst {
-                    grid.insert(slot as u32, i.center, i.radius);
+                if let (Some(i), Some(e)) = (inst, self.grid.get(slot as u32)) {
+                    grid.insert(slot as u32, i.center, i.radius, e.data);
                 }
             }
             self.grid = grid;
@@ -297,13 +306,66 @@ impl<B: AsBackend> AsManager<B> {
 
     /// The LOD an instance is targeting (skinned poses are for this LOD), once applied.
     pub fn instance_lod(&self, id: InstanceId) -> Option<usize> {
-        let inst = self.t.instances.get(id.index as usize)?.as_ref()?;
-        let own = inst.own;
-        if self.t.entry_valid(own) {
-            Some(self.t.entries[own.0 as usize].lod as usize)
+        self.t.instances.get(id.index as usize)?.as_ref()?;
+        let h = self.grid.get(id.index)?.data;
+        if self.t.entry_valid(h.own) {
+            Some(self.t.entries[h.own.0 as usize].lod as usize)
         } else {
-            Some(inst.lod_target as usize)
+            Some(h.lod_target as usize)
         }
+    }
+
+    /// Checks internal consistency (for tests): byte accounting matches the built entries,
+    /// every built entry has a handle, no two live entries hold the same static (mesh, LOD),
+    /// every mesh's LOD table points at live entries of that mesh and LOD.
+    #[doc(hidden)]
+    pub fn check_invariants(&self) -> std::result::Result<(), String> {
+        let mut bytes = 0;
+        let mut built = 0;
+        let mut seen = std::collections::HashSet::new();
+        for &slot in &self.t.active {
+            let e = &self.t.entries[slot as usize];
+            if !e.live {
+                return Err(format!("inactive entry {slot} in the active list"));
+            }
+            if e.state == EntryState::Built {
+                if e.handle.is_none() {
+                    return Err(format!("built entry {slot} without a handle"));
+                }
+                bytes += e.bytes;
+                built += 1;
+            } else if e.handle.is_some() {
+                return Err(format!("unbuilt entry {slot} holds a handle"));
+            }
+            if e.owner == state::NONE && !seen.insert((e.mesh, e.lod)) {
+                return Err(format!(
+                    "two live entries for static mesh {} LOD {}",
+                    e.mesh, e.lod
+                ));
+            }
+        }
+        if bytes != self.live_bytes || built != self.built_count {
+            return Err(format!(
+                "accounting: {bytes} B / {built} built vs {} B / {}",
+                self.live_bytes, self.built_count
+            ));
+        }
+        for (i, m) in self.t.meshes.iter().enumerate() {
+            let Some(m) = m else { continue };
+            for (lod, &s) in m.lod_entry.iter().enumerate() {
+                if s != state::NONE {
+                    let e = &self.t.entries[s as usize];
+                    if !e.live
+                        || e.mesh != i as u32
+                        || e.lod as usize != lod
+                        || e.owner != state::NONE
+                    {
+                        return Err(format!("mesh {i} LOD {lod} points at a wrong entry"));
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Bytes counted against the memory budget now (built + retiring).
@@ -321,9 +383,15 @@ impl<B: AsBackend> AsManager<B> {
     pub fn update(&mut self, input: FrameInput<'_>) -> Result<FrameOutput<'_>> {
         let frame = input.frame;
         if self.last_frame.is_some_and(|l| frame <= l) {
-            return Err(AsError::InvalidConfig(format!("frame {frame} does not increase")));
+            return Err(AsError::InvalidConfig(format!(
+                "frame {frame} does not increase"
+            )));
         }
-        if input.cameras.iter().any(|c| !c.position.is_finite() || !c.forward.is_finite()) {
+        if input
+            .cameras
+            .iter()
+            .any(|c| !c.position.is_finite() || !c.forward.is_finite())
+        {
             return Err(AsError::InvalidTransform);
         }
         let _span = tracing::debug_span!("update", frame).entered();
@@ -337,6 +405,7 @@ impl<B: AsBackend> AsManager<B> {
         self.backend.begin_frame(frame)?;
         self.drain_retiring();
         self.refine_costs();
+        self.recover_oom_cap();
         {
             let _s = tracing::trace_span!("apply").entered();
             self.apply_commands();
@@ -369,6 +438,18 @@ impl<B: AsBackend> AsManager<B> {
             instances: &self.records,
             stats: &self.stats,
         })
+    }
+
+    /// After an OOM the budget is capped; every 300 quiet frames the cap grows by 10% until
+    /// the configured budget is back (the device may have freed memory elsewhere).
+    fn recover_oom_cap(&mut self) {
+        if let Some(cap) = self.oom_cap {
+            if self.frame.saturating_sub(self.oom_frame) >= 300 {
+                self.oom_frame = self.frame;
+                let grown = (cap as f64 * 1.1) as u64 + 1;
+                self.oom_cap = (grown < self.config.memory.blas_bytes).then_some(grown);
+            }
+        }
     }
 
     fn drain_retiring(&mut self) {

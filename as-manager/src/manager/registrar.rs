@@ -104,7 +104,9 @@ impl Registrar {
             return Err(AsError::InvalidTransform);
         }
         if desc.custom_index >= 1 << 24 || desc.sbt_offset >= 1 << 24 {
-            return Err(AsError::InvalidInstance("customIndex and SBT offset must fit in 24 bits".into()));
+            return Err(AsError::InvalidInstance(
+                "customIndex and SBT offset must fit in 24 bits".into(),
+            ));
         }
         let mut p = self.pending.lock();
         if !p.meshes.is_live(desc.mesh.index, desc.mesh.generation) {

@@ -5,7 +5,9 @@ use std::sync::Arc;
 
 use super::state::{EntryState, NONE};
 use super::AsManager;
-use crate::backend::{AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef};
+use crate::backend::{
+    AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef,
+};
 use crate::mesh::{LodGeometry, MeshKind};
 use crate::quality::RefitQuality;
 use crate::Result;
@@ -19,7 +21,14 @@ struct Admitted {
     opaque: bool,
 }
 
-fn geometry_ref<'a>(g: &'a LodGeometry, pose: Option<&'a Arc<Vec<[f32; 3]>>>, opaque: bool) -> GeometryRef<'a> {
+/// A refit: (entry slot, geometry, pose, rebuild, opaque).
+type RefitJob = (u32, LodGeometry, Option<Arc<Vec<[f32; 3]>>>, bool, bool);
+
+fn geometry_ref<'a>(
+    g: &'a LodGeometry,
+    pose: Option<&'a Arc<Vec<[f32; 3]>>>,
+    opaque: bool,
+) -> GeometryRef<'a> {
     let data = g.data();
     let positions = match (pose, data) {
         (Some(p), Some(d)) if p.len() == d.positions.len() => Some(p.as_slice()),
@@ -40,7 +49,11 @@ impl<B: AsBackend> AsManager<B> {
     fn priority(&self, slot: u32) -> f32 {
         let e = &self.t.entries[slot as usize];
         let b = &self.config.build;
-        let dist = if e.dist_frame == self.frame { e.min_dist } else { e.min_dist + self.config.residency.r2 };
+        let dist = if e.dist_frame == self.frame {
+            e.min_dist
+        } else {
+            e.min_dist + self.config.residency.r2
+        };
         let bonus = if e.in_view { b.in_view_bonus } else { 0.0 };
         dist - bonus - b.aging_per_frame * self.frame.saturating_sub(e.queued_since) as f32
     }
@@ -57,8 +70,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Evicts built entries scoring worse than `than` (or any when `None`) until `need` more
     /// bytes fit under the budget, counting bytes already retiring as soon-free. Returns
     /// whether `need` fits now (not counting retiring bytes: those still occupy memory).
-    fn make_room(&mut self, need: u64, than: Option<f32>) -> bool {
-        let budget = self.budget();
+    fn make_room(&mut self, need: u64, than: Option<f32>, budget: u64) -> bool {
         if self.memory_in_use() + need <= budget {
             return true;
         }
@@ -95,7 +107,7 @@ impl<B: AsBackend> AsManager<B> {
     /// After a budget cut or an OOM: evict until the built bytes fit.
     pub(crate) fn enforce_budget(&mut self) {
         if self.live_bytes > self.budget() {
-            self.make_room(0, None);
+            self.make_room(0, None, self.budget());
         }
     }
 
@@ -111,6 +123,9 @@ impl<B: AsBackend> AsManager<B> {
             .collect();
         queue.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         let b = self.config.build.clone();
+        // Builds leave the compaction headroom free.
+        let build_budget =
+            (self.budget() as f64 * (1.0 - self.config.memory.compaction_headroom as f64)) as u64;
         let (mut prims, mut ms, mut bytes) = (0u64, 0f64, 0u64);
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
@@ -121,27 +136,41 @@ impl<B: AsBackend> AsManager<B> {
             };
             let mesh = self.t.meshes[mesh_ix as usize].as_ref().expect("live mesh");
             let kind = mesh.kind();
-            let class = if kind == MeshKind::Skinned { BlasClass::Skinned } else { BlasClass::Static };
+            let class = if kind == MeshKind::Skinned {
+                BlasClass::Skinned
+            } else {
+                BlasClass::Static
+            };
             let geometry = mesh.desc.lods[lod].geometry.clone();
             let opaque = mesh.desc.opaque;
-            let nlods = mesh.errors.len();
+            let nlods = mesh.nlods as usize;
             let pose = if owner != NONE {
-                self.t.instances[owner as usize].as_ref().and_then(|i| i.pose.clone())
+                self.t.instances[owner as usize]
+                    .as_ref()
+                    .and_then(|i| i.pose.clone())
             } else {
                 None
             };
-            let op = if class == BlasClass::Skinned { CostOp::BuildSkinned } else { CostOp::BuildStatic };
+            let op = if class == BlasClass::Skinned {
+                CostOp::BuildSkinned
+            } else {
+                CostOp::BuildStatic
+            };
             let est = self.costs.estimate(op, tris as u64);
-            let size = self.backend.blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
+            let size = self
+                .backend
+                .blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
             if budgeted {
                 let oversized = tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64;
                 if oversized && !admitted.is_empty() {
                     continue;
                 }
-                if !oversized && (prims + tris as u64 > b.max_primitives || ms + est > b.max_gpu_ms as f64) {
+                if !oversized
+                    && (prims + tris as u64 > b.max_primitives || ms + est > b.max_gpu_ms as f64)
+                {
                     continue;
                 }
-                if self.memory_in_use() + bytes + size.as_bytes > self.budget() {
+                if self.memory_in_use() + bytes + size.as_bytes > build_budget {
                     // Coarser LOD first, then evict what matters less.
                     if kind == MeshKind::Static && lod + 1 < nlods {
                         let m = self.t.meshes[mesh_ix as usize].as_mut().expect("live");
@@ -157,7 +186,7 @@ impl<B: AsBackend> AsManager<B> {
                         continue;
                     }
                     let dist = self.t.entries[slot as usize].min_dist;
-                    if !self.make_room(bytes + size.as_bytes, Some(dist)) {
+                    if !self.make_room(bytes + size.as_bytes, Some(dist), build_budget) {
                         continue;
                     }
                 }
@@ -166,7 +195,13 @@ impl<B: AsBackend> AsManager<B> {
                 ms += est;
                 bytes += size.as_bytes;
                 self.stats.oversized_admitted |= oversized;
-                admitted.push(Admitted { slot, geometry, pose, class, opaque });
+                admitted.push(Admitted {
+                    slot,
+                    geometry,
+                    pose,
+                    class,
+                    opaque,
+                });
                 sizes.push(size);
                 if oversized {
                     break;
@@ -175,7 +210,13 @@ impl<B: AsBackend> AsManager<B> {
                 prims += tris as u64;
                 ms += est;
                 bytes += size.as_bytes;
-                admitted.push(Admitted { slot, geometry, pose, class, opaque });
+                admitted.push(Admitted {
+                    slot,
+                    geometry,
+                    pose,
+                    class,
+                    opaque,
+                });
                 sizes.push(size);
             }
         }
@@ -199,14 +240,19 @@ impl<B: AsBackend> AsManager<B> {
                     let frame = self.frame;
                     let pose_version = if a.class == BlasClass::Skinned {
                         let owner = self.t.entries[a.slot as usize].owner;
-                        self.t.instances[owner as usize].as_ref().map_or(0, |i| i.pose_version)
+                        self.t.instances[owner as usize]
+                            .as_ref()
+                            .map_or(0, |i| i.pose_version)
                     } else {
                         0
                     };
                     let quality = match (a.class, a.geometry.data()) {
                         (BlasClass::Skinned, Some(d)) => {
                             let g = geometry_ref(&a.geometry, a.pose.as_ref(), a.opaque);
-                            Some(RefitQuality::at_build(g.positions.unwrap_or(&d.positions), &d.indices))
+                            Some(RefitQuality::at_build(
+                                g.positions.unwrap_or(&d.positions),
+                                &d.indices,
+                            ))
                         }
                         _ => None,
                     };
@@ -246,6 +292,7 @@ impl<B: AsBackend> AsManager<B> {
     /// (minus 10%) and evict down to it; the queue retries on later frames.
     fn on_oom(&mut self) {
         self.stats.oom_events += 1;
+        self.oom_frame = self.frame;
         let cap = (self.memory_in_use() as f64 * 0.9) as u64;
         self.oom_cap = Some(self.oom_cap.map_or(cap, |c| c.min(cap)).max(1));
         tracing::warn!(cap, "backend out of memory; budget capped");
@@ -274,14 +321,16 @@ impl<B: AsBackend> AsManager<B> {
         let bound = self.config.build.rebuild_quality_bound;
         let max = self.config.build.max_refit_primitives;
         let mut prims = 0u64;
-        let mut jobs: Vec<(u32, LodGeometry, Option<Arc<Vec<[f32; 3]>>>, bool, bool)> = Vec::new();
+        let mut jobs: Vec<RefitJob> = Vec::new();
         for &(_, s) in &dirty {
             let e = &self.t.entries[s as usize];
             let tris = e.triangles as u64;
             if budgeted && !jobs.is_empty() && prims + tris > max {
                 continue;
             }
-            let inst = self.t.instances[e.owner as usize].as_ref().expect("owner lives");
+            let inst = self.t.instances[e.owner as usize]
+                .as_ref()
+                .expect("owner lives");
             let mesh = self.t.meshes[e.mesh as usize].as_ref().expect("live mesh");
             let geometry = mesh.desc.lods[e.lod as usize].geometry.clone();
             let pose = inst.pose.clone();
@@ -322,7 +371,9 @@ impl<B: AsBackend> AsManager<B> {
         let frame = self.frame;
         for (s, g, p, rebuild, _) in jobs {
             let owner = self.t.entries[s as usize].owner;
-            let version = self.t.instances[owner as usize].as_ref().map_or(0, |i| i.pose_version);
+            let version = self.t.instances[owner as usize]
+                .as_ref()
+                .map_or(0, |i| i.pose_version);
             let e = &mut self.t.entries[s as usize];
             e.pose_version = version;
             e.refit_frame = frame;
@@ -357,7 +408,9 @@ impl<B: AsBackend> AsManager<B> {
             }
             let e = &self.t.entries[key.0 as usize];
             let h = e.handle.expect("built");
-            let Some(size) = self.backend.compacted_size(h) else { return true };
+            let Some(size) = self.backend.compacted_size(h) else {
+                return true;
+            };
             if size as f64 >= e.bytes as f64 * 0.97 {
                 self.t.entries[key.0 as usize].needs_compaction = false;
                 return false; // nothing worth saving (e.g. lavapipe)
@@ -400,7 +453,9 @@ impl<B: AsBackend> AsManager<B> {
         let frame = self.frame;
         let meshes = &mut self.t.meshes;
         self.floors.retain(|&m| {
-            let Some(Some(mesh)) = meshes.get_mut(m as usize) else { return false };
+            let Some(Some(mesh)) = meshes.get_mut(m as usize) else {
+                return false;
+            };
             if frame.saturating_sub(mesh.floor_since) >= 60 {
                 mesh.lod_floor = mesh.lod_floor.saturating_sub(1);
                 mesh.floor_since = frame;

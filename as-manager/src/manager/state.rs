@@ -2,18 +2,24 @@
 
 use std::sync::Arc;
 
-use glam::{Affine3A, Vec3};
+use glam::Vec3;
 
 use crate::backend::{BlasHandle, BlasSizes};
 use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
 use crate::quality::RefitQuality;
+use crate::record::TlasInstance;
 
 pub(crate) const NONE: u32 = u32::MAX;
 
 #[derive(Debug)]
 pub(crate) struct MeshState {
     pub desc: Arc<MeshDesc>,
-    pub errors: Vec<f32>,
+    pub kind: MeshKind,
+    pub nlods: u8,
+    /// Geometric errors (mesh space), finest first; `nlods` used.
+    pub errors: [f32; MAX_LODS],
+    /// Triangles per LOD.
+    pub lod_tris: [u32; MAX_LODS],
     /// Static: the shared entry per LOD (NONE if none).
     pub lod_entry: [u32; MAX_LODS],
     /// Memory fallback: finest LOD allowed now.
@@ -25,7 +31,11 @@ pub(crate) struct MeshState {
 
 impl MeshState {
     pub fn kind(&self) -> MeshKind {
-        self.desc.kind
+        self.kind
+    }
+
+    pub fn errors(&self) -> &[f32] {
+        &self.errors[..self.nlods as usize]
     }
 }
 
@@ -76,28 +86,31 @@ pub(crate) struct BlasEntry {
     pub active_index: u32,
 }
 
+/// Per-instance state a frame touches, stored in the spatial index's cells (see
+/// `spatial::GridEntry::data`) so the residency/cull/assembly passes stream through memory.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Hot {
+    /// The record with `blas_address` 0 (transform, customIndex, mask, SBT offset, flags).
+    pub template: TlasInstance,
+    pub mesh: u32,
+    pub scale: f32,
+    /// Entry shown in the TLAS (slot, generation).
+    pub shown: (u32, u32),
+    /// Skinned: own entry for the current LOD target (slot, generation).
+    pub own: (u32, u32),
+    pub last_visit: u64,
+    pub lod_target: u8,
+    pub culled: bool,
+}
+
+/// Per-instance state touched only on changes (and by the baselines' full passes).
 #[derive(Debug)]
 pub(crate) struct InstanceState {
     pub mesh: u32,
     /// Index in the mesh's instance list.
     pub mesh_pos: u32,
-    pub transform: Affine3A,
-    /// 3x4 row-major transform, ready for the record.
-    pub rows: [f32; 12],
     pub center: Vec3,
     pub radius: f32,
-    pub scale: f32,
-    pub custom_index: u32,
-    pub mask: u8,
-    pub sbt_offset: u32,
-    pub flags: u8,
-    pub lod_target: u8,
-    /// Entry shown in the TLAS (slot, generation).
-    pub shown: (u32, u32),
-    /// Skinned: own entry per LOD target (slot, generation).
-    pub own: (u32, u32),
-    pub culled: bool,
-    pub last_visit: u64,
     pub pose: Option<Arc<Vec<[f32; 3]>>>,
     pub pose_version: u64,
     /// Seed baseline marks.

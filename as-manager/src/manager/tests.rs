@@ -19,12 +19,21 @@ fn cam(x: f32, z: f32) -> [Camera; 1] {
 }
 
 fn static_mesh(m: &AsManager<ModelBackend>, tris: u32, radius: f32) -> MeshId {
-    m.register_mesh(MeshDesc::new("m", MeshKind::Static, radius, counts_chain(tris, 4, radius * 0.002))).unwrap()
+    m.register_mesh(MeshDesc::new(
+        "m",
+        MeshKind::Static,
+        radius,
+        counts_chain(tris, 4, radius * 0.002),
+    ))
+    .unwrap()
 }
 
 fn check_records(m: &AsManager<ModelBackend>, recs: &[record::TlasInstance]) {
     for r in recs {
-        assert!(m.backend().is_live_address(r.blas_address), "TLAS references a dead BLAS");
+        assert!(
+            m.backend().is_live_address(r.blas_address),
+            "TLAS references a dead BLAS"
+        );
     }
 }
 
@@ -33,12 +42,23 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
     let mut m = mgr(Config::default());
     let mesh = static_mesh(&m, 1000, 1.0);
     for i in 0..50 {
-        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 0.5, 20.0))).unwrap();
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 0.5, 20.0)))
+            .unwrap();
     }
     let c = cam(0.0, 0.0);
-    let out = m.update(FrameInput { frame: 0, cameras: &c }).unwrap();
+    let out = m
+        .update(FrameInput {
+            frame: 0,
+            cameras: &c,
+        })
+        .unwrap();
     assert_eq!(out.instances.len(), 0, "create threshold not reached");
-    let out = m.update(FrameInput { frame: 1, cameras: &c }).unwrap();
+    let out = m
+        .update(FrameInput {
+            frame: 1,
+            cameras: &c,
+        })
+        .unwrap();
     assert_eq!(out.stats.builds, 1);
     assert_eq!(out.stats.blas_count, 1, "50 instances share one BLAS");
     assert_eq!(out.instances.len(), 50);
@@ -48,7 +68,12 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
     let far = cam(5000.0, 0.0);
     let mut released_at = None;
     for f in 2..100 {
-        let out = m.update(FrameInput { frame: f, cameras: &far }).unwrap();
+        let out = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &far,
+            })
+            .unwrap();
         assert!(out.instances.is_empty());
         if out.stats.releases > 0 {
             released_at = Some(f);
@@ -56,7 +81,11 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
         }
     }
     let r = released_at.expect("released");
-    assert_eq!(r, 1 + Config::default().residency.release_threshold as u64 + 1, "last kept at frame 1");
+    assert_eq!(
+        r,
+        1 + Config::default().residency.release_threshold as u64 + 1,
+        "last kept at frame 1"
+    );
 }
 
 #[test]
@@ -65,13 +94,19 @@ fn lod_refines_without_holes() {
     cfg.cull.mode = CullMode::Off;
     let mut m = mgr(cfg);
     let mesh = static_mesh(&m, 20_000, 5.0);
-    m.add_instance(InstanceDesc::new(mesh, at(0.0, 0.0))).unwrap();
+    m.add_instance(InstanceDesc::new(mesh, at(0.0, 0.0)))
+        .unwrap();
     let mut first_seen = None;
     let mut lods = Vec::new();
     // approach from 180 m to 2 m
     for f in 0..200u64 {
         let z = 180.0 - f as f32 * 0.9;
-        let out = m.update(FrameInput { frame: f, cameras: &cam(0.0, -z - 5.0) }).unwrap();
+        let out = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &cam(0.0, -z - 5.0),
+            })
+            .unwrap();
         let n = out.instances.len();
         if n == 1 && first_seen.is_none() {
             first_seen = Some(f);
@@ -79,7 +114,13 @@ fn lod_refines_without_holes() {
         if first_seen.is_some() {
             assert_eq!(n, 1, "hole at frame {f}");
         }
-        lods.push(m.instance_lod(InstanceId { index: 0, generation: 0 }).unwrap());
+        lods.push(
+            m.instance_lod(InstanceId {
+                index: 0,
+                generation: 0,
+            })
+            .unwrap(),
+        );
     }
     assert!(lods.first().unwrap() > lods.last().unwrap(), "{lods:?}");
     assert_eq!(*lods.last().unwrap(), 0);
@@ -94,17 +135,29 @@ fn build_budget_respected_and_oversized_alone() {
     for i in 0..40 {
         let tris = if i == 7 { 200_000 } else { 20_000 };
         let mesh = static_mesh(&m, tris, 1.0);
-        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 2.0, 5.0))).unwrap();
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 2.0, 5.0)))
+            .unwrap();
     }
     let c = cam(0.0, 0.0);
     let mut oversized = 0;
     for f in 0..200 {
-        let s = m.update(FrameInput { frame: f, cameras: &c }).unwrap().stats.clone();
+        let s = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &c,
+            })
+            .unwrap()
+            .stats
+            .clone();
         if s.oversized_admitted {
             oversized += 1;
             assert_eq!(s.builds, 1, "oversized item admitted alone");
         } else {
-            assert!(s.build_primitives <= 10_000, "frame {f}: {}", s.build_primitives);
+            assert!(
+                s.build_primitives <= 10_000,
+                "frame {f}: {}",
+                s.build_primitives
+            );
         }
     }
     assert_eq!(oversized, 1);
@@ -118,16 +171,29 @@ fn memory_budget_never_exceeded_falls_back_then_evicts() {
     let mut m = mgr(cfg);
     for i in 0..60 {
         let mesh = static_mesh(&m, 4_000 + i * 100, 2.0);
-        m.add_instance(InstanceDesc::new(mesh, at((i % 10) as f32 * 15.0, (i / 10) as f32 * 15.0))).unwrap();
+        m.add_instance(InstanceDesc::new(
+            mesh,
+            at((i % 10) as f32 * 15.0, (i / 10) as f32 * 15.0),
+        ))
+        .unwrap();
     }
     let (mut fallbacks, mut shown) = (0, 0);
     for f in 0..300u64 {
         let x = (f as f32 * 0.7).sin() * 80.0;
-        let out = m.update(FrameInput { frame: f, cameras: &cam(x, 40.0) }).unwrap();
+        let out = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &cam(x, 40.0),
+            })
+            .unwrap();
         let s = out.stats.clone();
         let recs = out.instances.to_vec();
         check_records(&m, &recs);
-        assert!(s.memory_in_use() <= 3_000_000, "frame {f}: {}", s.memory_in_use());
+        assert!(
+            s.memory_in_use() <= 3_000_000,
+            "frame {f}: {}",
+            s.memory_in_use()
+        );
         assert!(m.backend().allocated_bytes() <= 3_000_000);
         fallbacks += s.lod_fallbacks;
         shown = shown.max(recs.len());
@@ -144,13 +210,21 @@ fn culling_distance_angle_near_and_behind() {
     let mut m = mgr(cfg);
     let big = static_mesh(&m, 100, 10.0);
     let tiny = static_mesh(&m, 100, 0.2);
-    m.add_instance(InstanceDesc::new(big, at(0.0, -50.0))).unwrap(); // behind camera
-    m.add_instance(InstanceDesc::new(big, at(0.0, 400.0))).unwrap(); // far
-    m.add_instance(InstanceDesc::new(tiny, at(0.0, 100.0))).unwrap(); // small
-    m.add_instance(InstanceDesc::new(tiny, at(0.0, 5.0))).unwrap(); // tiny but near
+    m.add_instance(InstanceDesc::new(big, at(0.0, -50.0)))
+        .unwrap(); // behind camera
+    m.add_instance(InstanceDesc::new(big, at(0.0, 400.0)))
+        .unwrap(); // far
+    m.add_instance(InstanceDesc::new(tiny, at(0.0, 100.0)))
+        .unwrap(); // small
+    m.add_instance(InstanceDesc::new(tiny, at(0.0, 5.0)))
+        .unwrap(); // tiny but near
     let c = cam(0.0, 0.0);
     for f in 0..5 {
-        m.update(FrameInput { frame: f, cameras: &c }).unwrap();
+        m.update(FrameInput {
+            frame: f,
+            cameras: &c,
+        })
+        .unwrap();
     }
     let s = m.stats().clone();
     assert_eq!(s.tlas_instances, 2, "behind + near survive");
@@ -172,21 +246,50 @@ fn skinned_refit_then_rebuild_when_quality_degrades() {
             }],
         ))
         .unwrap();
-    let id = m.add_instance(InstanceDesc::new(mesh, at(0.0, 10.0))).unwrap();
+    let id = m
+        .add_instance(InstanceDesc::new(mesh, at(0.0, 10.0)))
+        .unwrap();
     let c = cam(0.0, 0.0);
     for f in 0..3 {
-        m.update(FrameInput { frame: f, cameras: &c }).unwrap();
+        m.update(FrameInput {
+            frame: f,
+            cameras: &c,
+        })
+        .unwrap();
     }
     assert_eq!(m.stats().blas_count, 1);
     // mild wave: refits only
-    let wave: Vec<[f32; 3]> = geo.positions.iter().map(|p| [p[0], 0.05 * (p[0] * 3.0).sin(), p[2]]).collect();
+    let wave: Vec<[f32; 3]> = geo
+        .positions
+        .iter()
+        .map(|p| [p[0], 0.05 * (p[0] * 3.0).sin(), p[2]])
+        .collect();
     m.set_skinned_pose(id, std::sync::Arc::new(wave)).unwrap();
-    let s = m.update(FrameInput { frame: 3, cameras: &c }).unwrap().stats.clone();
+    let s = m
+        .update(FrameInput {
+            frame: 3,
+            cameras: &c,
+        })
+        .unwrap()
+        .stats
+        .clone();
     assert_eq!((s.refits, s.rebuilds), (1, 0));
     // extreme: mirror every other vertex across the centre
-    let wild: Vec<[f32; 3]> = geo.positions.iter().enumerate().map(|(i, p)| if i % 2 == 0 { [-p[0], p[1], -p[2]] } else { *p }).collect();
+    let wild: Vec<[f32; 3]> = geo
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| if i % 2 == 0 { [-p[0], p[1], -p[2]] } else { *p })
+        .collect();
     m.set_skinned_pose(id, std::sync::Arc::new(wild)).unwrap();
-    let s = m.update(FrameInput { frame: 4, cameras: &c }).unwrap().stats.clone();
+    let s = m
+        .update(FrameInput {
+            frame: 4,
+            cameras: &c,
+        })
+        .unwrap()
+        .stats
+        .clone();
     assert_eq!(s.rebuilds, 1);
     assert!(s.worst_refit_quality <= m.config().build.rebuild_quality_bound);
 }
@@ -197,12 +300,18 @@ fn oom_is_survived_and_device_lost_reported() {
     m.backend_mut().device_bytes = Some(2_000_000);
     for i in 0..40 {
         let mesh = static_mesh(&m, 5_000, 1.0);
-        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 3.0, 10.0))).unwrap();
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 3.0, 10.0)))
+            .unwrap();
     }
     let c = cam(60.0, 0.0);
     let mut ooms = 0;
     for f in 0..60 {
-        let out = m.update(FrameInput { frame: f, cameras: &c }).unwrap();
+        let out = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &c,
+            })
+            .unwrap();
         ooms += out.stats.oom_events;
         let recs = out.instances.to_vec();
         check_records(&m, &recs);
@@ -211,27 +320,55 @@ fn oom_is_survived_and_device_lost_reported() {
     assert!(m.stats().memory_budget < Config::default().memory.blas_bytes);
     assert!(m.stats().tlas_instances > 0);
     m.backend_mut().lose_device = true;
-    assert!(matches!(m.update(FrameInput { frame: 100, cameras: &c }), Err(AsError::Backend(backend::BackendError::DeviceLost))));
+    assert!(matches!(
+        m.update(FrameInput {
+            frame: 100,
+            cameras: &c
+        }),
+        Err(AsError::Backend(backend::BackendError::DeviceLost))
+    ));
 }
 
 #[test]
 fn unregister_removes_instances_and_blases() {
     let mut m = mgr(Config::default());
     let mesh = static_mesh(&m, 1000, 1.0);
-    let ids: Vec<_> = (0..5).map(|i| m.add_instance(InstanceDesc::new(mesh, at(i as f32, 5.0))).unwrap()).collect();
+    let ids: Vec<_> = (0..5)
+        .map(|i| {
+            m.add_instance(InstanceDesc::new(mesh, at(i as f32, 5.0)))
+                .unwrap()
+        })
+        .collect();
     let c = cam(0.0, 0.0);
     for f in 0..4 {
-        m.update(FrameInput { frame: f, cameras: &c }).unwrap();
+        m.update(FrameInput {
+            frame: f,
+            cameras: &c,
+        })
+        .unwrap();
     }
     assert_eq!(m.stats().tlas_instances, 5);
     m.remove_instance(ids[0]).unwrap();
     assert!(m.remove_instance(ids[0]).is_err());
     m.unregister_mesh(mesh).unwrap();
-    assert!(m.add_instance(InstanceDesc::new(mesh, at(0.0, 0.0))).is_err());
-    let s = m.update(FrameInput { frame: 4, cameras: &c }).unwrap().stats.clone();
+    assert!(m
+        .add_instance(InstanceDesc::new(mesh, at(0.0, 0.0)))
+        .is_err());
+    let s = m
+        .update(FrameInput {
+            frame: 4,
+            cameras: &c,
+        })
+        .unwrap()
+        .stats
+        .clone();
     assert_eq!((s.instances, s.tlas_instances, s.blas_count), (0, 0, 0));
     for f in 5..8 {
-        m.update(FrameInput { frame: f, cameras: &c }).unwrap();
+        m.update(FrameInput {
+            frame: f,
+            cameras: &c,
+        })
+        .unwrap();
     }
     assert_eq!(m.backend().live_blas_count(), 0);
     // recycled ids are new
@@ -244,12 +381,23 @@ fn bad_input_is_a_typed_error() {
     let m = mgr(Config::default());
     let mesh = static_mesh(&m, 10, 1.0);
     let nan = Affine3A::from_translation(Vec3::new(f32::NAN, 0.0, 0.0));
-    assert_eq!(m.add_instance(InstanceDesc::new(mesh, nan)), Err(AsError::InvalidTransform));
+    assert_eq!(
+        m.add_instance(InstanceDesc::new(mesh, nan)),
+        Err(AsError::InvalidTransform)
+    );
     let mut d = InstanceDesc::new(mesh, at(0.0, 0.0));
     d.custom_index = 1 << 24;
-    assert!(matches!(m.add_instance(d), Err(AsError::InvalidInstance(_))));
-    assert!(matches!(m.register_mesh(MeshDesc::new("empty", MeshKind::Static, 1.0, vec![])), Err(AsError::InvalidMesh { .. })));
-    let id = m.add_instance(InstanceDesc::new(mesh, at(0.0, 0.0))).unwrap();
+    assert!(matches!(
+        m.add_instance(d),
+        Err(AsError::InvalidInstance(_))
+    ));
+    assert!(matches!(
+        m.register_mesh(MeshDesc::new("empty", MeshKind::Static, 1.0, vec![])),
+        Err(AsError::InvalidMesh { .. })
+    ));
+    let id = m
+        .add_instance(InstanceDesc::new(mesh, at(0.0, 0.0)))
+        .unwrap();
     assert_eq!(m.mark_deformed(id), Err(AsError::NotSkinned(id)));
     let mut bad = Config::default();
     bad.cull.hysteresis = 2.0;
@@ -264,9 +412,17 @@ fn naive_builds_every_lod_and_traces_everything() {
     });
     let mesh = static_mesh(&m, 1000, 1.0);
     for i in 0..10 {
-        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 1000.0, 0.0))).unwrap();
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 1000.0, 0.0)))
+            .unwrap();
     }
-    let s = m.update(FrameInput { frame: 0, cameras: &cam(0.0, 0.0) }).unwrap().stats.clone();
+    let s = m
+        .update(FrameInput {
+            frame: 0,
+            cameras: &cam(0.0, 0.0),
+        })
+        .unwrap()
+        .stats
+        .clone();
     assert_eq!(s.blas_count, 4);
     assert_eq!(s.tlas_instances, 10);
 }
@@ -281,12 +437,95 @@ fn registration_from_threads_is_applied() {
             let r = r.clone();
             s.spawn(move || {
                 for i in 0..100 {
-                    r.add_instance(InstanceDesc::new(mesh, at(t as f32 * 10.0, i as f32))).unwrap();
+                    r.add_instance(InstanceDesc::new(mesh, at(t as f32 * 10.0, i as f32)))
+                        .unwrap();
                 }
             });
         }
     });
-    let s = m.update(FrameInput { frame: 0, cameras: &cam(0.0, 0.0) }).unwrap().stats.clone();
+    let s = m
+        .update(FrameInput {
+            frame: 0,
+            cameras: &cam(0.0, 0.0),
+        })
+        .unwrap()
+        .stats
+        .clone();
     assert_eq!(s.instances, 400);
     assert_eq!(s.commands_applied, 401);
+}
+
+#[test]
+fn compaction_within_budget_counts_the_double_copy() {
+    use crate::backend::model::{CostModel, SizeModel};
+    let mut cfg = Config::default();
+    cfg.build.max_compactions = 2;
+    let budget = 4_000_000;
+    cfg.memory.blas_bytes = budget;
+    let mut m = AsManager::new(
+        cfg,
+        ModelBackend::new(
+            SizeModel::nvidia_placeholder(),
+            CostModel::nvidia_placeholder(),
+        ),
+    )
+    .unwrap();
+    for i in 0..30 {
+        let mesh = static_mesh(&m, 20_000, 3.0);
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 4.0, 5.0)))
+            .unwrap();
+    }
+    let c = cam(60.0, 0.0);
+    let mut compactions = 0;
+    for f in 0..120 {
+        let s = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &c,
+            })
+            .unwrap()
+            .stats
+            .clone();
+        assert!(s.compactions <= 2);
+        assert!(s.memory_in_use() <= budget);
+        assert!(
+            m.backend().allocated_bytes() <= budget,
+            "backend holds both copies until retirement"
+        );
+        compactions += s.compactions;
+    }
+    assert!(compactions >= 10, "{compactions}");
+    assert_eq!(m.backend().counters().compactions, compactions as u64);
+}
+
+#[test]
+fn measured_costs_refine_the_model() {
+    use crate::backend::model::CostModel;
+    let mut backend = ModelBackend::lavapipe();
+    backend.costs.build_static_ms_per_mtri = 300.0; // the "device" is twice as slow as the prior
+    let mut m = AsManager::new(Config::default(), backend).unwrap();
+    for i in 0..60 {
+        let mesh = static_mesh(&m, 40_000, 1.0);
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 2.0, 3.0)))
+            .unwrap();
+    }
+    let c = cam(60.0, 0.0);
+    for f in 0..200 {
+        m.update(FrameInput {
+            frame: f,
+            cameras: &c,
+        })
+        .unwrap();
+    }
+    let prior = CostModel::lavapipe().build_static_ms_per_mtri;
+    let learned = m.cost_model().build_static_ms_per_mtri;
+    assert!(learned > prior * 1.5, "learned {learned}");
+}
+
+#[test]
+fn thread_safety_bounds() {
+    fn send<T: Send>() {}
+    fn send_sync<T: Send + Sync>() {}
+    send::<AsManager<ModelBackend>>();
+    send_sync::<Registrar>();
 }

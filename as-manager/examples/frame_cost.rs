@@ -1,0 +1,74 @@
+//! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
+//! time over a camera path, plus the frame statistics.
+//!
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [million] [cams]`
+
+use std::time::Instant;
+
+use rtstream_as_manager::backend::model::ModelBackend;
+use rtstream_as_manager::synth::{SynthParams, SynthWorld};
+use rtstream_as_manager::{AsManager, Camera, Config, FrameInput};
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let params = if args.iter().any(|a| a == "million") {
+        SynthParams::million()
+    } else {
+        SynthParams::default_world()
+    };
+    let cams: usize = args
+        .iter()
+        .filter_map(|a| a.parse().ok())
+        .next()
+        .unwrap_or(1);
+    let world = SynthWorld::generate(params);
+    let mut config = Config::default();
+    if let Ok(c) = std::env::var("CELL") {
+        config.residency.cell_size = c.parse().unwrap();
+    }
+    let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
+    world.populate(&m).unwrap();
+    let cameras = |f: u64| -> Vec<Camera> {
+        let lead = world.camera_on_path(f, 0.5);
+        let off = [
+            glam::Vec3::ZERO,
+            glam::Vec3::new(40.0, 0.0, 0.0),
+            glam::Vec3::new(0.0, 0.0, 40.0),
+            glam::Vec3::new(-30.0, 0.0, -30.0),
+        ];
+        (0..cams)
+            .map(|i| Camera::new(lead.position + off[i % 4], lead.forward))
+            .collect()
+    };
+    for f in 0..300 {
+        m.update(FrameInput {
+            frame: f,
+            cameras: &cameras(f),
+        })
+        .unwrap();
+    }
+    let mut times = Vec::new();
+    for f in 300..3300 {
+        let c = cameras(f);
+        let t = Instant::now();
+        m.update(FrameInput {
+            frame: f,
+            cameras: &c,
+        })
+        .unwrap();
+        times.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    times.sort_by(f64::total_cmp);
+    let mean = times.iter().sum::<f64>() / times.len() as f64;
+    let p = |q: f64| times[((times.len() - 1) as f64 * q) as usize];
+    println!(
+        "median {:.1} us, mean {:.1} us, p10 {:.1} p90 {:.1} p99 {:.1} max {:.1} us",
+        p(0.5),
+        mean,
+        p(0.1),
+        p(0.9),
+        p(0.99),
+        p(1.0)
+    );
+    println!("{:?}", m.stats());
+}
