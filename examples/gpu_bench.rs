@@ -13,12 +13,13 @@ use std::sync::Arc;
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
-    ContextDesc, GpuGeometry, InstanceDesc as SceneInstance, MeshDesc, StaticScene, TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc,
-    VulkanContext,
+    ContextDesc, GpuGeometry, InstanceDesc as SceneInstance, MeshDesc, StaticScene,
+    TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
 };
 use rtstream::as_manager::backend::CostOp;
 use rtstream::as_manager::{
-    AsManager, Camera, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshKind,
+    AsManager, Camera, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry,
+    MeshKind,
 };
 
 type BoxResult<T> = Result<T, Box<dyn std::error::Error>>;
@@ -148,7 +149,8 @@ fn main() -> BoxResult<()> {
         let count = (args.total_tris / size).clamp(1, 4096);
         for (fname, flags) in [("FAST_TRACE", fast_trace), ("FAST_BUILD", fast_build)] {
             for batched in [true, false] {
-                let (ms, bytes) = time_blas_builds(ctx, &vec![&g; count], flags, batched, args.reps)?;
+                let (ms, bytes) =
+                    time_blas_builds(ctx, &vec![&g; count], flags, batched, args.reps)?;
                 let tris = f64::from(g.triangle_count()) * count as f64;
                 let mode = if batched { "batched" } else { "per_call" };
                 println!(
@@ -289,11 +291,21 @@ fn main() -> BoxResult<()> {
     md.push(format!("\n### vkGetAccelerationStructureBuildSizesKHR — {}\n\n| triangles | vertices | class | AS bytes | build scratch | update scratch |\n|---:|---:|---|---:|---:|---:|", info.name));
     for tris in [12u32, 100, 1_000, 10_000, 100_000, 1_000_000] {
         let verts = tris / 2 + 2;
-        let g = TriangleGeometry { vertex_address: 0, vertex_stride: 12, max_vertex: verts - 1, index_address: 0, triangle_count: tris, opaque: true };
+        let g = TriangleGeometry {
+            vertex_address: 0,
+            vertex_stride: 12,
+            max_vertex: verts - 1,
+            index_address: 0,
+            triangle_count: tris,
+            opaque: true,
+        };
         for (class, flags) in [("static", fast_trace), ("skinned", fast_build)] {
             let s = ctx.blas_sizes(&[g], flags);
             println!("{{\"kind\":\"sizes\",\"triangles\":{tris},\"vertices\":{verts},\"class\":\"{class}\",\"as_bytes\":{},\"build_scratch\":{},\"update_scratch\":{}}}", s.storage, s.build_scratch, s.update_scratch);
-            md.push(format!("| {tris} | {verts} | {class} | {} | {} | {} |", s.storage, s.build_scratch, s.update_scratch));
+            md.push(format!(
+                "| {tris} | {verts} | {class} | {} | {} | {} |",
+                s.storage, s.build_scratch, s.update_scratch
+            ));
         }
     }
 
@@ -301,12 +313,17 @@ fn main() -> BoxResult<()> {
     let (mesh_tris, meshes_n) = (100_000usize, (args.total_tris / 100_000).max(2));
     let grid_mesh = grid(mesh_tris, 0.0);
     // Distinct buffers per BLAS, as the manager's path has (no cache-hot shared input).
-    let copies: Vec<GpuGeometry> = (0..meshes_n).map(|_| GpuGeometry::upload(ctx, &grid_mesh.desc())).collect::<Result<_, _>>()?;
+    let copies: Vec<GpuGeometry> = (0..meshes_n)
+        .map(|_| GpuGeometry::upload(ctx, &grid_mesh.desc()))
+        .collect::<Result<_, _>>()?;
     let copy_refs: Vec<&GpuGeometry> = copies.iter().collect();
     let mut raw_ms = Vec::new();
     let mut mgr_ms = Vec::new();
     let mut mgr_wall = Vec::new();
-    let data = Arc::new(GeometryData { positions: grid_mesh.positions.clone(), indices: grid_mesh.indices.clone() });
+    let data = Arc::new(GeometryData {
+        positions: grid_mesh.positions.clone(),
+        indices: grid_mesh.indices.clone(),
+    });
     for _ in 0..args.reps.max(3) {
         raw_ms.push(time_blas_builds(ctx, &copy_refs, fast_trace, true, 1)?.0);
         let mut config = Config::default();
@@ -318,22 +335,49 @@ fn main() -> BoxResult<()> {
         let manager = AsManager::new(config, backend)?;
         for k in 0..meshes_n {
             // Distinct meshes (same geometry): one BLAS each, as in the raw batch.
-            let mesh = manager.register_mesh(rtstream::as_manager::MeshDesc::new(format!("m{k}"), MeshKind::Static, 80.0, vec![LodDesc { geometry: LodGeometry::Data(data.clone()), geometric_error: 0.0 }]))?;
-            manager.add_instance(InstanceDesc::new(mesh, glam::Affine3A::from_translation(glam::Vec3::new(k as f32 * 10.0, 0.0, 50.0))))?;
+            let mesh = manager.register_mesh(rtstream::as_manager::MeshDesc::new(
+                format!("m{k}"),
+                MeshKind::Static,
+                80.0,
+                vec![LodDesc {
+                    geometry: LodGeometry::Data(data.clone()),
+                    geometric_error: 0.0,
+                }],
+            ))?;
+            manager.add_instance(InstanceDesc::new(
+                mesh,
+                glam::Affine3A::from_translation(glam::Vec3::new(k as f32 * 10.0, 0.0, 50.0)),
+            ))?;
         }
         let mut manager = manager;
         let cams = [Camera::new(glam::Vec3::ZERO, glam::Vec3::Z)];
         let t0 = std::time::Instant::now();
-        let out = manager.update(FrameInput { frame: 0, cameras: &cams })?;
+        let out = manager.update(FrameInput {
+            frame: 0,
+            cameras: &cams,
+        })?;
         let built = out.stats.builds;
         manager.backend_mut().wait_idle()?;
         mgr_wall.push(t0.elapsed().as_secs_f64() * 1e3);
         // The next frame harvests frame 0's timestamps.
-        manager.update(FrameInput { frame: 1, cameras: &cams })?;
-        manager.update(FrameInput { frame: 2, cameras: &cams })?;
-        let ms: f64 = manager.backend().measurement_log().filter(|m| m.op == CostOp::BuildStatic).map(|m| m.gpu_ms).sum();
+        manager.update(FrameInput {
+            frame: 1,
+            cameras: &cams,
+        })?;
+        manager.update(FrameInput {
+            frame: 2,
+            cameras: &cams,
+        })?;
+        let ms: f64 = manager
+            .backend()
+            .measurement_log()
+            .filter(|m| m.op == CostOp::BuildStatic)
+            .map(|m| m.gpu_ms)
+            .sum();
         if built as usize != meshes_n {
-            return Err(format!("the manager admitted {built} of {meshes_n} builds in one frame").into());
+            return Err(
+                format!("the manager admitted {built} of {meshes_n} builds in one frame").into(),
+            );
         }
         mgr_ms.push(ms);
     }
@@ -358,16 +402,46 @@ fn main() -> BoxResult<()> {
         let instances: Vec<SceneInstance> = (0..side * side)
             .map(|i| {
                 let (x, z) = ((i % side) as f32 * 30.0, (i / side) as f32 * 30.0);
-                let m = glam::Mat4::from_scale_rotation_translation(glam::Vec3::splat(0.25), glam::Quat::from_rotation_y(i as f32), glam::Vec3::new(x, 0.0, z));
-                SceneInstance { mesh: (i % 4) as u32, transform: m.to_cols_array(), custom_index: (i % 4) as u32, mask: 0xff }
+                let m = glam::Mat4::from_scale_rotation_translation(
+                    glam::Vec3::splat(0.25),
+                    glam::Quat::from_rotation_y(i as f32),
+                    glam::Vec3::new(x, 0.0, z),
+                );
+                SceneInstance {
+                    mesh: (i % 4) as u32,
+                    transform: m.to_cols_array(),
+                    custom_index: (i % 4) as u32,
+                    mask: 0xff,
+                }
             })
             .collect();
         let mut renderer = rtstream::renderer::Renderer::new(shared.clone())?;
         md.push(format!("\n### TLAS flags: trace time — {}\n\n{} instances of 4 meshes (1k–8k triangles), {w}x{h}, primary + hard shadow + 1 AO ray per pixel ({:?} path), median of {} frames:\n\n| TLAS flags | TLAS build ms (GPU) | frame ms (wall) | primary ms | shadow ms | AO+shade ms |\n|---|---:|---:|---:|---:|---:|", info.name, instances.len(), renderer.path(), args.reps));
-        for (fname, flags) in [("FAST_TRACE", vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE), ("FAST_BUILD", vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD)] {
+        for (fname, flags) in [
+            (
+                "FAST_TRACE",
+                vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
+            ),
+            (
+                "FAST_BUILD",
+                vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD,
+            ),
+        ] {
             let scene = StaticScene::build_with_tlas_flags(ctx, &descs, &instances, flags)?;
-            let shading: Vec<rtstream::renderer::InstanceShading> = scene.meshes.iter().map(|m| rtstream::renderer::InstanceShading { vertices: m.geometry.vertices.address, indices: m.geometry.indices.address, base_color: [0.7, 0.7, 0.7, 1.0] }).collect();
-            let cam = rtstream::renderer::Camera::look_at(glam::Vec3::new(-200.0, 400.0, -200.0), glam::Vec3::new(4000.0, 0.0, 4000.0), 50f32.to_radians());
+            let shading: Vec<rtstream::renderer::InstanceShading> = scene
+                .meshes
+                .iter()
+                .map(|m| rtstream::renderer::InstanceShading {
+                    vertices: m.geometry.vertices.address,
+                    indices: m.geometry.indices.address,
+                    base_color: [0.7, 0.7, 0.7, 1.0],
+                })
+                .collect();
+            let cam = rtstream::renderer::Camera::look_at(
+                glam::Vec3::new(-200.0, 400.0, -200.0),
+                glam::Vec3::new(4000.0, 0.0, 4000.0),
+                50f32.to_radians(),
+            );
             let desc = rtstream::renderer::RenderDesc::new(w, h, cam);
             renderer.render(scene.tlas.raw, &shading, &desc)?; // warm-up
             let mut frames = Vec::new();
@@ -376,9 +450,19 @@ fn main() -> BoxResult<()> {
             }
             frames.sort_by(|a, b| a.render_ms.total_cmp(&b.render_ms));
             let f = &frames[frames.len() / 2];
-            let tlas_ms = time_tlas_build(ctx, &scene.meshes[0].blas, &instances.iter().map(|i| i.transform).collect::<Vec<_>>(), flags, args.reps)?.0;
+            let tlas_ms = time_tlas_build(
+                ctx,
+                &scene.meshes[0].blas,
+                &instances.iter().map(|i| i.transform).collect::<Vec<_>>(),
+                flags,
+                args.reps,
+            )?
+            .0;
             println!("{{\"kind\":\"tlas_trace\",\"flags\":\"{fname}\",\"instances\":{},\"width\":{w},\"height\":{h},\"tlas_build_gpu_ms\":{tlas_ms:.4},\"frame_ms\":{:.3},\"primary_ms\":{:.3},\"shadow_ms\":{:.3},\"ao_shade_ms\":{:.3},\"hit_fraction\":{:.3}}}", instances.len(), f.render_ms, f.passes.primary_ms, f.passes.shadow_ms, f.passes.ao_shade_ms, f.hit_fraction());
-            md.push(format!("| {fname} | {tlas_ms:.3} | {:.3} | {:.3} | {:.3} | {:.3} |", f.render_ms, f.passes.primary_ms, f.passes.shadow_ms, f.passes.ao_shade_ms));
+            md.push(format!(
+                "| {fname} | {tlas_ms:.3} | {:.3} | {:.3} | {:.3} | {:.3} |",
+                f.render_ms, f.passes.primary_ms, f.passes.shadow_ms, f.passes.ao_shade_ms
+            ));
             if let Some(out) = &args.trace_png {
                 f.save_png(out.join(format!("tlas_{fname}.png")))?;
             }

@@ -96,6 +96,9 @@ pub struct BuildBudget {
     /// Rebuild a skinned BLAS when its refit quality ratio (summed leaf/node surface area
     /// relative to the root, against the last build) exceeds this.
     pub rebuild_quality_bound: f32,
+    /// Compact a static BLAS only when the compacted copy saves at least this share of its
+    /// bytes (0.03 by default; lavapipe saves nothing, NVIDIA ~16%). 0 compacts always.
+    pub min_compaction_saving: f32,
 }
 
 impl Default for BuildBudget {
@@ -109,6 +112,7 @@ impl Default for BuildBudget {
             max_compaction_ms: 0.25,
             max_refit_primitives: 200_000,
             rebuild_quality_bound: 1.5,
+            min_compaction_saving: 0.03,
         }
     }
 }
@@ -278,6 +282,10 @@ impl Config {
         check(
             b.rebuild_quality_bound.is_finite() && b.rebuild_quality_bound >= 1.0,
             "build.rebuild_quality_bound must be >= 1",
+        )?;
+        check(
+            (0.0..1.0).contains(&b.min_compaction_saving),
+            "build.min_compaction_saving must be in [0, 1)",
         )?;
         check(self.memory.blas_bytes > 0, "memory.blas_bytes must be > 0")?;
         let h = self.memory.compaction_headroom;

@@ -281,7 +281,8 @@ impl<B: AsBackend> AsManager<B> {
                 Ok(())
             }
             Err(BackendError::OutOfDeviceMemory) => {
-                self.on_oom();
+                let failed: u64 = sizes.iter().map(|s| s.as_bytes).sum();
+                self.on_oom(failed);
                 Ok(())
             }
             Err(e) => Err(e.into()),
@@ -289,11 +290,14 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     /// The device ran out of memory below our budget: cap the budget at what is in use now
-    /// (minus 10%) and evict down to it; the queue retries on later frames.
-    fn on_oom(&mut self) {
+    /// (minus 10%), or — when little is held — at what is held plus half of the batch that
+    /// failed, so a first batch too large for the device is retried at half size instead of
+    /// starving the frame; then evict down to it. The queue retries on later frames.
+    fn on_oom(&mut self, failed_bytes: u64) {
         self.stats.oom_events += 1;
         self.oom_frame = self.frame;
-        let cap = (self.memory_in_use() as f64 * 0.9) as u64;
+        let in_use = self.memory_in_use();
+        let cap = ((in_use as f64 * 0.9) as u64).max(in_use + failed_bytes / 2);
         self.oom_cap = Some(self.oom_cap.map_or(cap, |c| c.min(cap)).max(1));
         tracing::warn!(cap, "backend out of memory; budget capped");
         self.enforce_budget();
@@ -362,7 +366,7 @@ impl<B: AsBackend> AsManager<B> {
         match self.backend.refit_blases(&refits) {
             Ok(()) => {}
             Err(BackendError::OutOfDeviceMemory) => {
-                self.on_oom();
+                self.on_oom(0);
                 return Ok(());
             }
             Err(e) => return Err(e.into()),
@@ -411,7 +415,8 @@ impl<B: AsBackend> AsManager<B> {
             let Some(size) = self.backend.compacted_size(h) else {
                 return true;
             };
-            if size as f64 >= e.bytes as f64 * 0.97 {
+            let keep = 1.0 - f64::from(self.config.build.min_compaction_saving);
+            if size > 0 && size as f64 > e.bytes as f64 * keep {
                 self.t.entries[key.0 as usize].needs_compaction = false;
                 return false; // nothing worth saving (e.g. lavapipe)
             }

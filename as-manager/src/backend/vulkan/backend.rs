@@ -32,14 +32,16 @@ use std::sync::Arc;
 
 use ash::vk;
 
-use super::accel::{align_up, AccelStruct, BlasBuild as RawBuild, TriangleGeometry, BUILD_INPUT_USAGE};
+use super::accel::{
+    align_up, AccelStruct, BlasBuild as RawBuild, TriangleGeometry, BUILD_INPUT_USAGE,
+};
 use super::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use super::context::VulkanContext;
 use super::error::{VkResult, VkResultExt, VulkanError};
 use super::query::{QueryKind, QueryPool};
 use crate::backend::{
-    AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes, CostOp,
-    GeometryRef, Measurement, TlasHandle,
+    AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
+    CostOp, GeometryRef, Measurement, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -205,14 +207,18 @@ impl VulkanBackend {
             .queue_family_index(ctx.queue_family())
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
         // SAFETY: valid device and create-info; destroyed in Drop.
-        let pool = unsafe { dev.create_command_pool(&pool_info, None) }.op("vkCreateCommandPool")?;
+        let pool =
+            unsafe { dev.create_command_pool(&pool_info, None) }.op("vkCreateCommandPool")?;
         ctx.set_name(pool, "VulkanBackend command pool");
         let mut type_info = vk::SemaphoreTypeCreateInfo::default()
             .semaphore_type(vk::SemaphoreType::TIMELINE)
             .initial_value(0);
         // SAFETY: as above.
         let timeline = unsafe {
-            dev.create_semaphore(&vk::SemaphoreCreateInfo::default().push_next(&mut type_info), None)
+            dev.create_semaphore(
+                &vk::SemaphoreCreateInfo::default().push_next(&mut type_info),
+                None,
+            )
         }
         .op("vkCreateSemaphore")?;
         ctx.set_name(timeline, "VulkanBackend frame timeline");
@@ -240,9 +246,19 @@ impl VulkanBackend {
                 scratch: None,
                 scratch_used: 0,
                 arena: Arena::default(),
-                timestamps: QueryPool::new(&ctx, QueryKind::Timestamp, QUERIES_PER_SLOT, &format!("slot {i} timestamps"))?,
+                timestamps: QueryPool::new(
+                    &ctx,
+                    QueryKind::Timestamp,
+                    QUERIES_PER_SLOT,
+                    &format!("slot {i} timestamps"),
+                )?,
                 timed: Vec::new(),
-                compact_pool: QueryPool::new(&ctx, QueryKind::CompactedSize, COMPACT_QUERIES_PER_SLOT, &format!("slot {i} compacted sizes"))?,
+                compact_pool: QueryPool::new(
+                    &ctx,
+                    QueryKind::CompactedSize,
+                    COMPACT_QUERIES_PER_SLOT,
+                    &format!("slot {i} compacted sizes"),
+                )?,
                 compact_queries: Vec::new(),
             });
         }
@@ -304,13 +320,22 @@ impl VulkanBackend {
     /// The raw TLAS of a handle returned by `build_tlas` (valid until that slot is reused,
     /// `frames_in_flight` frames later).
     pub fn tlas(&self, handle: TlasHandle) -> Option<vk::AccelerationStructureKHR> {
-        self.slots.get(handle.0 as usize)?.tlas.as_ref().map(|t| t.raw)
+        self.slots
+            .get(handle.0 as usize)?
+            .tlas
+            .as_ref()
+            .map(|t| t.raw)
     }
 
     /// Waits until every submitted frame finished (e.g. before reading a TLAS on another queue
     /// submission, or at shutdown).
     pub fn wait_idle(&mut self) -> VkResult<()> {
-        let last = self.slots.iter().map(|s| s.submitted_value).max().unwrap_or(0);
+        let last = self
+            .slots
+            .iter()
+            .map(|s| s.submitted_value)
+            .max()
+            .unwrap_or(0);
         self.wait_value(last)
     }
 
@@ -323,7 +348,9 @@ impl VulkanBackend {
         // SAFETY: the semaphore is a timeline semaphore of this device.
         unsafe {
             self.ctx.device.wait_semaphores(
-                &vk::SemaphoreWaitInfo::default().semaphores(&sems).values(&vals),
+                &vk::SemaphoreWaitInfo::default()
+                    .semaphores(&sems)
+                    .values(&vals),
                 u64::MAX,
             )
         }
@@ -438,12 +465,15 @@ impl VulkanBackend {
         let cap = self.slots[s].arena.buffer.as_ref().map_or(0, |b| b.size);
         if self.slots[s].arena.used + need > cap {
             let size = (cap * 2).max(need + self.slots[s].arena.used).max(1 << 20);
-            let new = self.create_buffer(BufferDesc {
-                name: "upload arena",
-                size,
-                usage: BUILD_INPUT_USAGE,
-                memory: MemoryKind::Upload,
-            }, false)?;
+            let new = self.create_buffer(
+                BufferDesc {
+                    name: "upload arena",
+                    size,
+                    usage: BUILD_INPUT_USAGE,
+                    memory: MemoryKind::Upload,
+                },
+                false,
+            )?;
             // Earlier uploads of this frame stay valid in the old buffer, retired with the frame.
             if let Some(old) = self.slots[s].arena.buffer.replace(new) {
                 self.retire_now(Retired::Buffer(old));
@@ -470,12 +500,16 @@ impl VulkanBackend {
         }
         let align = self.ctx.info().min_scratch_alignment;
         let size = (cap * 2).max(total).max(1 << 20);
-        let buf = self.create_buffer(BufferDesc {
-            name: "frame scratch",
-            size: size + align,
-            usage: vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
-            memory: MemoryKind::DeviceLocal,
-        }, false)?;
+        let buf = self.create_buffer(
+            BufferDesc {
+                name: "frame scratch",
+                size: size + align,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                    | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+                memory: MemoryKind::DeviceLocal,
+            },
+            false,
+        )?;
         let base = align_up(buf.address, align);
         if let Some((old, _, _)) = self.slots[s].scratch.replace((buf, base, size)) {
             // Batches already recorded this frame still use the old buffer.
@@ -488,7 +522,10 @@ impl VulkanBackend {
     fn scratch_alloc(&mut self, bytes: u64) -> vk::DeviceAddress {
         let align = self.ctx.info().min_scratch_alignment;
         let s = &mut self.slots[self.current];
-        let (_, base, _) = s.scratch.as_ref().expect("ensure_scratch before scratch_alloc");
+        let (_, base, _) = s
+            .scratch
+            .as_ref()
+            .expect("ensure_scratch before scratch_alloc");
         let addr = base + s.scratch_used;
         s.scratch_used += align_up(bytes, align);
         addr
@@ -499,7 +536,9 @@ impl VulkanBackend {
         if s.recording {
             Ok(s.cmd)
         } else {
-            Err(BackendError::Other("no frame is being recorded (call begin_frame)".into()))
+            Err(BackendError::Other(
+                "no frame is being recorded (call begin_frame)".into(),
+            ))
         }
     }
 
@@ -534,7 +573,9 @@ impl VulkanBackend {
         if class == BlasClass::Skinned {
             return 1;
         }
-        by_prims.max(by_bytes).clamp(1, u64::from(g.triangle_count.max(1))) as u32
+        by_prims
+            .max(by_bytes)
+            .clamp(1, u64::from(g.triangle_count.max(1))) as u32
     }
 
     fn read_completed_slot(&mut self, slot: usize) -> VkResult<()> {
@@ -544,7 +585,11 @@ impl VulkanBackend {
             let ticks = s.timestamps.read(&self.ctx, 0, n)?;
             for &(op, units, first) in &s.timed {
                 let dt = ticks[first as usize + 1].saturating_sub(ticks[first as usize]);
-                let m = Measurement { op, units, gpu_ms: s.timestamps.ticks_to_ms(dt) };
+                let m = Measurement {
+                    op,
+                    units,
+                    gpu_ms: s.timestamps.ticks_to_ms(dt),
+                };
                 self.measurements.push(m);
                 if self.log.len() == 256 {
                     self.log.pop_front();
@@ -611,7 +656,8 @@ impl VulkanBackend {
                 .op("vkResetCommandBuffer")?;
             dev.begin_command_buffer(
                 s.cmd,
-                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .op("vkBeginCommandBuffer")?;
         }
@@ -649,7 +695,11 @@ impl AsBackend for VulkanBackend {
             opaque: g.opaque,
         };
         let s = self.ctx.blas_sizes(&[geom], class_flags(class));
-        BlasSizes { as_bytes: s.storage, build_scratch: s.build_scratch, update_scratch: s.update_scratch }
+        BlasSizes {
+            as_bytes: s.storage,
+            build_scratch: s.build_scratch,
+            update_scratch: s.update_scratch,
+        }
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
@@ -673,12 +723,15 @@ impl AsBackend for VulkanBackend {
                     return Err(BackendError::MissingGeometry);
                 };
                 let parts = self.parts_of(&b.geometry, b.class, &b.sizes);
-                let mut ib = self.create_buffer(BufferDesc {
-                    name: "BLAS indices",
-                    size: (idx.len() * 4).max(4) as u64,
-                    usage: BUILD_INPUT_USAGE,
-                    memory: MemoryKind::Upload,
-                }, true)?;
+                let mut ib = self.create_buffer(
+                    BufferDesc {
+                        name: "BLAS indices",
+                        size: (idx.len() * 4).max(4) as u64,
+                        usage: BUILD_INPUT_USAGE,
+                        memory: MemoryKind::Upload,
+                    },
+                    true,
+                )?;
                 ib.write(0, bytemuck::cast_slice(idx));
                 let iaddr = ib.address;
                 let (vaddr, indices, inputs) = if b.class == BlasClass::Skinned {
@@ -689,14 +742,21 @@ impl AsBackend for VulkanBackend {
                             return Err(e);
                         }
                     };
-                    (vaddr, Some((ib, b.geometry.triangle_count, b.geometry.vertex_count)), None)
+                    (
+                        vaddr,
+                        Some((ib, b.geometry.triangle_count, b.geometry.vertex_count)),
+                        None,
+                    )
                 } else {
-                    let vb = match self.create_buffer(BufferDesc {
-                        name: "BLAS positions",
-                        size: (pos.len() * 12).max(4) as u64,
-                        usage: BUILD_INPUT_USAGE,
-                        memory: MemoryKind::Upload,
-                    }, true) {
+                    let vb = match self.create_buffer(
+                        BufferDesc {
+                            name: "BLAS positions",
+                            size: (pos.len() * 12).max(4) as u64,
+                            usage: BUILD_INPUT_USAGE,
+                            memory: MemoryKind::Upload,
+                        },
+                        true,
+                    ) {
                         Ok(mut vb) => {
                             vb.write(0, bytemuck::cast_slice(pos));
                             vb
@@ -735,14 +795,19 @@ impl AsBackend for VulkanBackend {
                         opaque: b.geometry.opaque,
                     };
                     let s = if parts == 1 {
-                        super::accel::AsSizes { storage: b.sizes.as_bytes, build_scratch: b.sizes.build_scratch, update_scratch: b.sizes.update_scratch }
+                        super::accel::AsSizes {
+                            storage: b.sizes.as_bytes,
+                            build_scratch: b.sizes.build_scratch,
+                            update_scratch: b.sizes.update_scratch,
+                        }
                     } else {
                         self.ctx.blas_sizes(&[g], class_flags(b.class))
                     };
                     let a = self.create_accel(s.storage, "BLAS")?;
                     p.geoms.push(g);
                     p.accels.push(a);
-                    p.scratch.push(align_up(s.build_scratch.max(s.update_scratch), align));
+                    p.scratch
+                        .push(align_up(s.build_scratch.max(s.update_scratch), align));
                 }
             }
             let total: u64 = planned.iter().flat_map(|p| p.scratch.iter()).sum();
@@ -789,8 +854,15 @@ impl AsBackend for VulkanBackend {
                 k += 1;
             }
         }
-        let tris: u64 = builds.iter().map(|b| u64::from(b.geometry.triangle_count)).sum();
-        let op = if builds.iter().all(|b| b.class == BlasClass::Skinned) { CostOp::BuildSkinned } else { CostOp::BuildStatic };
+        let tris: u64 = builds
+            .iter()
+            .map(|b| u64::from(b.geometry.triangle_count))
+            .sum();
+        let op = if builds.iter().all(|b| b.class == BlasClass::Skinned) {
+            CostOp::BuildSkinned
+        } else {
+            CostOp::BuildStatic
+        };
         let t = self.timestamp_begin(op, tris);
         // SAFETY: cmd is recording; inputs live in the slot's arena (or the skinned index
         // buffers) until the frame completes; scratch ranges are disjoint and aligned.
@@ -807,7 +879,8 @@ impl AsBackend for VulkanBackend {
             if p.accels.len() > 1 {
                 self.counters.split_meshes += 1;
                 let first = p.accels[0].address;
-                self.split_parts.insert(first, p.accels[1..].iter().map(|a| a.address).collect());
+                self.split_parts
+                    .insert(first, p.accels[1..].iter().map(|a| a.address).collect());
             }
             let gen = self.next_gen;
             self.next_gen = self.next_gen.wrapping_add(1).max(1);
@@ -839,7 +912,8 @@ impl AsBackend for VulkanBackend {
                 // were reset in begin_frame and are written once.
                 unsafe {
                     self.ctx.cmd_accel_barrier(cmd);
-                    s.compact_pool.cmd_compacted_sizes(&self.ctx, cmd, &raws, first);
+                    s.compact_pool
+                        .cmd_compacted_sizes(&self.ctx, cmd, &raws, first);
                 }
                 for (k, (h, _)) in query_targets.into_iter().enumerate() {
                     s.compact_queries.push((h, first + k as u32));
@@ -858,7 +932,9 @@ impl AsBackend for VulkanBackend {
         let mut plan = Vec::with_capacity(refits.len());
         let mut total = 0;
         for r in refits {
-            let e = self.entry(r.blas).ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+            let e = self
+                .entry(r.blas)
+                .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
             let Some((ib, tris, verts)) = &e.skinned_indices else {
                 return Err(BackendError::Other("refit of a static BLAS".into()));
             };
@@ -866,16 +942,24 @@ impl AsBackend for VulkanBackend {
                 return Err(BackendError::MissingGeometry);
             };
             if pos.len() as u32 != *verts || r.geometry.triangle_count != *tris {
-                return Err(BackendError::Other("refit with a different topology".into()));
+                return Err(BackendError::Other(
+                    "refit with a different topology".into(),
+                ));
             }
-            let scratch = if r.rebuild { e.sizes.build_scratch } else { e.sizes.update_scratch };
+            let scratch = if r.rebuild {
+                e.sizes.build_scratch
+            } else {
+                e.sizes.update_scratch
+            };
             total += align_up(scratch.max(1), align);
             plan.push((r, ib.address, *tris, *verts, e.parts[0].raw, scratch));
         }
         self.ensure_scratch(total)?;
         let mut geoms = Vec::with_capacity(plan.len());
         for (r, iaddr, tris, verts, _, _) in &plan {
-            let vaddr = self.upload(bytemuck::cast_slice(r.geometry.positions.expect("checked above")))?;
+            let vaddr = self.upload(bytemuck::cast_slice(
+                r.geometry.positions.expect("checked above"),
+            ))?;
             let slot = (r.blas.0 & 0xffff_ffff) as usize;
             if let Some(e) = self.blases[slot].as_mut() {
                 e.shading.0 = vaddr;
@@ -925,15 +1009,21 @@ impl AsBackend for VulkanBackend {
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
         let cmd = self.cmd()?;
-        let e = self.entry(blas).ok_or_else(|| BackendError::Other(format!("compaction of unknown {blas:?}")))?;
-        let size = e.compacted_size.ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
+        let e = self
+            .entry(blas)
+            .ok_or_else(|| BackendError::Other(format!("compaction of unknown {blas:?}")))?;
+        let size = e
+            .compacted_size
+            .ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
         let (src, class, sizes, shading) = (e.parts[0].raw, e.class, e.sizes, e.shading);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
         let t = self.timestamp_begin(CostOp::Compact, e_bytes(self.entry(blas)));
         // The compacted copy takes over the input buffers (shading reads them).
         let inputs = {
             let slot = (blas.0 & 0xffff_ffff) as usize;
-            self.blases[slot].as_mut().and_then(|e| e.static_inputs.take())
+            self.blases[slot]
+                .as_mut()
+                .and_then(|e| e.static_inputs.take())
         };
         // SAFETY: recording; the source was built in an earlier, completed frame (its size query
         // was read), and begin_frame's barrier orders it; dst is at least the compacted size.
@@ -946,7 +1036,10 @@ impl AsBackend for VulkanBackend {
             gen,
             parts: vec![dst],
             class,
-            sizes: BlasSizes { as_bytes: size, ..sizes },
+            sizes: BlasSizes {
+                as_bytes: size,
+                ..sizes
+            },
             skinned_indices: None,
             static_inputs: inputs,
             shading,
@@ -963,14 +1056,18 @@ impl AsBackend for VulkanBackend {
             self.split_parts.remove(&e.parts[0].address);
         }
         for a in e.parts {
-            self.retiring.push_back((last_used_frame, Retired::BlasAccel(a)));
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasAccel(a)));
         }
         if let Some((ib, _, _)) = e.skinned_indices {
-            self.retiring.push_back((last_used_frame, Retired::BlasBuffer(ib)));
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasBuffer(ib)));
         }
         if let Some((vb, ib)) = e.static_inputs {
-            self.retiring.push_back((last_used_frame, Retired::BlasBuffer(vb)));
-            self.retiring.push_back((last_used_frame, Retired::BlasBuffer(ib)));
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasBuffer(vb)));
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasBuffer(ib)));
         }
         // Keep the queue ordered by frame (frees of older frames may arrive late).
         self.retiring.make_contiguous().sort_by_key(|(f, _)| *f);
@@ -988,16 +1085,31 @@ impl AsBackend for VulkanBackend {
         if !self.split_parts.is_empty() {
             for r in instances {
                 if let Some(parts) = self.split_parts.get(&r.blas_address) {
-                    records.extend(parts.iter().map(|&a| TlasInstance { blas_address: a, ..*r }));
+                    records.extend(parts.iter().map(|&a| TlasInstance {
+                        blas_address: a,
+                        ..*r
+                    }));
                 }
             }
         }
         let n = records.len().max(1) as u32;
         let s = self.current;
         let bytes = u64::from(n) * 64;
-        if self.slots[s].instances.as_ref().is_none_or(|b| b.size < bytes) {
+        if self.slots[s]
+            .instances
+            .as_ref()
+            .is_none_or(|b| b.size < bytes)
+        {
             let size = bytes.next_power_of_two().max(64 * 1024);
-            let buf = self.create_buffer(BufferDesc { name: "TLAS instances", size, usage: BUILD_INPUT_USAGE, memory: MemoryKind::Upload }, false)?;
+            let buf = self.create_buffer(
+                BufferDesc {
+                    name: "TLAS instances",
+                    size,
+                    usage: BUILD_INPUT_USAGE,
+                    memory: MemoryKind::Upload,
+                },
+                false,
+            )?;
             if let Some(old) = self.slots[s].instances.replace(buf) {
                 self.retire_now(Retired::Buffer(old));
             }
@@ -1008,7 +1120,11 @@ impl AsBackend for VulkanBackend {
             self.reserve(sizes.storage, false)?;
             let tlas = self
                 .ctx
-                .create_accel(vk::AccelerationStructureTypeKHR::TOP_LEVEL, sizes.storage, &format!("TLAS slot {s}"))
+                .create_accel(
+                    vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+                    sizes.storage,
+                    &format!("TLAS slot {s}"),
+                )
                 .map_err(|e| {
                     self.unreserve(sizes.storage, false);
                     backend_err(e)
@@ -1019,12 +1135,18 @@ impl AsBackend for VulkanBackend {
             self.slots[s].tlas_capacity = cap;
         }
         let sizes = self.ctx.tlas_sizes(n, self.desc.tlas_flags);
-        self.ensure_scratch(align_up(sizes.build_scratch, self.ctx.info().min_scratch_alignment))?;
+        self.ensure_scratch(align_up(
+            sizes.build_scratch,
+            self.ctx.info().min_scratch_alignment,
+        ))?;
         let scratch = self.scratch_alloc(sizes.build_scratch);
         let slot = &mut self.slots[s];
         let ibuf = slot.instances.as_mut().expect("allocated above");
         ibuf.write(0, bytemuck::cast_slice(&records));
-        let (iaddr, tlas) = (ibuf.address, slot.tlas.as_ref().expect("allocated above").raw);
+        let (iaddr, tlas) = (
+            ibuf.address,
+            slot.tlas.as_ref().expect("allocated above").raw,
+        );
         let count = records.len() as u32;
         self.expanded = records;
         let t = self.timestamp_begin(CostOp::Tlas, u64::from(count));
@@ -1032,7 +1154,8 @@ impl AsBackend for VulkanBackend {
         // before the TLAS build; every referenced BLAS is live until its retirement frame.
         unsafe {
             self.ctx.cmd_accel_barrier(cmd);
-            self.ctx.cmd_build_tlas(cmd, tlas, None, self.desc.tlas_flags, iaddr, count, scratch);
+            self.ctx
+                .cmd_build_tlas(cmd, tlas, None, self.desc.tlas_flags, iaddr, count, scratch);
         }
         self.timestamp_end(t);
         Ok(TlasHandle(s as u64))
@@ -1045,14 +1168,19 @@ impl AsBackend for VulkanBackend {
             // SAFETY: recording; the barrier makes the TLAS build visible to later traces.
             unsafe {
                 self.ctx.cmd_accel_barrier(cmd);
-                self.ctx.device.end_command_buffer(cmd).op("vkEndCommandBuffer")?;
+                self.ctx
+                    .device
+                    .end_command_buffer(cmd)
+                    .op("vkEndCommandBuffer")?;
             }
             let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
             let signal = [vk::SemaphoreSubmitInfo::default()
                 .semaphore(self.timeline)
                 .value(value)
                 .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
-            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds).signal_semaphore_infos(&signal)];
+            let submit = [vk::SubmitInfo2::default()
+                .command_buffer_infos(&cmds)
+                .signal_semaphore_infos(&signal)];
             self.ctx.submit(&submit)
         })();
         let s = &mut self.slots[self.current];

@@ -4,11 +4,11 @@
 use ash::vk;
 
 use super::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
-use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use super::context::VulkanContext;
 use super::error::VkResult;
 use super::geometry::GpuGeometry;
 use super::query::{QueryKind, QueryPool};
+use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);

@@ -9,12 +9,12 @@ use ash::vk;
 
 use super::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
 use super::backend::class_flags;
-use crate::backend::BlasClass;
-use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use super::buffer::GpuBuffer;
 use super::context::VulkanContext;
 use super::error::{VkResult, VulkanError};
 use super::geometry::{GpuGeometry, MeshDesc};
+use crate::backend::BlasClass;
+use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 
 /// A placement of a mesh.
 #[derive(Debug, Clone, Copy)]
