@@ -328,6 +328,9 @@ fn main() -> BoxResult<()> {
         raw_ms.push(time_blas_builds(ctx, &copy_refs, fast_trace, true, 1)?.0);
         let mut config = Config::default();
         config.residency.create_threshold = 0;
+        config.residency.r1 = 5_000.0;
+        config.residency.r2 = 6_000.0;
+        config.cull.far_distance = 10_000.0;
         config.build.max_primitives = u64::MAX / 4;
         config.build.max_gpu_ms = 1e9;
         config.memory.blas_bytes = 64 << 30;

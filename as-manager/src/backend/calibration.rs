@@ -47,11 +47,12 @@ pub struct CostModel {
 }
 
 impl SizeModel {
-    /// Mesa lavapipe (measured: ~104 B per triangle, 176 B per TLAS instance, 64 B scratch,
-    /// compaction saves nothing).
+    /// Mesa lavapipe 25.0.7 (measured here with `examples/gpu_bench.rs`: BLAS = 104 B per
+    /// triangle − 16 for both classes, 64 B scratch, 176 B per TLAS instance, compaction saves
+    /// nothing).
     pub fn lavapipe() -> Self {
         Self {
-            blas_fixed: 256.0,
+            blas_fixed: 0.0,
             blas_per_triangle: 104.0,
             blas_per_vertex: 0.0,
             scratch_fixed: 64.0,
@@ -60,23 +61,26 @@ impl SizeModel {
             skinned_factor: 1.0,
             compaction_ratio: 1.0,
             tlas_per_instance: 176.0,
-            align: 256,
+            align: 8,
         }
     }
 
-    /// PLACEHOLDER for NVIDIA H100/H200 (driver 580) until issue 5's runs fill it in.
-    pub fn nvidia_placeholder() -> Self {
+    /// NVIDIA H200, driver 580.159.04 (docs/GPU.md; the H100 runs the same driver family):
+    /// FAST_TRACE BLAS ≈ 1.9 KB + 91.7 B per triangle, FAST_BUILD 0.826 of that, build scratch
+    /// ≈ 1.6 KB + 5.2 B per triangle, update scratch 1.5 KB, compacted 0.835 of the original,
+    /// TLAS 161.3 B per instance.
+    pub fn nvidia() -> Self {
         Self {
-            blas_fixed: 1024.0,
-            blas_per_triangle: 64.0,
+            blas_fixed: 1900.0,
+            blas_per_triangle: 91.7,
             blas_per_vertex: 0.0,
-            scratch_fixed: 4096.0,
-            scratch_per_triangle: 64.0,
-            update_scratch_per_triangle: 8.0,
-            skinned_factor: 1.25,
-            compaction_ratio: 0.55,
-            tlas_per_instance: 128.0,
-            align: 256,
+            scratch_fixed: 1600.0,
+            scratch_per_triangle: 5.2,
+            update_scratch_per_triangle: 0.0,
+            skinned_factor: 0.8263,
+            compaction_ratio: 0.835,
+            tlas_per_instance: 161.3,
+            align: 128,
         }
     }
 
@@ -235,15 +239,17 @@ impl CostModel {
         }
     }
 
-    /// PLACEHOLDER for NVIDIA H100/H200 until issue 5's runs fill it in.
-    pub fn nvidia_placeholder() -> Self {
+    /// NVIDIA H200, driver 580 (docs/GPU.md): 623 M tris/s FAST_TRACE and 1096 M tris/s
+    /// FAST_BUILD on large meshes, refit ≈ 0.28 ms per million triangles, compaction copies
+    /// ≈ 0.0015 ms per MiB, TLAS ≈ 1.2 ms per million instances.
+    pub fn nvidia() -> Self {
         Self {
-            batch_fixed_ms: 0.01,
-            build_static_ms_per_mtri: 2.5,
-            build_skinned_ms_per_mtri: 1.5,
-            refit_ms_per_mtri: 0.4,
-            compact_ms_per_mib: 0.01,
-            tlas_ms_per_kinst: 0.002,
+            batch_fixed_ms: 0.02,
+            build_static_ms_per_mtri: 1.61,
+            build_skinned_ms_per_mtri: 0.91,
+            refit_ms_per_mtri: 0.28,
+            compact_ms_per_mib: 0.0015,
+            tlas_ms_per_kinst: 0.0012,
         }
     }
 
@@ -338,6 +344,6 @@ mod tests {
         assert!((fitted.compaction_ratio - 0.6).abs() < 0.01);
         assert!((fitted.skinned_factor - 1.2).abs() < 0.02);
         assert!(fitted.worst_relative_error(&samples) < 0.10);
-        assert!(SizeModel::nvidia_placeholder().worst_relative_error(&samples) > 0.10);
+        assert!(SizeModel::nvidia().worst_relative_error(&samples) > 0.10);
     }
 }

@@ -2,7 +2,7 @@
 //!
 //! The coefficients are plain structs ([`SizeModel`], [`CostModel`]) so each driver gets its
 //! own preset. `lavapipe()` holds what the lead measured on Mesa lavapipe (2 cores, 2026-11);
-//! `nvidia_placeholder()` holds rough numbers to be replaced by the GPU runs (issue 5).
+//! `nvidia()` is fitted to the H200 runs in docs/GPU.md, `lavapipe()` to lavapipe's reports.
 //!
 //! ```
 //! use rtstream_as_manager::backend::{AsBackend, BlasClass, GeometryRef};
@@ -101,6 +101,11 @@ impl ModelBackend {
     /// Lavapipe presets.
     pub fn lavapipe() -> Self {
         Self::new(SizeModel::lavapipe(), CostModel::lavapipe())
+    }
+
+    /// NVIDIA (H200, driver 580) presets, fitted to docs/GPU.md.
+    pub fn nvidia() -> Self {
+        Self::new(SizeModel::nvidia(), CostModel::nvidia())
     }
 
     /// Counters so far.

@@ -464,10 +464,7 @@ fn compaction_within_budget_counts_the_double_copy() {
     cfg.memory.blas_bytes = budget;
     let mut m = AsManager::new(
         cfg,
-        ModelBackend::new(
-            SizeModel::nvidia_placeholder(),
-            CostModel::nvidia_placeholder(),
-        ),
+        ModelBackend::new(SizeModel::nvidia(), CostModel::nvidia()),
     )
     .unwrap();
     for i in 0..30 {
