@@ -94,10 +94,10 @@ pub fn time_blas_builds(
     let (scratch, base) = ctx.create_scratch("time_blas_builds scratch", stride * count as u64)?;
     let mut accels = Vec::with_capacity(count);
     let mut result = Ok(());
-    for i in 0..count {
+    for (i, sz) in all_sizes.iter().enumerate() {
         match ctx.create_accel(
             vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-            all_sizes[i].storage,
+            sz.storage,
             &format!("bench blas {i}"),
         ) {
             Ok(a) => accels.push(a),
