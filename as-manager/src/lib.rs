@@ -70,6 +70,6 @@ pub use config::{
 pub use error::{AsError, Result};
 pub use ids::{InstanceId, MeshId};
 pub use manager::{
-    AsManager, Camera, FrameInput, FrameOutput, FrameStats, InstanceDesc, Registrar,
+    AsManager, Camera, FrameInput, FrameOutput, FrameStats, ImageError, InstanceDesc, Registrar,
 };
 pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind, MAX_LODS};

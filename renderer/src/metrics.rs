@@ -25,6 +25,17 @@ pub struct FrameMetrics {
     pub psnr_db: f64,
 }
 
+impl From<FrameMetrics> for rtstream_as_manager::ImageError {
+    fn from(m: FrameMetrics) -> Self {
+        Self {
+            primary_mismatch: m.primary_mismatch,
+            shadow_mismatch: m.shadow_mismatch,
+            color_rmse: m.color_rmse,
+            psnr_db: m.psnr_db,
+        }
+    }
+}
+
 impl FrameMetrics {
     /// Compares two frames whose customIndex values name the same instances (e.g. both TLASes
     /// were built with the instance's stable id as customIndex).

@@ -102,6 +102,22 @@ pub struct FrameStats {
     pub oom_events: u32,
     /// GPU ms measured by the backend and received this frame.
     pub measured_gpu_ms: f64,
+    /// Image error of this frame against a reference frame, when the caller evaluated it (see
+    /// [`AsManager::record_evaluation`]; the renderer's `FrameMetrics` converts into it).
+    pub evaluation: Option<ImageError>,
+}
+
+/// Image error of a managed frame against its reference (every instance, finest LOD, no culling).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ImageError {
+    /// Share of pixels whose primary-hit instance differs.
+    pub primary_mismatch: f64,
+    /// Share of pixels whose shadow bit differs.
+    pub shadow_mismatch: f64,
+    /// RMSE of the RGB channels in [0, 1].
+    pub color_rmse: f64,
+    /// PSNR in dB (infinite for identical colours).
+    pub psnr_db: f64,
 }
 
 impl FrameStats {
@@ -297,6 +313,12 @@ impl<B: AsBackend> AsManager<B> {
     /// The cost model as refined by measurements so far.
     pub fn cost_model(&self) -> &CostModel {
         &self.costs
+    }
+
+    /// Attaches the image error of the last frame (rendered and compared by the caller, since
+    /// the manager renders nothing) to its [`FrameStats`].
+    pub fn record_evaluation(&mut self, error: ImageError) {
+        self.stats.evaluation = Some(error);
     }
 
     /// The last frame's statistics.

@@ -526,3 +526,35 @@ fn thread_safety_bounds() {
     send::<AsManager<ModelBackend>>();
     send_sync::<Registrar>();
 }
+
+#[test]
+fn evaluation_is_recorded_for_its_frame_only() {
+    let mut m = mgr(Config::default());
+    let mesh = static_mesh(&m, 100, 1.0);
+    m.add_instance(InstanceDesc::new(mesh, at(0.0, 10.0)))
+        .unwrap();
+    m.update(FrameInput {
+        frame: 0,
+        cameras: &cam(0.0, 0.0),
+    })
+    .unwrap();
+    assert_eq!(m.stats().evaluation, None);
+    let e = ImageError {
+        primary_mismatch: 0.01,
+        shadow_mismatch: 0.02,
+        color_rmse: 0.03,
+        psnr_db: 30.0,
+    };
+    m.record_evaluation(e);
+    assert_eq!(m.stats().evaluation, Some(e));
+    m.update(FrameInput {
+        frame: 1,
+        cameras: &cam(0.0, 0.0),
+    })
+    .unwrap();
+    assert_eq!(
+        m.stats().evaluation,
+        None,
+        "a new frame starts without an evaluation"
+    );
+}
