@@ -59,6 +59,7 @@ impl<B: AsBackend> AsManager<B> {
             }
         });
         self.stats.instances_visited = self.visits.len() as u32;
+        let need_data = self.backend.needs_geometry();
         for vi in 0..self.visits.len() {
             let v = self.visits[vi];
             let Some(inst) = self.t.instances[v.slot as usize].as_mut() else { continue };
@@ -66,6 +67,8 @@ impl<B: AsBackend> AsManager<B> {
             let was_visited = inst.last_visit == frame.wrapping_sub(1);
             let current = if was_visited { inst.lod_target as usize } else { mesh.errors.len() - 1 };
             let lod = self.lod.select(&mesh.errors, inst.scale, v.surface_dist, current, mesh.lod_floor as usize);
+            // A GPU builds only from resident data: the nearest LOD that has some.
+            let Some(lod) = mesh.with_data(lod, need_data) else { continue };
             inst.lod_target = lod as u8;
             inst.last_visit = frame;
             if !was_visited {

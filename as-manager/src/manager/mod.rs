@@ -220,6 +220,11 @@ impl<B: AsBackend> AsManager<B> {
         self.registrar.register_mesh(desc)
     }
 
+    /// See [`Registrar::set_lod_geometry`].
+    pub fn set_lod_geometry(&self, mesh: crate::MeshId, lod: usize, geometry: crate::LodGeometry) -> Result<()> {
+        self.registrar.set_lod_geometry(mesh, lod, geometry)
+    }
+
     /// See [`Registrar::unregister_mesh`].
     pub fn unregister_mesh(&self, id: crate::MeshId) -> Result<()> {
         self.registrar.unregister_mesh(id)
@@ -423,3 +428,5 @@ impl<B: AsBackend> AsManager<B> {
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod lod_geometry_tests;
