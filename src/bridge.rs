@@ -79,6 +79,8 @@ struct Placed {
     slot: u32,
     mesh: MeshId,
     skinned: bool,
+    transform: glam::Mat4,
+    center: Vec3,
 }
 
 /// Applies [`WorldEvent`]s to an [`AsManager`]; see the module docs.
@@ -90,6 +92,7 @@ pub struct WorldBridge {
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
     stats: BridgeStats,
+    counts_only: bool,
 }
 
 fn color_of(mesh: MeshId, name: &str) -> [f32; 4] {
@@ -123,6 +126,23 @@ impl WorldBridge {
         Self {
             manifest_meshes: manifest.map(|m| m.meshes.clone()).unwrap_or_default(),
             ..Self::default()
+        }
+    }
+
+    /// Registers counts only, never data (for the model backend: no copies of the geometry).
+    pub fn counts_only(mut self) -> Self {
+        self.counts_only = true;
+        self
+    }
+
+    fn geometry_of(&self, g: &rtstream_streaming::LodGeometry) -> LodGeometry {
+        if self.counts_only {
+            LodGeometry::Counts {
+                vertices: g.positions.len() as u32,
+                triangles: g.triangle_count() as u32,
+            }
+        } else {
+            data_of(g)
         }
     }
 
@@ -207,6 +227,9 @@ impl WorldBridge {
             slot.resident[lod] = Some(g.clone());
             let id = slot.id;
             self.stats.lod_swaps += 1;
+            if self.counts_only {
+                return;
+            }
             if let Err(e) = m.set_lod_geometry(id, lod, data_of(g)) {
                 self.reject("LOD geometry", e);
             }
@@ -252,7 +275,7 @@ impl WorldBridge {
             prev_err = err;
             counts.push((verts, tris));
             let geometry = if l == lod {
-                data_of(g)
+                self.geometry_of(g)
             } else {
                 LodGeometry::Counts {
                     vertices: verts,
@@ -303,6 +326,9 @@ impl WorldBridge {
         let (vertices, triangles) = slot.counts[lod];
         let id = slot.id;
         self.stats.lod_swaps += 1;
+        if self.counts_only {
+            return;
+        }
         if let Err(e) = m.set_lod_geometry(
             id,
             lod,
@@ -351,6 +377,8 @@ impl WorldBridge {
                         slot,
                         mesh: inst.mesh,
                         skinned: skinned && inst.motion == Motion::Skinned,
+                        transform: inst.transform,
+                        center: inst.sphere.center,
                     },
                 );
             }
@@ -445,18 +473,27 @@ impl WorldBridge {
         table
     }
 
-    /// World positions of the placed instances' centres within `radius` of `at` with their
-    /// customIndex (for reference scenes).
-    pub fn placed_near(
-        &self,
-        world_instances: &[Instance],
-        at: Vec3,
-        radius: f32,
-    ) -> Vec<(u32, Instance)> {
-        world_instances
+    /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
+    /// transform), for reference scenes.
+    pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, MeshId, glam::Mat4)> {
+        let mut v: Vec<_> = self
+            .placed
+            .values()
+            .filter(|p| p.center.distance(at) <= radius)
+            .map(|p| (p.slot, p.mesh, p.transform))
+            .collect();
+        v.sort_by_key(|p| p.0);
+        v
+    }
+
+    /// The finest LOD of `mesh` resident now.
+    pub fn finest_resident(&self, mesh: MeshId) -> Option<Arc<rtstream_streaming::LodGeometry>> {
+        self.meshes
+            .get(&mesh)?
+            .resident
             .iter()
-            .filter(|i| i.sphere.center.distance(at) <= radius + i.sphere.radius)
-            .filter_map(|i| self.placed.get(&i.id).map(|p| (p.slot, *i)))
-            .collect()
+            .flatten()
+            .next()
+            .cloned()
     }
 }
