@@ -5,4 +5,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
-cargo run --release --example engine -- "$@"
+cargo run --release --example engine
+cargo run --release --example flythrough -- "$@"
