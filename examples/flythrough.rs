@@ -18,7 +18,6 @@ use rtstream::as_manager::backend::model::ModelBackend;
 use rtstream::as_manager::backend::vulkan::{
     ContextDesc, MeshDesc as VkMeshDesc, VulkanBackend, VulkanBackendDesc, VulkanContext,
 };
-use rtstream::as_manager::backend::AsBackend;
 use rtstream::as_manager::{AsManager, Camera, Config, FrameInput, FrameStats, PolicyKind};
 use rtstream::renderer::{
     Camera as ViewCamera, FrameMetrics, RenderDesc, Renderer, SceneInstance, TracedScene,
@@ -374,9 +373,6 @@ impl ApplyAny for WorldBridge {
         }
     }
 }
-
-#[allow(dead_code)]
-fn _assert_backend<B: AsBackend>(_: &AsManager<B>) {}
 
 /// Reference of a rendered frame: every placed instance within 300 m at its finest resident
 /// LOD, nothing culled; returns the image error of `img` against it.
