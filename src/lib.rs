@@ -7,16 +7,19 @@
 //!   with a Vulkan backend (ash) and a GPU-less model backend.
 //! - [`renderer`]: the ray-query renderer that traces the manager's TLAS, and image metrics.
 //!
-//! `streaming` and `as_manager` do not know each other: the examples wire streaming's events
-//! into the manager's API, as an engine would with its own streaming.
+//! `streaming` and `as_manager` do not know each other: [`WorldBridge`] wires streaming's events
+//! into the manager's API, as an engine would with its own streaming; `examples/flythrough.rs`
+//! (the main job) drives it across the 4 km map.
 
 pub use rtstream_as_manager as as_manager;
 pub use rtstream_renderer as renderer;
 pub use rtstream_streaming as streaming;
 
+pub mod bridge;
 mod error;
 pub mod eval;
 mod gltf_scene;
 
+pub use bridge::{BridgeStats, ShadingSlot, WorldBridge};
 pub use error::{Error, Result};
 pub use gltf_scene::{reference_scene, world_bounds, GpuGltfScene};

@@ -160,6 +160,12 @@ pub trait AsBackend: Send {
     fn begin_frame(&mut self, frame: u64) -> BackendResult<()>;
     /// The newest frame whose GPU work has completed, if any.
     fn completed_frame(&self) -> Option<u64>;
+    /// Whether builds and refits need vertex/index data (`true` for a real GPU). When it does,
+    /// the manager only targets LODs whose geometry is registered as [`crate::LodGeometry::Data`]
+    /// (see `Registrar::set_lod_geometry`), falling back to the nearest LOD that has data.
+    fn needs_geometry(&self) -> bool {
+        true
+    }
     /// Sizes of a BLAS for this geometry and class, before building.
     fn blas_sizes(&self, geometry: &GeometryRef<'_>, class: BlasClass) -> BlasSizes;
     /// Records one batched build of `builds`; returns their handles in order. All or nothing.

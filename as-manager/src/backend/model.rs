@@ -64,6 +64,10 @@ pub struct ModelBackend {
     pub device_bytes: Option<u64>,
     /// Report lost device on the next call.
     pub lose_device: bool,
+    /// Behave like a real GPU about data: [`AsBackend::needs_geometry`] returns this, and a
+    /// build of counts-only geometry fails with [`BackendError::MissingGeometry`] (default
+    /// `false`: counts are enough for a model).
+    pub require_geometry: bool,
     blases: HashMap<BlasHandle, ModelBlas>,
     retiring: VecDeque<(u64, BlasHandle)>,
     next_handle: u64,
@@ -85,6 +89,7 @@ impl ModelBackend {
             frames_in_flight: 2,
             device_bytes: None,
             lose_device: false,
+            require_geometry: false,
             blases: HashMap::new(),
             retiring: VecDeque::new(),
             next_handle: 1,
@@ -192,8 +197,15 @@ impl AsBackend for ModelBackend {
             .blas_sizes(g.vertex_count, g.triangle_count, class)
     }
 
+    fn needs_geometry(&self) -> bool {
+        self.require_geometry
+    }
+
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
         self.lost()?;
+        if self.require_geometry && builds.iter().any(|b| b.geometry.indices.is_none()) {
+            return Err(BackendError::MissingGeometry);
+        }
         let total: u64 = builds.iter().map(|b| b.sizes.as_bytes).sum();
         if !self.fits(total) {
             self.counters.oom_failures += 1;

@@ -44,6 +44,13 @@ impl<B: AsBackend> AsManager<B> {
                         dead_instances.push(id.index);
                     }
                 }
+                Command::SetLodGeometry(id, lod, geometry) => {
+                    if let Some(Some(m)) = self.t.meshes.get_mut(id.index as usize) {
+                        if let Some(l) = Arc::make_mut(&mut m.desc).lods.get_mut(lod) {
+                            l.geometry = geometry;
+                        }
+                    }
+                }
                 Command::SetPose(id, pose) => {
                     if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
                         i.pose = pose;

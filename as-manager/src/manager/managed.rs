@@ -41,6 +41,7 @@ impl<B: AsBackend> AsManager<B> {
         let r2 = self.config.residency.r2;
         let r1 = self.config.residency.r1;
         let frame = self.frame;
+        let need_data = self.backend.needs_geometry();
         let Self {
             grid,
             visits,
@@ -83,6 +84,10 @@ impl<B: AsBackend> AsManager<B> {
                 current,
                 mesh.lod_floor as usize,
             );
+            // A GPU builds only from resident data: the nearest LOD that has some.
+            let Some(lodi) = mesh.with_data(lodi, need_data) else {
+                return;
+            };
             h.lod_target = lodi as u8;
             h.last_visit = frame;
             if !was_visited {

@@ -236,6 +236,16 @@ impl<B: AsBackend> AsManager<B> {
         self.registrar.register_mesh(desc)
     }
 
+    /// See [`Registrar::set_lod_geometry`].
+    pub fn set_lod_geometry(
+        &self,
+        mesh: crate::MeshId,
+        lod: usize,
+        geometry: crate::LodGeometry,
+    ) -> Result<()> {
+        self.registrar.set_lod_geometry(mesh, lod, geometry)
+    }
+
     /// See [`Registrar::unregister_mesh`].
     pub fn unregister_mesh(&self, id: crate::MeshId) -> Result<()> {
         self.registrar.unregister_mesh(id)
@@ -524,5 +534,7 @@ impl<B: AsBackend> AsManager<B> {
     }
 }
 
+#[cfg(test)]
+mod lod_geometry_tests;
 #[cfg(test)]
 mod tests;

@@ -8,7 +8,7 @@ use glam::Affine3A;
 use parking_lot::Mutex;
 
 use crate::ids::IdAllocator;
-use crate::mesh::{MeshDesc, MeshKind};
+use crate::mesh::{LodGeometry, MeshDesc, MeshKind};
 use crate::{AsError, InstanceId, MeshId, Result};
 
 /// Parameters of a placed instance.
@@ -50,6 +50,7 @@ pub(crate) enum Command {
     SetTransform(InstanceId, Affine3A),
     RemoveInstance(InstanceId),
     SetPose(InstanceId, Option<Arc<Vec<[f32; 3]>>>),
+    SetLodGeometry(MeshId, usize, LodGeometry),
 }
 
 #[derive(Debug, Default)]
@@ -58,6 +59,7 @@ pub(crate) struct Pending {
     pub meshes: IdAllocator,
     pub instances: IdAllocator,
     pub mesh_kind: Vec<MeshKind>,
+    pub mesh_lods: Vec<u8>,
     pub instance_skinned: Vec<bool>,
 }
 
@@ -83,8 +85,60 @@ impl Registrar {
             p.mesh_kind.resize(index as usize + 1, MeshKind::Static);
         }
         p.mesh_kind[index as usize] = desc.kind;
+        if p.mesh_lods.len() <= index as usize {
+            p.mesh_lods.resize(index as usize + 1, 0);
+        }
+        p.mesh_lods[index as usize] = desc.lods.len() as u8;
         p.commands.push(Command::RegisterMesh(id, Arc::new(desc)));
         Ok(id)
+    }
+
+    /// Queues a swap of one LOD's geometry, for meshes whose LODs stream in and out: register
+    /// the chain with [`LodGeometry::Counts`] for LODs not resident, then set
+    /// [`LodGeometry::Data`] when one arrives and `Counts` again when it is evicted. A backend
+    /// that [needs geometry](crate::backend::AsBackend::needs_geometry) only gets builds of LODs
+    /// with data (others fall back to the nearest LOD with data); a BLAS already built from an
+    /// evicted LOD stays until released normally (it holds no reference to the CPU data).
+    /// The geometric error stays as registered.
+    ///
+    /// ```
+    /// use rtstream_as_manager::{synth::{counts_chain, grid_geometry}, *};
+    /// let r = Registrar::default();
+    /// let mesh = r.register_mesh(MeshDesc::new("m", MeshKind::Static, 1.0, counts_chain(512, 3, 0.01))).unwrap();
+    /// r.set_lod_geometry(mesh, 2, LodGeometry::Data(grid_geometry(8, 1.0))).unwrap();
+    /// assert!(r.set_lod_geometry(mesh, 3, LodGeometry::Data(grid_geometry(8, 1.0))).is_err());
+    /// ```
+    pub fn set_lod_geometry(&self, mesh: MeshId, lod: usize, geometry: LodGeometry) -> Result<()> {
+        let probe = MeshDesc::new(
+            "lod",
+            MeshKind::Static,
+            1.0,
+            vec![crate::LodDesc {
+                geometry,
+                geometric_error: 0.0,
+            }],
+        );
+        probe.validate()?;
+        let geometry = probe
+            .lods
+            .into_iter()
+            .next()
+            .map(|l| l.geometry)
+            .expect("one LOD");
+        let mut p = self.pending.lock();
+        if !p.meshes.is_live(mesh.index, mesh.generation) {
+            return Err(AsError::UnknownMesh(mesh));
+        }
+        let lods = p.mesh_lods[mesh.index as usize] as usize;
+        if lod >= lods {
+            return Err(AsError::InvalidMesh {
+                name: format!("{mesh:?}"),
+                reason: format!("LOD {lod} out of range (mesh has {lods})"),
+            });
+        }
+        p.commands
+            .push(Command::SetLodGeometry(mesh, lod, geometry));
+        Ok(())
     }
 
     /// Queues the removal of a mesh, its BLASes and all its instances.

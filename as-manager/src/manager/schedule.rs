@@ -142,6 +142,11 @@ impl<B: AsBackend> AsManager<B> {
                 BlasClass::Static
             };
             let geometry = mesh.desc.lods[lod].geometry.clone();
+            if geometry.data().is_none() && self.backend.needs_geometry() {
+                // Its data was evicted since it was queued: wait for it (or another LOD).
+                self.t.entries[slot as usize].state = EntryState::Idle;
+                continue;
+            }
             let opaque = mesh.desc.opaque;
             let nlods = mesh.nlods as usize;
             let pose = if owner != NONE {
@@ -337,6 +342,9 @@ impl<B: AsBackend> AsManager<B> {
                 .expect("owner lives");
             let mesh = self.t.meshes[e.mesh as usize].as_ref().expect("live mesh");
             let geometry = mesh.desc.lods[e.lod as usize].geometry.clone();
+            if geometry.data().is_none() && self.backend.needs_geometry() {
+                continue; // LOD data evicted: keep the last refit until it is back or released
+            }
             let pose = inst.pose.clone();
             let mut rebuild = false;
             let mut ratio = e.last_ratio;

@@ -37,6 +37,17 @@ impl MeshState {
     pub fn errors(&self) -> &[f32] {
         &self.errors[..self.nlods as usize]
     }
+
+    /// `lod` if it has data, else the nearest LOD with data (coarser first, then finer); any
+    /// LOD when `need_data` is false. `None`: no LOD has data.
+    pub fn with_data(&self, lod: usize, need_data: bool) -> Option<usize> {
+        let lods = &self.desc.lods;
+        if !need_data {
+            return Some(lod);
+        }
+        let has = |l: usize| lods[l].geometry.data().is_some();
+        (lod..lods.len()).chain((0..lod).rev()).find(|&l| has(l))
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,0 +1,218 @@
+//! `set_lod_geometry`: LODs that stream in and out, against a model backend that, like a GPU,
+//! needs data to build (`require_geometry`).
+
+use glam::{Affine3A, Vec3};
+
+use crate::backend::model::ModelBackend;
+use crate::backend::AsBackend;
+use crate::synth::{counts_chain, grid_geometry};
+use crate::*;
+
+fn gpu_like() -> AsManager<ModelBackend> {
+    let mut b = ModelBackend::lavapipe();
+    b.require_geometry = true;
+    AsManager::new(Config::default(), b).unwrap()
+}
+
+fn data(n: u32) -> LodGeometry {
+    LodGeometry::Data(grid_geometry(n, 1.0))
+}
+
+const CAM: [Camera; 1] = [Camera {
+    position: Vec3::ZERO,
+    forward: Vec3::Z,
+}];
+
+/// Runs frames `from..to`; returns the last frame's TLAS size.
+fn run(m: &mut AsManager<ModelBackend>, from: u64, to: u64) -> usize {
+    let mut n = 0;
+    for frame in from..to {
+        let recs = m
+            .update(FrameInput {
+                frame,
+                cameras: &CAM,
+            })
+            .expect("no MissingGeometry")
+            .instances
+            .to_vec();
+        for r in &recs {
+            assert!(m.backend().is_live_address(r.blas_address));
+        }
+        n = m.stats().tlas_instances as usize;
+    }
+    n
+}
+
+#[test]
+fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
+    let mut m = gpu_like();
+    // Near: the selector wants LOD 0, but only the coarsest (2) is resident.
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    m.set_lod_geometry(mesh, 2, data(8)).unwrap();
+    let inst = m
+        .add_instance(InstanceDesc::new(
+            mesh,
+            Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
+        ))
+        .unwrap();
+    assert_eq!(run(&mut m, 0, 4), 1, "shown at the resident LOD");
+    assert_eq!(m.instance_lod(inst), Some(2));
+
+    m.set_lod_geometry(mesh, 0, data(16)).unwrap();
+    assert_eq!(run(&mut m, 4, 8), 1);
+    assert_eq!(m.instance_lod(inst), Some(0), "finer data arrived: refined");
+
+    // LOD 0 evicted: the target falls back to the resident LOD 2 (the built LOD-0 BLAS may
+    // stay until released normally); nothing is built from counts and nothing flickers.
+    m.set_lod_geometry(
+        mesh,
+        0,
+        LodGeometry::Counts {
+            vertices: 289,
+            triangles: 512,
+        },
+    )
+    .unwrap();
+    for f in 8..60 {
+        assert_eq!(run(&mut m, f, f + 1), 1, "the instance stays visible");
+    }
+    assert_eq!(m.instance_lod(inst), Some(2));
+}
+
+#[test]
+fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
+    let mut m = gpu_like();
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    m.set_lod_geometry(mesh, 1, data(12)).unwrap();
+    let inst = m
+        .add_instance(InstanceDesc::new(
+            mesh,
+            Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
+        ))
+        .unwrap();
+    assert_eq!(run(&mut m, 0, 4), 1);
+    assert_eq!(
+        m.instance_lod(inst),
+        Some(1),
+        "finer missing: nearest coarser with data"
+    );
+    // Fly away until released, evict LOD 1, make LOD 0 resident, come back.
+    let far = [Camera::new(Vec3::new(10_000.0, 0.0, 0.0), Vec3::Z)];
+    for frame in 4..80 {
+        m.update(FrameInput {
+            frame,
+            cameras: &far,
+        })
+        .unwrap();
+    }
+    assert_eq!(m.stats().blas_count, 0, "released");
+    m.set_lod_geometry(
+        mesh,
+        1,
+        LodGeometry::Counts {
+            vertices: 131,
+            triangles: 256,
+        },
+    )
+    .unwrap();
+    m.set_lod_geometry(mesh, 0, data(16)).unwrap();
+    assert_eq!(run(&mut m, 80, 84), 1);
+    assert_eq!(m.instance_lod(inst), Some(0));
+}
+
+#[test]
+fn no_lod_with_data_means_no_blas_and_no_error() {
+    let mut m = gpu_like();
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    m.add_instance(InstanceDesc::new(
+        mesh,
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
+    ))
+    .unwrap();
+    assert_eq!(run(&mut m, 0, 5), 0);
+    assert_eq!(m.stats().blas_count, 0);
+}
+
+#[test]
+fn model_backend_without_data_requirement_uses_counts() {
+    let mut m = AsManager::new(Config::default(), ModelBackend::lavapipe()).unwrap();
+    assert!(!m.backend().needs_geometry());
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    let inst = m
+        .add_instance(InstanceDesc::new(
+            mesh,
+            Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
+        ))
+        .unwrap();
+    assert_eq!(run(&mut m, 0, 4), 1);
+    assert_eq!(m.instance_lod(inst), Some(0));
+}
+
+#[test]
+fn set_lod_geometry_validates() {
+    let m = gpu_like();
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    assert!(
+        m.set_lod_geometry(mesh, 3, data(4)).is_err(),
+        "LOD out of range"
+    );
+    let bad = GeometryData {
+        positions: vec![[0.0; 3]; 3],
+        indices: vec![0, 1, 7],
+    };
+    assert!(
+        m.set_lod_geometry(mesh, 0, LodGeometry::Data(std::sync::Arc::new(bad)))
+            .is_err(),
+        "index out of range"
+    );
+    assert!(m
+        .set_lod_geometry(
+            mesh,
+            0,
+            LodGeometry::Counts {
+                vertices: 0,
+                triangles: 0
+            }
+        )
+        .is_err());
+    m.unregister_mesh(mesh).unwrap();
+    assert!(matches!(
+        m.set_lod_geometry(mesh, 0, data(4)),
+        Err(AsError::UnknownMesh(_))
+    ));
+}

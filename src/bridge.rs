@@ -1,0 +1,499 @@
+//! `WorldBridge`: streaming's [`WorldEvent`]s into the BLAS manager's registration API.
+//!
+//! The two crates do not know each other; this is the wiring an engine would write for its own
+//! streaming:
+//! - A mesh is registered on its first `MeshLodLoaded` with its whole LOD chain: counts and
+//!   errors from the baked world's manifest ([`Manifest`]) for every LOD, [`LodGeometry::Data`]
+//!   for the LOD that arrived. Later `MeshLodLoaded`/`MeshLodEvicted` swap one LOD's geometry
+//!   between `Data` and `Counts` (`AsManager::set_lod_geometry`), so a GPU backend only builds
+//!   from resident data. Skinned meshes (those with skin weights) register as
+//!   [`MeshKind::Skinned`].
+//! - `LevelLoaded`: every [`MaterialClass::Opaque`] instance gets a manager instance (others are
+//!   not BLAS-eligible: counted, skipped) whose customIndex is a stable slot handed out here
+//!   and recycled on `LevelUnloaded`. The slot indexes the shading table ([`ShadingSlot`]).
+//! - `LoadFailed`: logged (`tracing::warn!`) and counted; nothing to undo.
+//! - Skinned poses: [`WorldBridge::pose_skinned`] takes [`World::skin_frame`]'s positions when
+//!   they are of the LOD the manager builds the instance at, and otherwise skins that LOD itself
+//!   (same animation phase), so a refit never gets a pose of another vertex count.
+//! - Shading: [`WorldBridge::shading`] turns the frame's TLAS records into the renderer's
+//!   per-customIndex table; geometry addresses come from the backend per BLAS address.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use glam::{Affine3A, Vec3};
+use rtstream_as_manager::backend::AsBackend;
+use rtstream_as_manager::record::TlasInstance;
+use rtstream_as_manager::{
+    AsManager, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshDesc, MeshKind,
+};
+use rtstream_renderer::InstanceShading;
+use rtstream_streaming::{
+    Aabb, Instance, InstanceId, LevelId, Manifest, MaterialClass, MeshId, Motion, World, WorldEvent,
+};
+
+/// What the renderer needs of one customIndex.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShadingSlot {
+    /// The streaming instance.
+    pub instance: InstanceId,
+    /// Its level.
+    pub level: LevelId,
+    /// Its mesh.
+    pub mesh: MeshId,
+    /// Linear RGBA base colour.
+    pub base_color: [f32; 4],
+}
+
+/// Counters of what the bridge did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BridgeStats {
+    /// Meshes registered with the manager.
+    pub meshes: usize,
+    /// Manager instances live now.
+    pub instances: usize,
+    /// Instances skipped because their material is not BLAS-eligible.
+    pub skipped_not_opaque: usize,
+    /// `LoadFailed` events seen.
+    pub load_failures: usize,
+    /// Registration calls the manager rejected (logged).
+    pub rejected: usize,
+    /// LOD geometry swaps (data in or out).
+    pub lod_swaps: usize,
+}
+
+#[derive(Debug)]
+struct MeshSlot {
+    id: rtstream_as_manager::MeshId,
+    skinned: bool,
+    /// Resident streaming geometry per LOD.
+    resident: Vec<Option<Arc<rtstream_streaming::LodGeometry>>>,
+    /// Counts per LOD (for eviction back to counts).
+    counts: Vec<(u32, u32)>,
+    color: [f32; 4],
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Placed {
+    id: rtstream_as_manager::InstanceId,
+    slot: u32,
+    mesh: MeshId,
+    skinned: bool,
+    transform: glam::Mat4,
+    center: Vec3,
+}
+
+/// Applies [`WorldEvent`]s to an [`AsManager`]; see the module docs.
+#[derive(Debug, Default)]
+pub struct WorldBridge {
+    manifest_meshes: Vec<rtstream_streaming::bake::MeshEntry>,
+    meshes: HashMap<MeshId, MeshSlot>,
+    placed: HashMap<InstanceId, Placed>,
+    slots: Vec<Option<ShadingSlot>>,
+    free_slots: Vec<u32>,
+    stats: BridgeStats,
+    counts_only: bool,
+}
+
+fn color_of(mesh: MeshId, name: &str) -> [f32; 4] {
+    let n = name.to_ascii_lowercase();
+    if n.contains("terrain") || n.contains("ground") {
+        return [0.32, 0.42, 0.22, 1.0];
+    }
+    // A stable, muted colour per mesh.
+    let mut h = (mesh.0 as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let mut c = [0.0; 3];
+    for v in &mut c {
+        h ^= h >> 29;
+        h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        *v = 0.35 + 0.5 * ((h >> 40) as f32 / (1u64 << 24) as f32);
+    }
+    [c[0], c[1], c[2], 1.0]
+}
+
+fn data_of(g: &rtstream_streaming::LodGeometry) -> LodGeometry {
+    LodGeometry::Data(Arc::new(GeometryData {
+        positions: g.positions.clone(),
+        indices: g.indices.clone(),
+    }))
+}
+
+impl WorldBridge {
+    /// A bridge for a baked world: its manifest gives every mesh's LOD chain up front.
+    /// Without one (`None`, e.g. [`World::empty`] with glTF levels) the LODs not yet seen are
+    /// estimated from the ones that arrive.
+    pub fn new(manifest: Option<&Manifest>) -> Self {
+        Self {
+            manifest_meshes: manifest.map(|m| m.meshes.clone()).unwrap_or_default(),
+            ..Self::default()
+        }
+    }
+
+    /// Registers counts only, never data (for the model backend: no copies of the geometry).
+    pub fn counts_only(mut self) -> Self {
+        self.counts_only = true;
+        self
+    }
+
+    fn geometry_of(&self, g: &rtstream_streaming::LodGeometry) -> LodGeometry {
+        if self.counts_only {
+            LodGeometry::Counts {
+                vertices: g.positions.len() as u32,
+                triangles: g.triangle_count() as u32,
+            }
+        } else {
+            data_of(g)
+        }
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> BridgeStats {
+        BridgeStats {
+            meshes: self.meshes.len(),
+            instances: self.placed.len(),
+            ..self.stats
+        }
+    }
+
+    /// The shading slot of a customIndex, if live.
+    pub fn slot(&self, custom_index: u32) -> Option<&ShadingSlot> {
+        self.slots.get(custom_index as usize)?.as_ref()
+    }
+
+    /// The manager instance of a streaming instance, if placed.
+    pub fn manager_instance(&self, id: InstanceId) -> Option<rtstream_as_manager::InstanceId> {
+        self.placed.get(&id).map(|p| p.id)
+    }
+
+    /// Applies events in order. Rejected registrations are logged and counted, never fatal.
+    pub fn apply<B: AsBackend>(&mut self, m: &AsManager<B>, events: &[WorldEvent]) {
+        for ev in events {
+            match ev {
+                WorldEvent::MeshLodLoaded {
+                    mesh,
+                    lod,
+                    lod_count,
+                    error,
+                    geometry,
+                } => self.lod_loaded(
+                    m,
+                    *mesh,
+                    *lod as usize,
+                    *lod_count as usize,
+                    *error,
+                    geometry,
+                ),
+                WorldEvent::MeshLodEvicted { mesh, lod } => {
+                    self.lod_evicted(m, *mesh, *lod as usize)
+                }
+                WorldEvent::LevelLoaded {
+                    level, instances, ..
+                } => {
+                    for inst in instances.iter() {
+                        self.place(m, *level, inst);
+                    }
+                }
+                WorldEvent::LevelUnloaded { instances, .. } => {
+                    for inst in instances.iter() {
+                        self.unplace(m, inst.id);
+                    }
+                }
+                WorldEvent::LoadFailed { level, mesh, error } => {
+                    self.stats.load_failures += 1;
+                    tracing::warn!(?level, ?mesh, %error, "load failed; the world carries on");
+                }
+            }
+        }
+    }
+
+    fn reject(&mut self, what: &str, e: rtstream_as_manager::AsError) {
+        self.stats.rejected += 1;
+        tracing::warn!(%e, "manager rejected {what}");
+    }
+
+    fn lod_loaded<B: AsBackend>(
+        &mut self,
+        m: &AsManager<B>,
+        mesh: MeshId,
+        lod: usize,
+        lod_count: usize,
+        error: f32,
+        g: &Arc<rtstream_streaming::LodGeometry>,
+    ) {
+        if let Some(slot) = self.meshes.get_mut(&mesh) {
+            if lod >= slot.resident.len() {
+                return;
+            }
+            slot.resident[lod] = Some(g.clone());
+            let id = slot.id;
+            self.stats.lod_swaps += 1;
+            if self.counts_only {
+                return;
+            }
+            if let Err(e) = m.set_lod_geometry(id, lod, data_of(g)) {
+                self.reject("LOD geometry", e);
+            }
+            return;
+        }
+        let skinned = g.skin.is_some();
+        let entry = self
+            .manifest_meshes
+            .get(mesh.0 as usize)
+            .filter(|e| e.id == mesh);
+        let (bounds, name) = match entry {
+            Some(e) => (e.bounds, e.name.clone()),
+            None => (Aabb::from_points(&g.positions), format!("mesh{}", mesh.0)),
+        };
+        let n = entry.map_or(lod_count, |e| e.lods.len()).max(lod + 1);
+        let tri_here = g.triangle_count() as u32;
+        let vert_here = g.positions.len() as u32;
+        let mut counts = Vec::with_capacity(n);
+        let mut lods = Vec::with_capacity(n);
+        let mut prev_err = 0.0f32;
+        for l in 0..n {
+            let (tris, verts, err) = match entry.and_then(|e| e.lods.get(l)) {
+                Some(le) => {
+                    let per_vertex = if skinned { 36 } else { 12 };
+                    let v = (le.bytes as u64).saturating_sub(le.triangles as u64 * 12) / per_vertex;
+                    (le.triangles.max(1), (v as u32).max(3), le.error)
+                }
+                None => {
+                    // Estimate: triangles halve per LOD, errors double from the known one.
+                    let shift = l as i32 - lod as i32;
+                    let f = 2f32.powi(-shift);
+                    let tris = ((tri_here as f32 * f) as u32).max(1);
+                    let verts = ((vert_here as f32 * f) as u32).max(3);
+                    let err = if l < lod {
+                        error * l as f32 / lod as f32
+                    } else {
+                        error / f
+                    };
+                    (tris, verts, err)
+                }
+            };
+            let err = if l == lod { error } else { err }.max(prev_err);
+            prev_err = err;
+            counts.push((verts, tris));
+            let geometry = if l == lod {
+                self.geometry_of(g)
+            } else {
+                LodGeometry::Counts {
+                    vertices: verts,
+                    triangles: tris,
+                }
+            };
+            lods.push(LodDesc {
+                geometry,
+                geometric_error: err,
+            });
+        }
+        let center = (bounds.min + bounds.max) * 0.5;
+        let radius = ((bounds.max - bounds.min).length() * 0.5).max(1e-3);
+        let kind = if skinned {
+            MeshKind::Skinned
+        } else {
+            MeshKind::Static
+        };
+        let mut desc = MeshDesc::new(name.clone(), kind, radius, lods);
+        desc.bounds_center = center.to_array();
+        match m.register_mesh(desc) {
+            Ok(id) => {
+                let mut resident = vec![None; n];
+                resident[lod] = Some(g.clone());
+                self.meshes.insert(
+                    mesh,
+                    MeshSlot {
+                        id,
+                        skinned,
+                        resident,
+                        counts,
+                        color: color_of(mesh, &name),
+                    },
+                );
+            }
+            Err(e) => self.reject("mesh", e),
+        }
+    }
+
+    fn lod_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId, lod: usize) {
+        let Some(slot) = self.meshes.get_mut(&mesh) else {
+            return;
+        };
+        let Some(r) = slot.resident.get_mut(lod) else {
+            return;
+        };
+        *r = None;
+        let (vertices, triangles) = slot.counts[lod];
+        let id = slot.id;
+        self.stats.lod_swaps += 1;
+        if self.counts_only {
+            return;
+        }
+        if let Err(e) = m.set_lod_geometry(
+            id,
+            lod,
+            LodGeometry::Counts {
+                vertices,
+                triangles,
+            },
+        ) {
+            self.reject("LOD eviction", e);
+        }
+    }
+
+    fn place<B: AsBackend>(&mut self, m: &AsManager<B>, level: LevelId, inst: &Instance) {
+        if inst.material != MaterialClass::Opaque {
+            self.stats.skipped_not_opaque += 1;
+            return;
+        }
+        if self.placed.contains_key(&inst.id) {
+            return;
+        }
+        let Some(mesh) = self.meshes.get(&inst.mesh) else {
+            // Its mesh failed to load (LoadFailed was logged): nothing to place.
+            self.stats.rejected += 1;
+            return;
+        };
+        let slot = self.free_slots.pop().unwrap_or(self.slots.len() as u32);
+        debug_assert!(slot < 1 << 24, "customIndex fits in 24 bits");
+        let mut desc = InstanceDesc::new(mesh.id, Affine3A::from_mat4(inst.transform));
+        desc.custom_index = slot;
+        let (color, skinned) = (mesh.color, mesh.skinned);
+        match m.add_instance(desc) {
+            Ok(id) => {
+                if self.slots.len() <= slot as usize {
+                    self.slots.resize(slot as usize + 1, None);
+                }
+                self.slots[slot as usize] = Some(ShadingSlot {
+                    instance: inst.id,
+                    level,
+                    mesh: inst.mesh,
+                    base_color: color,
+                });
+                self.placed.insert(
+                    inst.id,
+                    Placed {
+                        id,
+                        slot,
+                        mesh: inst.mesh,
+                        skinned: skinned && inst.motion == Motion::Skinned,
+                        transform: inst.transform,
+                        center: inst.sphere.center,
+                    },
+                );
+            }
+            Err(e) => {
+                self.free_slots.push(slot);
+                self.reject("instance", e);
+            }
+        }
+    }
+
+    fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: InstanceId) {
+        let Some(p) = self.placed.remove(&id) else {
+            return;
+        };
+        if let Err(e) = m.remove_instance(p.id) {
+            self.reject("instance removal", e);
+        }
+        self.slots[p.slot as usize] = None;
+        self.free_slots.push(p.slot);
+    }
+
+    /// Sends this frame's poses of skinned instances to the manager (see the module docs).
+    /// Returns how many poses were sent.
+    pub fn pose_skinned<B: AsBackend>(
+        &self,
+        m: &AsManager<B>,
+        world: &World,
+        time: f32,
+        threads: usize,
+    ) -> usize {
+        let mut sent = 0;
+        let mut scratch = Vec::new();
+        for f in world.skin_frame(time, threads) {
+            let Some(p) = self.placed.get(&f.instance).filter(|p| p.skinned) else {
+                continue;
+            };
+            let lod = m.instance_lod(p.id).unwrap_or(f.lod as usize);
+            let positions = if lod == f.lod as usize {
+                f.positions
+            } else {
+                // Skin the LOD the manager builds at, with the world's phase for this instance.
+                let Some(g) = self
+                    .meshes
+                    .get(&p.mesh)
+                    .and_then(|s| s.resident.get(lod)?.clone())
+                else {
+                    continue;
+                };
+                let Some(skin) = &g.skin else { continue };
+                let t = time + (f.instance.0 % 97) as f32 * 0.037;
+                rtstream_streaming::skin::skin_positions(&g, &skin.skeleton.pose(t), &mut scratch);
+                std::mem::take(&mut scratch)
+            };
+            if m.set_skinned_pose(p.id, Arc::new(positions)).is_ok() {
+                sent += 1;
+            }
+        }
+        sent
+    }
+
+    /// The renderer's shading table for a frame's records, indexed by customIndex:
+    /// base colours from the slots, geometry addresses from `geometry(blas_address)` (e.g.
+    /// `VulkanBackend::shading_geometry`). Entries without a record get zero addresses.
+    pub fn shading(
+        &self,
+        records: &[TlasInstance],
+        geometry: impl Fn(u64) -> Option<(u64, u64)>,
+    ) -> Vec<InstanceShading> {
+        let mut table: Vec<InstanceShading> = self
+            .slots
+            .iter()
+            .map(|s| InstanceShading {
+                vertices: 0,
+                indices: 0,
+                base_color: s.map_or([0.5, 0.5, 0.5, 1.0], |s| s.base_color),
+            })
+            .collect();
+        if table.is_empty() {
+            table.push(InstanceShading {
+                vertices: 0,
+                indices: 0,
+                base_color: [0.5; 4],
+            });
+        }
+        for r in records {
+            let ci = (r.custom_index_and_mask & 0x00ff_ffff) as usize;
+            if let (Some(e), Some((v, i))) = (table.get_mut(ci), geometry(r.blas_address)) {
+                e.vertices = v;
+                e.indices = i;
+            }
+        }
+        table
+    }
+
+    /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
+    /// transform), for reference scenes.
+    pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, MeshId, glam::Mat4)> {
+        let mut v: Vec<_> = self
+            .placed
+            .values()
+            .filter(|p| p.center.distance(at) <= radius)
+            .map(|p| (p.slot, p.mesh, p.transform))
+            .collect();
+        v.sort_by_key(|p| p.0);
+        v
+    }
+
+    /// The finest LOD of `mesh` resident now.
+    pub fn finest_resident(&self, mesh: MeshId) -> Option<Arc<rtstream_streaming::LodGeometry>> {
+        self.meshes
+            .get(&mesh)?
+            .resident
+            .iter()
+            .flatten()
+            .next()
+            .cloned()
+    }
+}
