@@ -50,23 +50,6 @@ fn passes_json(p: &PassStats) -> String {
     )
 }
 
-/// `frames` side by side with 4-pixel white gaps.
-fn side_by_side(width: u32, height: u32, images: &[&[[u8; 4]]]) -> (u32, Vec<[u8; 4]>) {
-    const GAP: u32 = 4;
-    let n = images.len() as u32;
-    let total = width * n + GAP * (n - 1);
-    let mut out = vec![[255u8; 4]; (total * height) as usize];
-    for (k, img) in images.iter().enumerate() {
-        let x0 = k as u32 * (width + GAP);
-        for y in 0..height {
-            let src = &img[(y * width) as usize..((y + 1) * width) as usize];
-            let at = (y * total + x0) as usize;
-            out[at..at + width as usize].copy_from_slice(src);
-        }
-    }
-    (total, out)
-}
-
 fn run() -> Result<(), Box<dyn std::error::Error>> {
     let (mut width, mut height) = (640u32, 360u32);
     let mut angle_deg = 1.0f32;
@@ -152,7 +135,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let frame: Frame = managed.render(&mut renderer, &desc)?;
     let metrics = FrameMetrics::compare(&frame, &ref_frame)?;
     let diff = difference_image(&frame, &ref_frame)?;
-    let (w3, picture) = side_by_side(width, height, &[&frame.color, &ref_frame.color, &diff]);
+    let (w3, picture) = rtstream::renderer::side_by_side(width, height, &[&frame.color, &ref_frame.color, &diff]);
     save_rgba_png(&out, w3, height, &picture)?;
     // The reference frame's hit buffer (instances coloured) and shadow mask, beside the picture.
     let stem = out.with_extension("");

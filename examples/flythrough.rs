@@ -46,6 +46,7 @@ struct Args {
     world: PathBuf,
     renders: u32,
     json: bool,
+    size: (u32, u32),
 }
 
 fn args() -> Res<Args> {
@@ -55,6 +56,7 @@ fn args() -> Res<Args> {
         world: PathBuf::from("out/world"),
         renders: 3,
         json: false,
+        size: (640, 360),
     };
     let mut it = std::env::args().skip(1);
     while let Some(x) = it.next() {
@@ -68,8 +70,13 @@ fn args() -> Res<Args> {
             "--world" => a.world = it.next().ok_or("--world DIR")?.into(),
             "--renders" => a.renders = it.next().ok_or("--renders N")?.parse()?,
             "--json" => a.json = true,
+            "--size" => {
+                let v = it.next().ok_or("--size WxH")?;
+                let (w, h) = v.split_once('x').ok_or("--size WxH")?;
+                a.size = (w.parse()?, h.parse()?);
+            }
             "--help" | "-h" => {
-                println!("flythrough [--frames N] [--backend vulkan|model] [--world DIR] [--renders N] [--json]");
+                println!("flythrough [--frames N] [--backend vulkan|model] [--world DIR] [--renders N] [--size WxH] [--json]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument {other:?} (try --help)").into()),
@@ -267,7 +274,7 @@ fn run() -> Res<()> {
                     let shading =
                         bridge.shading(&records, |addr| m.backend().shading_geometry(addr));
                     let view = ViewCamera::look_at(pos, pos + look, 60f32.to_radians());
-                    let desc = RenderDesc::new(640, 360, view);
+                    let desc = RenderDesc::new(a.size.0, a.size.1, view);
                     let img = r.render(raw, &shading, &desc)?;
                     let file = format!("out/flythrough_{frame:04}.png");
                     img.save_png(&file)?;
@@ -277,7 +284,9 @@ fn run() -> Res<()> {
                         img.hit_fraction() * 100.0
                     );
                     if Some(&frame) == render_at.last() {
-                        reference = Some(reference_frame(&bridge, ctx, r, pos, look, &img)?);
+                        let fm = reference_frame(&bridge, ctx, r, pos, look, &img)?;
+                        m.record_evaluation(fm.into());
+                        reference = Some(fm);
                     }
                     renders.push((frame, file, img));
                 }
@@ -427,16 +436,20 @@ fn reference_frame(
     );
     let scene = TracedScene::reference(ctx, &descs, &instances)?;
     let view = ViewCamera::look_at(pos, pos + look, 60f32.to_radians());
-    let ref_img = scene.render(r, &RenderDesc::new(640, 360, view))?;
+    let mut ref_img = scene.render(r, &RenderDesc::new(img.width, img.height, view))?;
     ref_img.save_png("out/flythrough_reference.png")?;
-    let fm = FrameMetrics::compare_mapped(
-        img,
-        &ref_img,
-        |c| c,
-        |c| ref_ci.get(c as usize).copied().unwrap_or(u32::MAX),
-    )?;
+    // Name the reference's hits by the managed frame's customIndex, then compare directly.
+    for h in &mut ref_img.hits {
+        if h.is_hit() {
+            h.instance = ref_ci.get(h.instance as usize).copied().unwrap_or(u32::MAX);
+        }
+    }
+    let fm = FrameMetrics::compare(img, &ref_img)?;
+    let diff = rtstream::renderer::difference_image(img, &ref_img)?;
+    let (w3, picture) = rtstream::renderer::side_by_side(img.width, img.height, &[&img.color, &ref_img.color, &diff]);
+    rtstream::renderer::save_rgba_png("out/flythrough_compare.png", w3, img.height, &picture)?;
     eprintln!(
-        "  vs reference: primary mismatch {:.2}%, shadow mismatch {:.2}%, PSNR {:.1} dB -> out/flythrough_reference.png",
+        "  vs reference: primary mismatch {:.2}%, shadow mismatch {:.2}%, PSNR {:.1} dB -> out/flythrough_compare.png (managed | reference | difference)",
         fm.primary_mismatch * 100.0,
         fm.shadow_mismatch * 100.0,
         fm.psnr_db

@@ -144,6 +144,24 @@ impl Frame {
     }
 }
 
+/// Places equally sized RGBA8 images side by side with 4-pixel white gaps; returns the total
+/// width and the pixels (row-major).
+pub fn side_by_side(width: u32, height: u32, images: &[&[[u8; 4]]]) -> (u32, Vec<[u8; 4]>) {
+    const GAP: u32 = 4;
+    let n = images.len().max(1) as u32;
+    let total = width * n + GAP * (n - 1);
+    let mut out = vec![[255u8; 4]; (total * height) as usize];
+    for (k, img) in images.iter().enumerate() {
+        let x0 = k as u32 * (width + GAP);
+        for y in 0..height {
+            let src = &img[(y * width) as usize..((y + 1) * width) as usize];
+            let at = (y * total + x0) as usize;
+            out[at..at + width as usize].copy_from_slice(src);
+        }
+    }
+    (total, out)
+}
+
 /// Writes RGBA8 pixels (row-major) as a PNG, creating parent directories.
 pub fn save_rgba_png(
     path: impl AsRef<Path>,
