@@ -279,8 +279,11 @@ fn run() -> Res<()> {
                     let file = format!("out/flythrough_{frame:04}.png");
                     img.save_png(&file)?;
                     eprintln!(
-                        "  frame {frame}: {} TLAS instances, {:.0}% hits -> {file}",
+                        "  frame {frame}: {} TLAS instances, {}x{} traced in {:.1} ms, {:.0}% hits -> {file}",
                         records.len(),
+                        img.width,
+                        img.height,
+                        img.render_ms,
                         img.hit_fraction() * 100.0
                     );
                     if Some(&frame) == render_at.last() {
@@ -362,9 +365,18 @@ fn run() -> Res<()> {
                 m.primary_mismatch, m.shadow_mismatch, m.psnr_db
             )
         });
+        let rs: Vec<String> = renders
+            .iter()
+            .map(|(f, _, img): &(u64, String, rtstream::renderer::Frame)| {
+                format!(
+                    "{{\"frame\":{f},\"width\":{},\"height\":{},\"render_ms\":{:.3},\"primary_ms\":{:.3},\"shadow_ms\":{:.3},\"ao_shade_ms\":{:.3}}}",
+                    img.width, img.height, img.render_ms, img.passes.primary_ms, img.passes.shadow_ms, img.passes.ao_shade_ms
+                )
+            })
+            .collect();
         println!(
-            "{{\"frames\":{},\"seconds\":{:.1},\"load_failures\":{},\"policies\":[{}],\"image_error\":{}}}",
-            a.frames, started.elapsed().as_secs_f64(), bs.load_failures, pol.join(","), m
+            "{{\"frames\":{},\"seconds\":{:.1},\"load_failures\":{},\"policies\":[{}],\"renders\":[{}],\"image_error\":{}}}",
+            a.frames, started.elapsed().as_secs_f64(), bs.load_failures, pol.join(","), rs.join(","), m
         );
     }
     Ok(())
