@@ -135,7 +135,8 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let frame: Frame = managed.render(&mut renderer, &desc)?;
     let metrics = FrameMetrics::compare(&frame, &ref_frame)?;
     let diff = difference_image(&frame, &ref_frame)?;
-    let (w3, picture) = rtstream::renderer::side_by_side(width, height, &[&frame.color, &ref_frame.color, &diff]);
+    let (w3, picture) =
+        rtstream::renderer::side_by_side(width, height, &[&frame.color, &ref_frame.color, &diff]);
     save_rgba_png(&out, w3, height, &picture)?;
     // The reference frame's hit buffer (instances coloured) and shadow mask, beside the picture.
     let stem = out.with_extension("");

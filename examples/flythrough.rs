@@ -458,7 +458,11 @@ fn reference_frame(
     }
     let fm = FrameMetrics::compare(img, &ref_img)?;
     let diff = rtstream::renderer::difference_image(img, &ref_img)?;
-    let (w3, picture) = rtstream::renderer::side_by_side(img.width, img.height, &[&img.color, &ref_img.color, &diff]);
+    let (w3, picture) = rtstream::renderer::side_by_side(
+        img.width,
+        img.height,
+        &[&img.color, &ref_img.color, &diff],
+    );
     rtstream::renderer::save_rgba_png("out/flythrough_compare.png", w3, img.height, &picture)?;
     eprintln!(
         "  vs reference: primary mismatch {:.2}%, shadow mismatch {:.2}%, PSNR {:.1} dB -> out/flythrough_compare.png (managed | reference | difference)",
