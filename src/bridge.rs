@@ -95,7 +95,9 @@ pub struct WorldBridge {
     counts_only: bool,
 }
 
-fn color_of(mesh: MeshId, name: &str) -> [f32; 4] {
+/// The base colour every image of a mesh uses (managed frames and the ground truth alike, so
+/// colour metrics compare like with like): terrain green, other meshes a stable muted colour.
+pub fn mesh_color(mesh: MeshId, name: &str) -> [f32; 4] {
     let n = name.to_ascii_lowercase();
     if n.contains("terrain") || n.contains("ground") {
         return [0.32, 0.42, 0.22, 1.0];
@@ -307,7 +309,7 @@ impl WorldBridge {
                         skinned,
                         resident,
                         counts,
-                        color: color_of(mesh, &name),
+                        color: mesh_color(mesh, &name),
                     },
                 );
             }
@@ -428,7 +430,7 @@ impl WorldBridge {
                     continue;
                 };
                 let Some(skin) = &g.skin else { continue };
-                let t = time + (f.instance.0 % 97) as f32 * 0.037;
+                let t = rtstream_streaming::skin::animation_time(f.instance, time);
                 rtstream_streaming::skin::skin_positions(&g, &skin.skeleton.pose(t), &mut scratch);
                 std::mem::take(&mut scratch)
             };

@@ -16,6 +16,7 @@ pub use rtstream_renderer as renderer;
 pub use rtstream_streaming as streaming;
 
 pub mod bridge;
+pub mod driver;
 mod error;
 pub mod eval;
 mod gltf_scene;

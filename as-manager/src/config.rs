@@ -223,8 +223,13 @@ pub struct Config {
     pub cull: CullConfig,
     /// Assembly.
     pub assembly: AssemblyConfig,
-    /// Prior GPU cost model; measured timings refine it.
+    /// Prior GPU cost model; measured timings refine it unless `freeze_cost_model` is set.
     pub cost_prior: CostModel,
+    /// Keep the cost model at `cost_prior`: build admission never follows live GPU timings, so
+    /// with the same inputs every frame's decisions are the same under any machine load (the
+    /// deterministic runs of the examples and tests set it). Off by default: interactive runs
+    /// learn the device's real costs.
+    pub freeze_cost_model: bool,
 }
 
 fn check(ok: bool, what: &str) -> Result<()> {

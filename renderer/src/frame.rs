@@ -84,6 +84,9 @@ pub struct Frame {
     pub sun_visibility: Vec<f32>,
     /// Per-pixel unoccluded share of the hemisphere (1 when AO is off or for misses).
     pub ambient: Vec<f32>,
+    /// Per-pixel world-space shading normal of the primary hit, facing the camera (zero for
+    /// misses). Geometric metrics use it for the grazing angle.
+    pub normals: Vec<[f32; 3]>,
     /// Wall time of all passes (submit to completion), milliseconds.
     pub render_ms: f64,
     /// Per-pass times and ray counts.

@@ -182,6 +182,7 @@ mod tests {
                 .collect(),
             sun_visibility: vec![1.0; n],
             ambient: vec![1.0; n],
+            normals: vec![[0.0, 1.0, 0.0]; n],
             render_ms: 0.0,
             passes: PassStats::default(),
         }

@@ -285,6 +285,8 @@ impl Renderer {
             let hits: Vec<PixelHit> =
                 bytemuck::cast_slice(bufs[1].mapped().expect("readback is mapped")).to_vec();
             let light: &[[f32; 4]] = bytemuck::cast_slice(bufs[3].mapped().expect("mapped"));
+            let surf: &[[f32; 4]] = bytemuck::cast_slice(bufs[2].mapped().expect("mapped"));
+            let normals = surf.iter().map(|n| [n[0], n[1], n[2]]).collect();
             let sun_visibility = light.iter().map(|l| l[0]).collect();
             let ambient = light.iter().map(|l| l[1]).collect();
             let shadow_rays = light.iter().map(|l| l[2] as u64).sum();
@@ -301,6 +303,7 @@ impl Renderer {
                 hits,
                 sun_visibility,
                 ambient,
+                normals,
                 render_ms: ms.iter().sum(),
                 passes: PassStats {
                     primary_ms: ms[0],

@@ -90,6 +90,15 @@ pub(crate) enum Done {
     },
 }
 
+impl Done {
+    /// The ticket of the job this answers.
+    pub fn ticket(&self) -> u64 {
+        match self {
+            Done::Level { ticket, .. } | Done::Lod { ticket, .. } => *ticket,
+        }
+    }
+}
+
 /// What the loader threads share (read-only).
 #[derive(Debug)]
 pub(crate) struct LoaderShared {

@@ -161,6 +161,13 @@ fn sample(c: &Channel, t: f32) -> Vec4 {
     }
 }
 
+/// The animation time of a skinned instance at world time `time` seconds: every instance gets
+/// its own phase, derived from its id, so a crowd does not move in lockstep. The streaming
+/// world, the facade's bridge and the ground-truth reference all pose with this.
+pub fn animation_time(instance: crate::model::InstanceId, time: f32) -> f32 {
+    time + (instance.0 % 97) as f32 * 0.037
+}
+
 /// Deforms one LOD's vertices with the given skinning matrices (from [`Skeleton::pose`]) into
 /// `out` (mesh space). Static geometry (no skin) is copied unchanged.
 pub fn skin_positions(geometry: &LodGeometry, matrices: &[Mat4], out: &mut Vec<[f32; 3]>) {

@@ -509,7 +509,7 @@ impl<B: AsBackend> AsManager<B> {
                 continue;
             }
             let est = self.costs.estimate(m.op, m.units);
-            if est > 0.0 {
+            if est > 0.0 && !self.config.freeze_cost_model {
                 let c = self.costs.coefficient_mut(m.op);
                 *c *= 0.8 + 0.2 * (m.gpu_ms / est);
             }

@@ -65,8 +65,7 @@ impl World {
             if !self.make_room(bytes, d, &eff, ev) {
                 continue;
             }
-            let ticket = self.next_ticket;
-            self.next_ticket += 1;
+            let ticket = self.new_ticket();
             self.meshes[m.0 as usize].pending = Some((lod, ticket));
             self.in_flight_bytes += bytes;
             self.in_flight += 1;

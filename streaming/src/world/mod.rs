@@ -110,6 +110,10 @@ pub struct World {
     in_flight_bytes: usize,
     mesh_bytes: usize,
     frame: u64,
+    /// Deterministic mode: (ticket, request frame) of every job in flight, in request order.
+    requests: std::collections::VecDeque<(u64, u64)>,
+    /// Deterministic mode: results that arrived before their turn, by ticket.
+    early: std::collections::BTreeMap<u64, Done>,
 }
 
 impl World {
@@ -175,6 +179,8 @@ impl World {
             in_flight_bytes: 0,
             mesh_bytes: 0,
             frame: 0,
+            requests: std::collections::VecDeque::new(),
+            early: std::collections::BTreeMap::new(),
         })
     }
 
@@ -263,22 +269,74 @@ impl World {
         let _span = tracing::debug_span!("world_update", frame).entered();
         self.frame = frame;
         let mut ev = Vec::new();
-        while let Ok(done) = self.pool.results.try_recv() {
-            self.finish(done, &mut ev);
+        match self.config.apply_after_frames {
+            None => {
+                while let Ok(done) = self.pool.results.try_recv() {
+                    self.finish(done, &mut ev);
+                }
+            }
+            Some(n) => self.finish_due(frame, u64::from(n), &mut ev),
         }
         self.residency(cameras, &mut ev);
         self.stream_lods(cameras, &mut ev);
         ev
     }
 
+    /// Deterministic mode: applies, in request order, every result requested at least `n`
+    /// frames ago, waiting for the loader threads when one is late.
+    fn finish_due(&mut self, frame: u64, n: u64, ev: &mut Vec<WorldEvent>) {
+        while let Some(&(ticket, asked)) = self.requests.front() {
+            if asked.saturating_add(n) > frame {
+                break;
+            }
+            let done = loop {
+                if let Some(d) = self.early.remove(&ticket) {
+                    break Some(d);
+                }
+                match self.pool.results.recv() {
+                    Ok(d) => {
+                        self.early.insert(d.ticket(), d);
+                    }
+                    // Every loader thread is gone (they outlive panics, so only at shutdown).
+                    Err(_) => break None,
+                }
+            };
+            self.requests.pop_front();
+            match done {
+                Some(d) => self.finish(d, ev),
+                None => {
+                    tracing::error!("loader threads are gone; dropping the pending loads");
+                    self.requests.clear();
+                    self.in_flight = 0;
+                    return;
+                }
+            }
+        }
+    }
+
+    /// A new loader ticket, recorded with this frame (deterministic mode applies it later).
+    pub(crate) fn new_ticket(&mut self) -> u64 {
+        let ticket = self.next_ticket;
+        self.next_ticket += 1;
+        if self.config.apply_after_frames.is_some() {
+            self.requests.push_back((ticket, self.frame));
+        }
+        ticket
+    }
+
     /// Calls [`World::update`] (same frame and cameras) until no load is in flight or `timeout`
     /// passes, waiting on the loaders in between; returns every event. For tests and tools.
+    /// In deterministic mode ([`StreamConfig::apply_after_frames`]) this is [`World::update`]:
+    /// results arrive on their fixed frame, never earlier.
     pub fn update_until_idle(
         &mut self,
         frame: u64,
         cameras: &[Camera],
         timeout: Duration,
     ) -> Vec<WorldEvent> {
+        if self.config.apply_after_frames.is_some() {
+            return self.update(frame, cameras);
+        }
         let deadline = Instant::now() + timeout;
         let mut all = Vec::new();
         loop {
@@ -478,12 +536,12 @@ impl World {
                 .fold(f32::INFINITY, f32::min);
             match slot.state {
                 LevelState::Unloaded if d <= load => {
-                    let ticket = self.next_ticket;
-                    self.next_ticket += 1;
+                    let source = slot.source.clone();
+                    let ticket = self.new_ticket();
                     self.pool.submit(Job::Level {
                         level: LevelId(i as u32),
                         ticket,
-                        source: slot.source.clone(),
+                        source,
                     });
                     self.in_flight += 1;
                     self.levels[i].state = LevelState::Loading(ticket);
@@ -549,7 +607,7 @@ impl World {
                 meta.push((inst.id, inst.mesh, lod as u8));
                 jobs.push(SkinJob {
                     geometry: g,
-                    time: time + (inst.id.0 % 97) as f32 * 0.037,
+                    time: crate::skin::animation_time(inst.id, time),
                     positions: Vec::new(),
                 });
             }

@@ -37,6 +37,12 @@ pub struct StreamConfig {
     pub lod_evict_factor: f32,
     /// At most this many loader jobs in flight (closer requests go first).
     pub max_in_flight: usize,
+    /// Deterministic streaming: `Some(n)` applies every loader result exactly `n` frames after
+    /// its request, in request order, waiting for the loader when it is late (`n` = 0 waits in
+    /// the same frame). With the same cameras per frame the event stream is then identical
+    /// under any machine load. `None` (the default, for interactive runs) applies whatever has
+    /// arrived and never waits.
+    pub apply_after_frames: Option<u32>,
 }
 
 impl Default for StreamConfig {
@@ -49,6 +55,7 @@ impl Default for StreamConfig {
             lod_error_angle: 0.002,
             lod_evict_factor: 1.5,
             max_in_flight: 64,
+            apply_after_frames: None,
         }
     }
 }

@@ -71,6 +71,11 @@ pub struct VulkanBackendDesc {
     /// Refuse allocations past this many bytes with OutOfDeviceMemory (None: only the driver's
     /// own limit applies).
     pub memory_limit: Option<u64>,
+    /// Deterministic retirement: frame N counts frames up to N - `frames_in_flight` as
+    /// completed (the ones it waited for) and never polls the timeline for more, so what is
+    /// freed when, and the bytes counted as retiring, do not depend on GPU speed. Off by
+    /// default (frees as soon as the GPU is done).
+    pub deterministic: bool,
 }
 
 impl Default for VulkanBackendDesc {
@@ -80,6 +85,7 @@ impl Default for VulkanBackendDesc {
             tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
             max_part_bytes: 256 << 20,
             memory_limit: None,
+            deterministic: false,
         }
     }
 }
@@ -625,9 +631,13 @@ impl VulkanBackend {
             self.completed = Some(self.completed.map_or(done, |c| c.max(done)));
             self.read_completed_slot(slot)?;
         }
-        // SAFETY: the timeline value is a plain read of our own semaphore.
-        let reached = unsafe { self.ctx.device.get_semaphore_counter_value(self.timeline) }
-            .op("vkGetSemaphoreCounterValue")?;
+        let reached = if self.desc.deterministic {
+            0
+        } else {
+            // SAFETY: the timeline value is a plain read of our own semaphore.
+            unsafe { self.ctx.device.get_semaphore_counter_value(self.timeline) }
+                .op("vkGetSemaphoreCounterValue")?
+        };
         if reached > 0 {
             self.completed = Some(self.completed.map_or(reached - 1, |c| c.max(reached - 1)));
         }

@@ -1,0 +1,215 @@
+//! The command line shared by the examples that run the frame driver (`flythrough`,
+//! `tradeoff`, the stress runs): one `--help` style, one mapping onto `RunConfig`.
+//! Included with `#[path = "support/cli.rs"] mod cli;`; not every example uses every item.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context};
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use rtstream::as_manager::PolicyKind;
+use rtstream::driver::{Progress, RunConfig};
+use rtstream::streaming::WorldPreset;
+
+/// World presets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Preset {
+    /// The shipped game's map: 4 km, 3,136 levels, 110k instances.
+    Default,
+    /// A 16x16-level corner of it (for tests and quick looks).
+    Small,
+    /// 16 km, 1.76M instances.
+    Large,
+}
+
+/// Policies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Policy {
+    /// The manager.
+    Managed,
+    /// A BLAS for every loaded LOD, no culling.
+    Naive,
+    /// The seeds' two-pass r1/r2 loop.
+    Seed,
+}
+
+impl From<Policy> for PolicyKind {
+    fn from(p: Policy) -> Self {
+        match p {
+            Policy::Managed => PolicyKind::Managed,
+            Policy::Naive => PolicyKind::Naive,
+            Policy::Seed => PolicyKind::SeedR1R2,
+        }
+    }
+}
+
+/// Arguments of a driver run.
+#[derive(Debug, Clone, Args)]
+pub struct RunArgs {
+    /// World and camera-path seed.
+    #[arg(long, default_value_t = 0x5EED)]
+    pub seed: u64,
+    /// World preset.
+    #[arg(long, value_enum, default_value_t = Preset::Default)]
+    pub preset: Preset,
+    /// Directory of Debian's assimp-testmodels glTF2 models the generator places.
+    #[arg(long)]
+    pub asset_dir: Option<PathBuf>,
+    /// Where the baked world is kept (default: out/world-<preset>-<seed>).
+    #[arg(long)]
+    pub world: Option<PathBuf>,
+    /// Frames to run.
+    #[arg(long, default_value_t = 600)]
+    pub frames: u64,
+    /// Policies to run side by side (comma-separated).
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [Policy::Managed, Policy::Naive, Policy::Seed])]
+    pub policy: Vec<Policy>,
+    /// BLAS memory budget of the managed policy, MB.
+    #[arg(long)]
+    pub budget_mb: Option<f64>,
+    /// Residency radius r1 (request), metres.
+    #[arg(long)]
+    pub r1: Option<f32>,
+    /// Residency radius r2 (keep), metres.
+    #[arg(long)]
+    pub r2: Option<f32>,
+    /// Culling angle, degrees (projected angular radius below which an instance is culled).
+    #[arg(long)]
+    pub cull_angle: Option<f32>,
+    /// Culling distance, metres.
+    #[arg(long)]
+    pub cull_distance: Option<f32>,
+    /// LOD pixel error.
+    #[arg(long)]
+    pub lod_px: Option<f32>,
+    /// Streaming load radius, metres (what a raster engine would load).
+    #[arg(long, default_value_t = 1000.0)]
+    pub stream_radius: f32,
+    /// Score every K-th frame against the full-world ground truth (0: never).
+    #[arg(long, default_value_t = 20)]
+    pub eval_every: u64,
+    /// Size of scored frames, WxH.
+    #[arg(long, default_value = "320x180", value_parser = parse_size)]
+    pub size: (u32, u32),
+    /// Deterministic: freeze the cost model, retire at frame minus frames in flight, apply
+    /// loads a fixed number of frames after their request. Every figure but the timings is
+    /// then identical under any load.
+    #[arg(long)]
+    pub deterministic: bool,
+    /// Skip the all-geometry reference (non-opaque as opaque).
+    #[arg(long)]
+    pub opaque_only: bool,
+    /// Output directory (CSV, summary.json, maps, worst frames).
+    #[arg(long, default_value = "out/flythrough")]
+    pub out: PathBuf,
+    /// Top-down maps at this many frames.
+    #[arg(long, default_value_t = 3)]
+    pub maps: u32,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once('x').ok_or("expected WxH, e.g. 320x180")?;
+    let w: u32 = w.parse().map_err(|e| format!("width: {e}"))?;
+    let h: u32 = h.parse().map_err(|e| format!("height: {e}"))?;
+    if w == 0 || h == 0 {
+        return Err("the size must be at least 1x1".into());
+    }
+    Ok((w, h))
+}
+
+impl RunArgs {
+    /// The world preset.
+    pub fn world_preset(&self) -> WorldPreset {
+        let mut p = match self.preset {
+            Preset::Default => WorldPreset::default_world(),
+            Preset::Small => WorldPreset::small(16, self.seed),
+            Preset::Large => WorldPreset::large_world(),
+        };
+        p.seed = self.seed;
+        if let Some(dir) = &self.asset_dir {
+            p.asset_dir = dir.clone();
+        }
+        p
+    }
+
+    /// The driver configuration.
+    pub fn run_config(&self) -> anyhow::Result<RunConfig> {
+        let preset = self.world_preset();
+        let mut c = RunConfig {
+            world_dir: self.world.clone().unwrap_or_else(|| {
+                PathBuf::from(format!("out/world-{}-{:x}", preset.name, preset.seed))
+            }),
+            preset,
+            frames: self.frames,
+            policies: self.policy.iter().map(|&p| p.into()).collect(),
+            eval_every: self.eval_every,
+            size: self.size,
+            deterministic: self.deterministic,
+            all_geometry_reference: !self.opaque_only,
+            out_dir: Some(self.out.clone()),
+            maps: self.maps,
+            ..RunConfig::default()
+        };
+        c.stream.load_radius = self.stream_radius;
+        c.stream.unload_radius = self.stream_radius + 100.0;
+        let m = &mut c.managed;
+        if let Some(mb) = self.budget_mb {
+            m.memory.blas_bytes = (mb * 1024.0 * 1024.0) as u64;
+        }
+        if let Some(r) = self.r1 {
+            m.residency.r1 = r;
+        }
+        if let Some(r) = self.r2 {
+            m.residency.r2 = r;
+        }
+        if let Some(a) = self.cull_angle {
+            m.cull.min_angle = a.to_radians();
+        }
+        if let Some(d) = self.cull_distance {
+            m.cull.far_distance = d;
+        }
+        if let Some(px) = self.lod_px {
+            m.lod.max_pixel_error = px;
+        }
+        if c.policies.is_empty() {
+            bail!("--policy needs at least one policy");
+        }
+        m.validate().context("the managed configuration")?;
+        Ok(c)
+    }
+}
+
+/// A progress bar that shows each policy's memory and TLAS size and the last error.
+pub fn progress_bar(frames: u64, quiet: bool) -> (ProgressBar, impl FnMut(&Progress)) {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(frames)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} frames {elapsed_precise} eta {eta} {msg}",
+        )
+        .expect("a valid template"),
+    );
+    let b = bar.clone();
+    let mut last_err: Vec<Option<f64>> = Vec::new();
+    let update = move |p: &Progress| {
+        b.set_position(p.frame + 1);
+        last_err.resize(p.policies.len(), None);
+        let mut msg = format!("{} levels", p.levels_loaded);
+        for (i, (name, bytes, tlas, err)) in p.policies.iter().enumerate() {
+            if err.is_some() {
+                last_err[i] = *err;
+            }
+            msg.push_str(&format!(
+                " | {name} {:.0} MB {tlas} inst{}",
+                *bytes as f64 / 1e6,
+                last_err[i].map_or(String::new(), |e| format!(" {:.2}%", e * 100.0))
+            ));
+        }
+        b.set_message(msg);
+    };
+    (bar, update)
+}

@@ -1,0 +1,395 @@
+//! The frame driver shared by the fly-through, the trade-off sweep and the stress examples:
+//! world, stream, policies, renders and scoring in one place.
+//!
+//! One run:
+//! - The world is generated from its preset and seed (deterministic), baked to disk once and
+//!   streamed from there by loader threads, as a raster engine would stream it
+//!   ([`RunConfig::stream`], default radius 1,000 m).
+//! - Every policy ([`PolicyKind`]: `managed`, `naive`, `seed`) gets its own manager on its own
+//!   [`VulkanBackend`] on the same device, fed the same event stream through its own
+//!   [`WorldBridge`]. Sizes are the driver's.
+//! - Every `eval_every` frames, each policy's TLAS is rendered and scored against the ground
+//!   truth ([`truth::GroundTruth`]: the full world, never what streaming loaded) with the
+//!   geometric metrics of [`score`], split by distance band.
+//! - [`RunConfig::deterministic`] freezes the cost model, retires at frame minus frames in
+//!   flight and applies loader results a fixed number of frames after their request, so every
+//!   figure except the timings is identical under any machine load.
+//!
+//! The result ([`RunReport`]) has a per-frame row per policy ([`FrameRow`], written as CSV) and
+//! a summary ([`RunSummary`], serialisable as JSON).
+
+pub mod map;
+pub mod path;
+pub mod report;
+pub mod score;
+pub mod stats;
+pub mod truth;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::Vec3;
+use rtstream_as_manager::backend::vulkan::{
+    ContextDesc, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
+};
+use rtstream_as_manager::backend::TlasHandle;
+use rtstream_as_manager::record::TlasInstance;
+use rtstream_as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
+use rtstream_renderer::{side_by_side, Camera as ViewCamera, Frame, RenderDesc, Renderer};
+use rtstream_streaming::{
+    bake, generate, read_manifest, GeneratedWorld, StreamConfig, World, WorldPreset,
+};
+
+use crate::bridge::WorldBridge;
+use crate::error::{Error, Result};
+pub use path::{CameraPath, PathPoint};
+pub use report::{FrameRow, PolicySummary, RunReport, RunSummary};
+pub use score::{BandEdges, FrameScore};
+use truth::{GroundTruth, TruthKind};
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct RunConfig {
+    /// The world (its seed also seeds the camera path).
+    pub preset: WorldPreset,
+    /// Where the baked world lives (baked there when missing or from another preset).
+    pub world_dir: PathBuf,
+    /// Frames to run.
+    pub frames: u64,
+    /// Policies, in the order they are reported.
+    pub policies: Vec<PolicyKind>,
+    /// The managed policy's configuration; the baselines take its radii and culling, and no
+    /// memory budget (they have none).
+    pub managed: Config,
+    /// Streaming (what a raster engine would load: `load_radius` 1,000 m by default).
+    pub stream: StreamConfig,
+    /// Score every K-th frame (0: never). Frame 0 is never scored (nothing is built yet).
+    pub eval_every: u64,
+    /// Image size of scored frames.
+    pub size: (u32, u32),
+    /// Deterministic mode (see the module docs). Off by default: a real-time run applies
+    /// loads as they arrive and learns the device's costs.
+    pub deterministic: bool,
+    /// In deterministic mode, loader results are applied this many frames after their request.
+    pub stream_delay_frames: u32,
+    /// Also score against the all-geometry reference (non-opaque instances as opaque).
+    pub all_geometry_reference: bool,
+    /// Output directory for the CSV, summary, pictures and maps (None: write nothing).
+    pub out_dir: Option<PathBuf>,
+    /// Top-down maps at this many evenly spaced frames.
+    pub maps: u32,
+    /// Frames in flight per backend.
+    pub frames_in_flight: u32,
+    /// Validation-layer policy of the device.
+    pub validation: Validation,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        Self {
+            preset: WorldPreset::default_world(),
+            world_dir: PathBuf::from("out/world"),
+            frames: 600,
+            policies: vec![PolicyKind::Managed, PolicyKind::Naive, PolicyKind::SeedR1R2],
+            managed: Config::default(),
+            stream: StreamConfig {
+                load_radius: 1000.0,
+                unload_radius: 1100.0,
+                mesh_budget_bytes: 1 << 30,
+                ..StreamConfig::default()
+            },
+            eval_every: 20,
+            size: (320, 180),
+            deterministic: false,
+            stream_delay_frames: 2,
+            all_geometry_reference: true,
+            out_dir: None,
+            maps: 3,
+            frames_in_flight: 2,
+            validation: Validation::Auto,
+        }
+    }
+}
+
+/// The short name of a policy, as printed and in JSON.
+pub fn policy_name(p: PolicyKind) -> &'static str {
+    match p {
+        PolicyKind::Managed => "managed",
+        PolicyKind::Naive => "naive",
+        PolicyKind::SeedR1R2 => "seed",
+    }
+}
+
+/// Live figures handed to the progress callback after every frame.
+#[derive(Debug, Clone)]
+pub struct Progress {
+    /// The frame just run.
+    pub frame: u64,
+    /// Frames in the run.
+    pub frames: u64,
+    /// Levels loaded now.
+    pub levels_loaded: usize,
+    /// Per policy: (name, BLAS bytes now, TLAS instances now, last hit mismatch if scored).
+    pub policies: Vec<(&'static str, u64, u32, Option<f64>)>,
+}
+
+struct PolicyRun {
+    kind: PolicyKind,
+    manager: AsManager<VulkanBackend>,
+    bridge: WorldBridge,
+    /// The last frame's TLAS and its records.
+    tlas: TlasHandle,
+    records: Vec<TlasInstance>,
+    worst: Option<(f64, u64, u32, Vec<[u8; 4]>)>,
+}
+
+/// Generates the preset's world and makes sure `dir` holds its bake (a stamp file names the
+/// preset; another preset's bake is replaced). Returns the generated world.
+pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld> {
+    let world = generate(preset)?;
+    let stamp = format!(
+        "{} seed={} size={} grid={} instances={} v1\n",
+        preset.name, preset.seed, preset.size_m, preset.grid, preset.instances
+    );
+    let stamp_path = dir.join("preset.txt");
+    let current = std::fs::read_to_string(&stamp_path).ok();
+    if current.as_deref() != Some(stamp.as_str()) || read_manifest(dir).is_err() {
+        tracing::info!(dir = %dir.display(), "baking the world");
+        bake(&world, dir)?;
+        std::fs::write(&stamp_path, stamp).map_err(|e| Error::Output {
+            path: stamp_path.clone(),
+            message: e.to_string(),
+        })?;
+    }
+    Ok(world)
+}
+
+/// Runs `config` on a new Vulkan context; see the module docs.
+pub fn run(config: &RunConfig, progress: &mut dyn FnMut(&Progress)) -> Result<RunReport> {
+    let ctx = Arc::new(VulkanContext::new(&ContextDesc {
+        validation: config.validation,
+        ..ContextDesc::default()
+    })?);
+    run_on(ctx, config, progress)
+}
+
+/// Runs `config` on an existing context.
+pub fn run_on(
+    ctx: Arc<VulkanContext>,
+    config: &RunConfig,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<RunReport> {
+    if config.policies.is_empty() || config.frames == 0 {
+        return Err(Error::InvalidRun("no policy or no frame to run".into()));
+    }
+    let started = Instant::now();
+    let generated = Arc::new(prepare_world(&config.preset, &config.world_dir)?);
+    let truth = GroundTruth::new(generated.clone());
+    let stream = StreamConfig {
+        apply_after_frames: config.deterministic.then_some(config.stream_delay_frames),
+        ..config.stream
+    };
+    let mut world = World::open(&config.world_dir, stream)?;
+    let manifest = world
+        .manifest()
+        .cloned()
+        .ok_or_else(|| Error::InvalidRun("the baked world has no manifest".into()))?;
+    let mut path = CameraPath::new(&manifest, config.preset.seed);
+    let mut policies = Vec::new();
+    for &kind in &config.policies {
+        let mut c = config.managed.clone();
+        c.policy = kind;
+        c.freeze_cost_model |= config.deterministic;
+        if kind != PolicyKind::Managed {
+            c.memory.blas_bytes = 1 << 50; // the baselines have no budget
+        }
+        let backend = VulkanBackend::new(
+            ctx.clone(),
+            VulkanBackendDesc {
+                frames_in_flight: config.frames_in_flight,
+                deterministic: config.deterministic,
+                ..VulkanBackendDesc::default()
+            },
+        )?;
+        policies.push(PolicyRun {
+            kind,
+            manager: AsManager::new(c, backend)?,
+            bridge: WorldBridge::new(Some(&manifest)),
+            tlas: TlasHandle(0),
+            records: Vec::new(),
+            worst: None,
+        });
+    }
+    let mut renderer = if config.eval_every > 0 {
+        Some(Renderer::new(ctx.clone())?)
+    } else {
+        None
+    };
+    let edges = BandEdges::new(config.managed.residency.r1, config.managed.residency.r2);
+    let map_at: Vec<u64> = (1..=u64::from(config.maps))
+        .map(|i| i * config.frames / (u64::from(config.maps) + 1))
+        .collect();
+    let mut rows: Vec<FrameRow> = Vec::new();
+    let mut trail: Vec<Vec3> = Vec::new();
+    let mut ever_loaded = vec![false; manifest.levels.len()];
+    let mut files = Vec::new();
+    let mut truth_ms = Vec::new();
+    let mut render_ms: Vec<(usize, f64)> = Vec::new();
+    for frame in 0..config.frames {
+        let cam = path.at(frame, config.frames);
+        trail.push(cam.position);
+        let cams = [rtstream_streaming::Camera::from(cam.position)];
+        // Never waits on the loaders, except (deterministic mode) for the loads requested
+        // `stream_delay_frames` frames ago.
+        let events = world.update(frame, &cams);
+        for (i, l) in ever_loaded.iter_mut().enumerate() {
+            *l |= world.is_loaded(rtstream_streaming::LevelId(i as u32));
+        }
+        let time = frame as f32 / 30.0;
+        let mcams = [Camera::new(cam.position, cam.forward)];
+        for p in policies.iter_mut() {
+            p.bridge.apply(&p.manager, &events);
+            p.bridge.pose_skinned(&p.manager, &world, time, 2);
+            let t = Instant::now();
+            let out = p.manager.update(FrameInput {
+                frame,
+                cameras: &mcams,
+            })?;
+            let update_ms = t.elapsed().as_secs_f64() * 1e3;
+            rows.push(FrameRow::new(frame, p.kind, out.stats, update_ms));
+            p.tlas = out.tlas;
+            p.records.clear();
+            p.records.extend_from_slice(out.instances);
+        }
+        let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;
+        if let (true, Some(r)) = (scored, renderer.as_mut()) {
+            let view =
+                ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
+            let desc = RenderDesc::new(config.size.0, config.size.1, view);
+            let mut refs: Vec<(TruthKind, Frame, Vec<u32>)> = Vec::new();
+            let kinds: &[TruthKind] = if config.all_geometry_reference {
+                &[TruthKind::Opaque, TruthKind::AllGeometry]
+            } else {
+                &[TruthKind::Opaque]
+            };
+            for &kind in kinds {
+                let ts = truth.build(&ctx, kind, time)?;
+                truth_ms.push(ts.build_ms);
+                let img = ts.scene.render(r, &desc)?;
+                ts.scene.destroy(&ctx);
+                refs.push((kind, img, ts.ids));
+            }
+            let n = policies.len();
+            for (pi, p) in policies.iter_mut().enumerate() {
+                p.manager.backend_mut().wait_idle()?;
+                let Some(raw) = p.manager.backend().tlas(p.tlas) else {
+                    continue;
+                };
+                let backend = p.manager.backend();
+                let shading = p
+                    .bridge
+                    .shading(&p.records, |addr| backend.shading_geometry(addr));
+                let img = r.render(raw, &shading, &desc)?;
+                render_ms.push((pi, img.render_ms));
+                let row = rows.len() - n + pi;
+                for (kind, reference, ids) in &refs {
+                    let bridge = &p.bridge;
+                    let (s, verdicts) = score::score(
+                        &img,
+                        reference,
+                        &view,
+                        edges,
+                        |ci| bridge.slot(ci).map(|s| s.instance.0),
+                        |ci| ids.get(ci as usize).copied(),
+                    )
+                    .map_err(Error::InvalidRun)?;
+                    if *kind == TruthKind::Opaque {
+                        rows[row].score = Some(s);
+                        let worse = p.worst.as_ref().is_none_or(|w| s.hit_mismatch > w.0);
+                        if worse {
+                            let diff = score::difference_picture(reference, &verdicts);
+                            let (w3, pic) = side_by_side(
+                                img.width,
+                                img.height,
+                                &[&img.color, &reference.color, &diff],
+                            );
+                            p.worst = Some((s.hit_mismatch, frame, w3, pic));
+                        }
+                    } else {
+                        rows[row].score_all_geometry = Some(s);
+                    }
+                }
+            }
+        }
+        if let (Some(dir), true) = (&config.out_dir, map_at.contains(&frame)) {
+            let file = dir.join(format!("map_{frame:05}.png"));
+            let p = &policies[0];
+            map::draw(
+                &file,
+                &manifest,
+                |l| world.is_loaded(l),
+                &p.bridge,
+                &p.records,
+                &trail,
+                cam.position,
+                &config.managed,
+                config.stream.load_radius,
+            )?;
+            files.push(file);
+        }
+        let n = policies.len();
+        progress(&Progress {
+            frame,
+            frames: config.frames,
+            levels_loaded: world.stats().loaded_levels,
+            policies: rows[rows.len() - n..]
+                .iter()
+                .map(|r| {
+                    (
+                        r.policy,
+                        r.blas_bytes,
+                        r.tlas_instances,
+                        r.score.map(|s| s.hit_mismatch),
+                    )
+                })
+                .collect(),
+        });
+    }
+    for p in &mut policies {
+        p.manager.backend_mut().wait_idle()?;
+    }
+    let never_loaded_instances = truth.instances_outside(TruthKind::Opaque, |i| ever_loaded[i]);
+    let validation_messages = ctx.validation_log().failure_count();
+    let mut report = RunReport::new(
+        config,
+        &rows,
+        &policies.iter().map(|p| p.kind).collect::<Vec<_>>(),
+        report::ReferenceInfo {
+            instances: truth.instance_count(TruthKind::Opaque),
+            all_geometry_instances: truth.instance_count(TruthKind::AllGeometry),
+            world_instances: truth.world_instances(),
+            never_loaded_instances,
+            full_world: true,
+            build_ms: stats::Summary::of(truth_ms),
+        },
+        validation_messages,
+        &render_ms,
+        started.elapsed().as_secs_f64(),
+        ctx.info().name.clone(),
+    );
+    report.rows = rows;
+    if let Some(dir) = &config.out_dir {
+        for p in &policies {
+            if let Some((_, frame, w3, pic)) = &p.worst {
+                let file = dir.join(format!("worst_{}.png", policy_name(p.kind)));
+                rtstream_renderer::save_rgba_png(&file, *w3, config.size.1, pic)?;
+                report.set_worst_frame(p.kind, *frame, &file);
+                files.push(file);
+            }
+        }
+        files.extend(report.write_files(dir)?);
+    }
+    report.files = files;
+    Ok(report)
+}

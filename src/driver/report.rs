@@ -1,0 +1,444 @@
+//! What a run reports: per-frame rows (CSV) and a summary (JSON), both serde-serialised.
+
+use std::path::{Path, PathBuf};
+
+use rtstream_as_manager::{FrameStats, PolicyKind};
+use serde::Serialize;
+
+use super::score::{BandEdges, FrameScore};
+use super::stats::Summary;
+use super::{policy_name, RunConfig};
+use crate::error::{Error, Result};
+
+/// One policy's figures of one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameRow {
+    /// Frame number.
+    pub frame: u64,
+    /// Policy name (`managed`, `naive`, `seed`).
+    pub policy: &'static str,
+    /// Built BLASes.
+    pub blas_count: u32,
+    /// Bytes of built BLASes (driver sizes, compacted where compacted).
+    pub blas_bytes: u64,
+    /// Bytes of freed BLASes a frame in flight may still use.
+    pub retiring_bytes: u64,
+    /// The policy's memory budget.
+    pub memory_budget: u64,
+    /// TLAS instances.
+    pub tlas_instances: u32,
+    /// BLAS builds this frame.
+    pub builds: u32,
+    /// Triangles built this frame.
+    pub build_primitives: u64,
+    /// Skinned refits this frame.
+    pub refits: u32,
+    /// Compactions this frame.
+    pub compactions: u32,
+    /// Memory evictions this frame.
+    pub evictions: u32,
+    /// Wall time of `update` (policy and Vulkan recording), ms.
+    pub update_ms: f64,
+    /// GPU acceleration-structure ms measured by the backend (received this frame).
+    pub gpu_as_ms: f64,
+    /// Error against the opaque ground truth, on scored frames.
+    pub score: Option<FrameScore>,
+    /// Error against the all-geometry ground truth, on scored frames.
+    pub score_all_geometry: Option<FrameScore>,
+}
+
+impl FrameRow {
+    /// A row from a frame's stats.
+    pub fn new(frame: u64, policy: PolicyKind, s: &FrameStats, update_ms: f64) -> Self {
+        Self {
+            frame,
+            policy: policy_name(policy),
+            blas_count: s.blas_count,
+            blas_bytes: s.blas_bytes,
+            retiring_bytes: s.retiring_bytes,
+            memory_budget: s.memory_budget,
+            tlas_instances: s.tlas_instances,
+            builds: s.builds,
+            build_primitives: s.build_primitives,
+            refits: s.refits,
+            compactions: s.compactions,
+            evictions: s.evictions,
+            update_ms,
+            gpu_as_ms: s.measured_gpu_ms,
+            score: None,
+            score_all_geometry: None,
+        }
+    }
+
+    /// Whether the policy's BLAS memory (retiring included) exceeded its budget.
+    pub fn over_budget(&self) -> bool {
+        self.blas_bytes + self.retiring_bytes > self.memory_budget
+    }
+}
+
+/// The flat CSV form of a row.
+#[derive(Debug, Serialize)]
+struct CsvRow {
+    frame: u64,
+    policy: &'static str,
+    blas_count: u32,
+    blas_bytes: u64,
+    retiring_bytes: u64,
+    over_budget: bool,
+    tlas_instances: u32,
+    builds: u32,
+    build_primitives: u64,
+    refits: u32,
+    compactions: u32,
+    evictions: u32,
+    update_ms: f64,
+    gpu_as_ms: f64,
+    hit_mismatch: Option<f64>,
+    identity_mismatch: Option<f64>,
+    shadow_mismatch: Option<f64>,
+    ao_difference: Option<f64>,
+    psnr_db: Option<f64>,
+    band0_hit_mismatch: Option<f64>,
+    band1_hit_mismatch: Option<f64>,
+    band2_hit_mismatch: Option<f64>,
+    band3_hit_mismatch: Option<f64>,
+    all_geometry_hit_mismatch: Option<f64>,
+    all_geometry_shadow_mismatch: Option<f64>,
+}
+
+/// Error of one distance band over the scored frames.
+#[derive(Debug, Clone, Serialize)]
+pub struct BandSummary {
+    /// The band, e.g. "250-1000m".
+    pub band: String,
+    /// Mean share of the frame's pixels that fall in the band.
+    pub pixel_share: f64,
+    /// Mean share of the frame's pixels mismatched in this band (sums over bands to the
+    /// frame's hit mismatch).
+    pub hit_mismatch_mean: f64,
+    /// Mismatched pixels of the band over its pixels (pooled over frames).
+    pub hit_mismatch_in_band: f64,
+    /// Shadow mismatch within the band (pooled over its agreeing hits).
+    pub shadow_mismatch_in_band: f64,
+}
+
+/// Error figures over the scored frames against one reference.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ErrorSummary {
+    /// Geometric hit mismatch per frame.
+    pub hit_mismatch: Summary,
+    /// Instance-identity mismatch per frame.
+    pub identity_mismatch: Summary,
+    /// Shadow mismatch per frame.
+    pub shadow_mismatch: Summary,
+    /// AO difference per frame.
+    pub ao_difference: Summary,
+    /// PSNR per frame, dB.
+    pub psnr_db: Summary,
+    /// Frame with the largest hit mismatch.
+    pub worst_frame: Option<u64>,
+}
+
+impl ErrorSummary {
+    fn of<'a>(scores: impl Iterator<Item = (u64, &'a FrameScore)> + Clone) -> Self {
+        let worst = scores
+            .clone()
+            .max_by(|a, b| a.1.hit_mismatch.total_cmp(&b.1.hit_mismatch))
+            .map(|(f, _)| f);
+        Self {
+            hit_mismatch: Summary::of(scores.clone().map(|(_, s)| s.hit_mismatch)),
+            identity_mismatch: Summary::of(scores.clone().map(|(_, s)| s.identity_mismatch)),
+            shadow_mismatch: Summary::of(scores.clone().map(|(_, s)| s.shadow_mismatch)),
+            ao_difference: Summary::of(scores.clone().map(|(_, s)| s.ao_difference)),
+            psnr_db: Summary::of(scores.map(|(_, s)| s.psnr_db)),
+            worst_frame: worst,
+        }
+    }
+}
+
+/// One policy over the run (the keys of `--json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct PolicySummary {
+    /// `managed`, `naive` or `seed`.
+    pub policy: &'static str,
+    /// The backend and device, e.g. "vulkan (llvmpipe ...)".
+    pub backend: String,
+    /// Peak bytes of built BLASes.
+    pub peak_blas_bytes: u64,
+    /// 95th percentile of BLAS bytes over frames.
+    pub p95_blas_bytes: u64,
+    /// Peak built BLASes.
+    pub peak_blas_count: u32,
+    /// Peak TLAS instances.
+    pub peak_tlas_instances: u32,
+    /// 95th percentile of TLAS instances.
+    pub p95_tlas_instances: u32,
+    /// `update` wall time (policy and Vulkan recording), median.
+    pub update_ms_p50: f64,
+    /// `update` wall time, 99th percentile.
+    pub update_ms_p99: f64,
+    /// GPU acceleration-structure ms per frame, median.
+    pub gpu_as_ms_p50: f64,
+    /// GPU acceleration-structure ms per frame, 99th percentile.
+    pub gpu_as_ms_p99: f64,
+    /// Render time of the scored frames, median ms.
+    pub render_ms_p50: f64,
+    /// BLAS builds per frame, mean.
+    pub builds_per_frame: f64,
+    /// Frames whose BLAS memory (retiring included) exceeded the policy's budget.
+    pub over_budget_frames: u64,
+    /// Mean geometric hit mismatch against the opaque ground truth.
+    pub hit_mismatch_mean: f64,
+    /// Its per-frame 95th percentile.
+    pub hit_mismatch_p95: f64,
+    /// Mean shadow mismatch (over agreeing hits).
+    pub shadow_mismatch_mean: f64,
+    /// Its per-frame 95th percentile.
+    pub shadow_mismatch_p95: f64,
+    /// Error per distance band of the reference hit.
+    pub mismatch_by_band: Vec<BandSummary>,
+    /// Every error figure against the opaque ground truth.
+    pub error: ErrorSummary,
+    /// The same against the all-geometry ground truth (non-opaque as opaque), if scored.
+    pub error_all_geometry: Option<ErrorSummary>,
+    /// The worst frame's picture (managed | reference | difference), if written.
+    pub worst_frame_png: Option<PathBuf>,
+    /// Validation messages of the run (the policies share a device: the same number).
+    pub validation_messages: u64,
+}
+
+/// The ground truth of the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReferenceInfo {
+    /// Instances in the opaque reference.
+    pub instances: usize,
+    /// Instances in the all-geometry reference.
+    pub all_geometry_instances: usize,
+    /// Instances in the world.
+    pub world_instances: usize,
+    /// Opaque reference instances in levels that streaming never loaded during the run.
+    pub never_loaded_instances: usize,
+    /// Built from the whole world (always true: never from what streaming loaded).
+    pub full_world: bool,
+    /// Build time of one reference scene, ms.
+    pub build_ms: Summary,
+}
+
+/// The summary of a run (`summary.json`, and the last stdout line with `--json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct RunSummary {
+    /// Frames run.
+    pub frames: u64,
+    /// World and path seed.
+    pub seed: u64,
+    /// World preset.
+    pub preset: String,
+    /// Device the run used.
+    pub device: String,
+    /// Deterministic mode.
+    pub deterministic: bool,
+    /// Streaming load radius, metres.
+    pub stream_radius: f32,
+    /// Frames scored.
+    pub evaluated_frames: usize,
+    /// Image size of scored frames.
+    pub size: [u32; 2],
+    /// Distance bands (metres of ray distance).
+    pub bands: [String; 4],
+    /// The ground truth.
+    pub reference: ReferenceInfo,
+    /// One entry per policy.
+    pub policies: Vec<PolicySummary>,
+    /// Validation messages of the run.
+    pub validation_messages: u64,
+    /// Wall time of the run, seconds.
+    pub seconds: f64,
+}
+
+/// Rows and summary of a run, and the files written.
+#[derive(Debug, Clone)]
+pub struct RunReport {
+    /// The summary.
+    pub summary: RunSummary,
+    /// Every policy's row of every frame, in frame order.
+    pub rows: Vec<FrameRow>,
+    /// Files written.
+    pub files: Vec<PathBuf>,
+}
+
+fn band_summaries(scores: &[&FrameScore], edges: BandEdges) -> Vec<BandSummary> {
+    let names = edges.names();
+    let n = scores.len().max(1) as f64;
+    (0..4)
+        .map(|b| {
+            let share = |f: &dyn Fn(&FrameScore) -> u64| {
+                scores
+                    .iter()
+                    .map(|s| f(s) as f64 / s.pixels.max(1) as f64)
+                    .sum::<f64>()
+                    / n
+            };
+            let total = |f: &dyn Fn(&FrameScore) -> u64| scores.iter().map(|s| f(s)).sum::<u64>();
+            let pixels = total(&|s| s.bands[b].pixels);
+            let agreeing = total(&|s| s.bands[b].agreeing_hits);
+            BandSummary {
+                band: names[b].clone(),
+                pixel_share: share(&|s| s.bands[b].pixels),
+                hit_mismatch_mean: share(&|s| s.bands[b].hit_mismatched),
+                hit_mismatch_in_band: total(&|s| s.bands[b].hit_mismatched) as f64
+                    / pixels.max(1) as f64,
+                shadow_mismatch_in_band: total(&|s| s.bands[b].shadow_mismatched) as f64
+                    / agreeing.max(1) as f64,
+            }
+        })
+        .collect()
+}
+
+impl RunReport {
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn new(
+        config: &RunConfig,
+        rows: &[FrameRow],
+        policies: &[PolicyKind],
+        reference: ReferenceInfo,
+        validation_messages: u64,
+        render_ms: &[(usize, f64)],
+        seconds: f64,
+        device: String,
+    ) -> Self {
+        let edges = BandEdges::new(config.managed.residency.r1, config.managed.residency.r2);
+        let mut summaries = Vec::new();
+        let mut evaluated = 0;
+        for (pi, &kind) in policies.iter().enumerate() {
+            let name = policy_name(kind);
+            let mine: Vec<&FrameRow> = rows.iter().filter(|r| r.policy == name).collect();
+            let bytes = Summary::of(mine.iter().map(|r| r.blas_bytes as f64));
+            let tlas = Summary::of(mine.iter().map(|r| f64::from(r.tlas_instances)));
+            let update = Summary::of(mine.iter().map(|r| r.update_ms));
+            let gpu = Summary::of(mine.iter().map(|r| r.gpu_as_ms));
+            let scored: Vec<(u64, &FrameScore)> = mine
+                .iter()
+                .filter_map(|r| r.score.as_ref().map(|s| (r.frame, s)))
+                .collect();
+            evaluated = evaluated.max(scored.len());
+            let all: Vec<(u64, &FrameScore)> = mine
+                .iter()
+                .filter_map(|r| r.score_all_geometry.as_ref().map(|s| (r.frame, s)))
+                .collect();
+            let error = ErrorSummary::of(scored.iter().copied());
+            let only: Vec<&FrameScore> = scored.iter().map(|(_, s)| *s).collect();
+            summaries.push(PolicySummary {
+                policy: name,
+                backend: format!("vulkan ({device})"),
+                peak_blas_bytes: mine.iter().map(|r| r.blas_bytes).max().unwrap_or(0),
+                p95_blas_bytes: bytes.p95 as u64,
+                peak_blas_count: mine.iter().map(|r| r.blas_count).max().unwrap_or(0),
+                peak_tlas_instances: mine.iter().map(|r| r.tlas_instances).max().unwrap_or(0),
+                p95_tlas_instances: tlas.p95 as u32,
+                update_ms_p50: update.p50,
+                update_ms_p99: update.p99,
+                gpu_as_ms_p50: gpu.p50,
+                gpu_as_ms_p99: gpu.p99,
+                render_ms_p50: Summary::of(
+                    render_ms
+                        .iter()
+                        .filter(|(i, _)| *i == pi)
+                        .map(|(_, ms)| *ms),
+                )
+                .p50,
+                builds_per_frame: mine.iter().map(|r| f64::from(r.builds)).sum::<f64>()
+                    / mine.len().max(1) as f64,
+                over_budget_frames: mine.iter().filter(|r| r.over_budget()).count() as u64,
+                hit_mismatch_mean: error.hit_mismatch.mean,
+                hit_mismatch_p95: error.hit_mismatch.p95,
+                shadow_mismatch_mean: error.shadow_mismatch.mean,
+                shadow_mismatch_p95: error.shadow_mismatch.p95,
+                mismatch_by_band: band_summaries(&only, edges),
+                error,
+                error_all_geometry: (!all.is_empty()).then(|| ErrorSummary::of(all.into_iter())),
+                worst_frame_png: None,
+                validation_messages,
+            });
+        }
+        Self {
+            summary: RunSummary {
+                frames: config.frames,
+                seed: config.preset.seed,
+                preset: config.preset.name.clone(),
+                device,
+                deterministic: config.deterministic,
+                stream_radius: config.stream.load_radius,
+                evaluated_frames: evaluated,
+                size: [config.size.0, config.size.1],
+                bands: edges.names(),
+                reference,
+                policies: summaries,
+                validation_messages,
+                seconds,
+            },
+            rows: Vec::new(),
+            files: Vec::new(),
+        }
+    }
+
+    pub(crate) fn set_worst_frame(&mut self, kind: PolicyKind, frame: u64, file: &Path) {
+        for p in &mut self.summary.policies {
+            if p.policy == policy_name(kind) && p.error.worst_frame == Some(frame) {
+                p.worst_frame_png = Some(file.to_owned());
+            }
+        }
+    }
+
+    /// The summary as one line of JSON.
+    pub fn json(&self) -> String {
+        serde_json::to_string(&self.summary).expect("the summary serialises")
+    }
+
+    /// Writes `frames.csv` and `summary.json` into `dir`; returns their paths.
+    pub fn write_files(&self, dir: &Path) -> Result<Vec<PathBuf>> {
+        let out = |path: &Path, e: &dyn std::fmt::Display| Error::Output {
+            path: path.to_owned(),
+            message: e.to_string(),
+        };
+        std::fs::create_dir_all(dir).map_err(|e| out(dir, &e))?;
+        let csv_path = dir.join("frames.csv");
+        let mut w = csv::Writer::from_path(&csv_path).map_err(|e| out(&csv_path, &e))?;
+        for r in &self.rows {
+            let s = r.score.as_ref();
+            let band = |b: usize| s.map(|s| s.bands[b].hit_mismatched as f64 / s.pixels as f64);
+            w.serialize(CsvRow {
+                frame: r.frame,
+                policy: r.policy,
+                blas_count: r.blas_count,
+                blas_bytes: r.blas_bytes,
+                retiring_bytes: r.retiring_bytes,
+                over_budget: r.over_budget(),
+                tlas_instances: r.tlas_instances,
+                builds: r.builds,
+                build_primitives: r.build_primitives,
+                refits: r.refits,
+                compactions: r.compactions,
+                evictions: r.evictions,
+                update_ms: r.update_ms,
+                gpu_as_ms: r.gpu_as_ms,
+                hit_mismatch: s.map(|s| s.hit_mismatch),
+                identity_mismatch: s.map(|s| s.identity_mismatch),
+                shadow_mismatch: s.map(|s| s.shadow_mismatch),
+                ao_difference: s.map(|s| s.ao_difference),
+                psnr_db: s.map(|s| s.psnr_db),
+                band0_hit_mismatch: band(0),
+                band1_hit_mismatch: band(1),
+                band2_hit_mismatch: band(2),
+                band3_hit_mismatch: band(3),
+                all_geometry_hit_mismatch: r.score_all_geometry.map(|s| s.hit_mismatch),
+                all_geometry_shadow_mismatch: r.score_all_geometry.map(|s| s.shadow_mismatch),
+            })
+            .map_err(|e| out(&csv_path, &e))?;
+        }
+        w.flush().map_err(|e| out(&csv_path, &e))?;
+        let json_path = dir.join("summary.json");
+        let json = serde_json::to_string_pretty(&self.summary).map_err(|e| out(&json_path, &e))?;
+        std::fs::write(&json_path, json).map_err(|e| out(&json_path, &e))?;
+        Ok(vec![csv_path, json_path])
+    }
+}
