@@ -174,12 +174,56 @@ pub fn run(config: &RunConfig, progress: &mut dyn FnMut(&Progress)) -> Result<Ru
     run_on(ctx, config, progress)
 }
 
+/// One rendered reference: its kind, the frame, and the world instance id of each customIndex.
+type CachedReference = (TruthKind, Arc<Frame>, Arc<Vec<u32>>);
+
+/// Reference frames of a run, kept for further runs over the same world, path, frames and
+/// image size (a sweep renders the ground truth once, not once per point).
+#[derive(Debug, Default)]
+pub struct ReferenceCache {
+    key: String,
+    frames: std::collections::HashMap<u64, Vec<CachedReference>>,
+    build_ms: Vec<f64>,
+}
+
+impl ReferenceCache {
+    fn key_of(c: &RunConfig) -> String {
+        format!(
+            "{:?}|{}|{}|{:?}|{}|{}",
+            c.preset,
+            c.frames,
+            c.eval_every,
+            c.size,
+            c.all_geometry_reference,
+            c.stream_delay_frames
+        )
+    }
+}
+
 /// Runs `config` on an existing context.
 pub fn run_on(
     ctx: Arc<VulkanContext>,
     config: &RunConfig,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<RunReport> {
+    run_cached(ctx, config, &mut ReferenceCache::default(), progress)
+}
+
+/// Runs `config` on an existing context, taking reference frames from `cache` when it holds
+/// them for this world, path and image size (and filling it otherwise).
+pub fn run_cached(
+    ctx: Arc<VulkanContext>,
+    config: &RunConfig,
+    cache: &mut ReferenceCache,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<RunReport> {
+    let key = ReferenceCache::key_of(config);
+    if cache.key != key {
+        *cache = ReferenceCache {
+            key,
+            ..ReferenceCache::default()
+        };
+    }
     if config.policies.is_empty() || config.frames == 0 {
         return Err(Error::InvalidRun("no policy or no frame to run".into()));
     }
@@ -234,7 +278,6 @@ pub fn run_on(
     let mut trail: Vec<Vec3> = Vec::new();
     let mut ever_loaded = vec![false; manifest.levels.len()];
     let mut files = Vec::new();
-    let mut truth_ms = Vec::new();
     let mut render_ms: Vec<(usize, f64)> = Vec::new();
     for frame in 0..config.frames {
         let cam = path.at(frame, config.frames);
@@ -267,19 +310,23 @@ pub fn run_on(
             let view =
                 ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
             let desc = RenderDesc::new(config.size.0, config.size.1, view);
-            let mut refs: Vec<(TruthKind, Frame, Vec<u32>)> = Vec::new();
             let kinds: &[TruthKind] = if config.all_geometry_reference {
                 &[TruthKind::Opaque, TruthKind::AllGeometry]
             } else {
                 &[TruthKind::Opaque]
             };
-            for &kind in kinds {
-                let ts = truth.build(&ctx, kind, time)?;
-                truth_ms.push(ts.build_ms);
-                let img = ts.scene.render(r, &desc)?;
-                ts.scene.destroy(&ctx);
-                refs.push((kind, img, ts.ids));
+            if !cache.frames.contains_key(&frame) {
+                let mut refs = Vec::new();
+                for &kind in kinds {
+                    let ts = truth.build(&ctx, kind, time)?;
+                    cache.build_ms.push(ts.build_ms);
+                    let img = ts.scene.render(r, &desc)?;
+                    ts.scene.destroy(&ctx);
+                    refs.push((kind, Arc::new(img), Arc::new(ts.ids)));
+                }
+                cache.frames.insert(frame, refs);
             }
+            let refs = cache.frames[&frame].clone();
             let n = policies.len();
             for (pi, p) in policies.iter_mut().enumerate() {
                 p.manager.backend_mut().wait_idle()?;
@@ -294,7 +341,7 @@ pub fn run_on(
                 render_ms.push((pi, img.render_ms));
                 let row = rows.len() - n + pi;
                 for (kind, reference, ids) in &refs {
-                    let bridge = &p.bridge;
+                    let (reference, bridge) = (&**reference, &p.bridge);
                     let (s, verdicts) = score::score(
                         &img,
                         reference,
@@ -371,7 +418,7 @@ pub fn run_on(
             world_instances: truth.world_instances(),
             never_loaded_instances,
             full_world: true,
-            build_ms: stats::Summary::of(truth_ms),
+            build_ms: stats::Summary::of(cache.build_ms.iter().copied()),
         },
         validation_messages,
         &render_ms,
