@@ -19,7 +19,7 @@ use rtstream::driver::{self, RunReport};
 
 /// The open-world fly-through: every policy on the real backend, scored against the full world.
 #[derive(Debug, Parser)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     #[command(flatten)]
     run: cli::RunArgs,

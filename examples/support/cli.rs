@@ -83,6 +83,12 @@ pub struct RunArgs {
     /// LOD pixel error.
     #[arg(long)]
     pub lod_px: Option<f32>,
+    /// Estimated GPU ms of BLAS builds admitted per frame.
+    #[arg(long)]
+    pub max_build_ms: Option<f32>,
+    /// Triangles admitted for BLAS builds per frame.
+    #[arg(long)]
+    pub max_build_tris: Option<u64>,
     /// Streaming load radius, metres (what a raster engine would load).
     #[arg(long, default_value_t = 1000.0)]
     pub stream_radius: f32,
@@ -171,6 +177,12 @@ impl RunArgs {
         }
         if let Some(px) = self.lod_px {
             m.lod.max_pixel_error = px;
+        }
+        if let Some(ms) = self.max_build_ms {
+            m.build.max_gpu_ms = ms;
+        }
+        if let Some(t) = self.max_build_tris {
+            m.build.max_primitives = t;
         }
         if c.policies.is_empty() {
             bail!("--policy needs at least one policy");
