@@ -81,7 +81,10 @@ impl Default for LodConfig {
 pub struct BuildBudget {
     /// Triangles admitted for BLAS builds per frame.
     pub max_primitives: u64,
-    /// Estimated GPU milliseconds of BLAS builds per frame.
+    /// Estimated GPU milliseconds of all acceleration-structure work per frame: the TLAS build
+    /// and the refits (estimated from the previous frame) are set aside first, builds get what
+    /// they leave, and compactions what builds leave (at most `max_compaction_ms`). One build
+    /// larger than the whole budget is admitted alone.
     pub max_gpu_ms: f32,
     /// Priority gained per frame of waiting (world units of distance), so nothing starves.
     pub aging_per_frame: f32,

@@ -78,6 +78,9 @@ pub struct FrameStats {
     pub build_primitives: u64,
     /// Estimated GPU ms of this frame's builds.
     pub build_estimated_ms: f32,
+    /// Estimated GPU ms of all of this frame's acceleration-structure work (builds, refits,
+    /// compactions and the TLAS), what `BuildBudget::max_gpu_ms` bounds.
+    pub as_estimated_ms: f32,
     /// An item larger than the whole build budget was admitted alone.
     pub oversized_admitted: bool,
     /// Items still waiting in the build queue.
@@ -174,6 +177,13 @@ pub struct AsManager<B: AsBackend> {
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
+    /// GPU ms set aside this frame for the TLAS and refits (see `schedule_builds`).
+    gpu_reserved_ms: f64,
+    /// Last frame's TLAS instances and refitted triangles.
+    prev_tlas_instances: u32,
+    prev_refit_prims: u64,
+    /// Estimated GPU ms of this frame's compactions.
+    compaction_estimated_ms: f64,
     visits: Vec<Visit>,
     cam_pos: Vec<Vec3>,
     cam_fwd: Vec<Vec3>,
@@ -202,6 +212,10 @@ impl<B: AsBackend> AsManager<B> {
             lod: LodSelector::new(&config.lod),
             culler: InstanceCuller::new(&config.cull),
             costs: config.cost_prior,
+            gpu_reserved_ms: 0.0,
+            prev_tlas_instances: 0,
+            prev_refit_prims: 0,
+            compaction_estimated_ms: 0.0,
             config,
             backend,
             registrar: Registrar::default(),
@@ -429,11 +443,17 @@ impl<B: AsBackend> AsManager<B> {
         let _span = tracing::debug_span!("update", frame).entered();
         self.last_frame = Some(frame);
         self.frame = frame;
+        // Last frame's TLAS and refit amounts predict this frame's (the GPU budget sets them
+        // aside before admitting builds).
+        self.prev_tlas_instances = self.stats.tlas_instances;
+        self.prev_refit_prims = self.stats.refit_primitives;
         self.stats = FrameStats {
             frame,
             worst_refit_quality: 1.0,
             ..FrameStats::default()
         };
+        self.compaction_estimated_ms = 0.0;
+        self.gpu_reserved_ms = 0.0;
         self.backend.begin_frame(frame)?;
         self.drain_retiring();
         self.refine_costs();
@@ -461,6 +481,13 @@ impl<B: AsBackend> AsManager<B> {
         };
         self.stats.instances = self.live_instances;
         self.stats.tlas_instances = self.records.len() as u32;
+        self.stats.as_estimated_ms = (self.stats.build_estimated_ms as f64
+            + self
+                .costs
+                .estimate(CostOp::Refit, self.stats.refit_primitives)
+            + self.compaction_estimated_ms
+            + self.costs.estimate(CostOp::Tlas, self.records.len() as u64))
+            as f32;
         self.stats.blas_count = self.built_count;
         self.stats.blas_bytes = self.live_bytes;
         self.stats.retiring_bytes = self.retiring_bytes;

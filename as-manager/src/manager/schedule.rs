@@ -127,6 +127,16 @@ impl<B: AsBackend> AsManager<B> {
         let build_budget =
             (self.budget() as f64 * (1.0 - self.config.memory.compaction_headroom as f64)) as u64;
         let (mut prims, mut ms, mut bytes) = (0u64, 0f64, 0u64);
+        // The GPU budget covers all acceleration-structure work: builds get what the TLAS and
+        // the refits (estimated from last frame) leave.
+        // The TLAS holds at most the instances within r2 this frame (visited above).
+        let tlas_now = self.costs.estimate(CostOp::Tlas, self.visits.len() as u64);
+        let tlas_before = self
+            .costs
+            .estimate(CostOp::Tlas, u64::from(self.prev_tlas_instances));
+        self.gpu_reserved_ms =
+            tlas_now.max(tlas_before) + self.costs.estimate(CostOp::Refit, self.prev_refit_prims);
+        let build_ms = (b.max_gpu_ms as f64 - self.gpu_reserved_ms).max(0.0);
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
         for &(prio, slot) in &queue {
@@ -170,8 +180,10 @@ impl<B: AsBackend> AsManager<B> {
                 if oversized && !admitted.is_empty() {
                     continue;
                 }
-                if !oversized
-                    && (prims + tris as u64 > b.max_primitives || ms + est > b.max_gpu_ms as f64)
+                // The first item always goes (progress even when the TLAS and refits take
+                // the whole budget); later ones only within what is left.
+                if !admitted.is_empty()
+                    && (prims + tris as u64 > b.max_primitives || ms + est > build_ms)
                 {
                     continue;
                 }
@@ -410,7 +422,10 @@ impl<B: AsBackend> AsManager<B> {
             return Ok(());
         }
         let b = &self.config.build;
-        let (max_n, max_ms) = (b.max_compactions, b.max_compaction_ms as f64);
+        // Compaction takes what the GPU budget has left after builds, refits and the TLAS.
+        let left =
+            b.max_gpu_ms as f64 - self.stats.build_estimated_ms as f64 - self.gpu_reserved_ms;
+        let (max_n, max_ms) = (b.max_compactions, (b.max_compaction_ms as f64).min(left));
         let mut pending = std::mem::take(&mut self.compact_pending);
         let mut done = 0u32;
         let mut ms = 0.0;
@@ -429,7 +444,7 @@ impl<B: AsBackend> AsManager<B> {
                 return false; // nothing worth saving (e.g. lavapipe)
             }
             let est = self.costs.estimate(CostOp::Compact, e.bytes);
-            if done >= max_n || (done > 0 && ms + est > max_ms) {
+            if done >= max_n || max_ms <= 0.0 || (done > 0 && ms + est > max_ms) {
                 return true;
             }
             if self.memory_in_use() + size > self.budget() {
@@ -454,6 +469,7 @@ impl<B: AsBackend> AsManager<B> {
             }
         });
         self.stats.compactions = done;
+        self.compaction_estimated_ms = ms;
         self.compact_pending = pending;
         Ok(())
     }

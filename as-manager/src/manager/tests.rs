@@ -558,3 +558,67 @@ fn evaluation_is_recorded_for_its_frame_only() {
         "a new frame starts without an evaluation"
     );
 }
+
+#[test]
+fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
+    // A TLAS estimated at most of the budget leaves builds one item per frame; a cheap TLAS
+    // leaves them the whole budget.
+    let frames_to_build = |tlas_ms_per_instance: f64| {
+        let mut cfg = Config::default();
+        cfg.build.max_gpu_ms = 1.0;
+        cfg.build.max_primitives = u64::MAX;
+        cfg.freeze_cost_model = true;
+        cfg.cost_prior.build_static_ms_per_mtri = 10.0; // 0.01 ms per 1k-triangle mesh
+        cfg.cost_prior.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
+        cfg.cost_prior.batch_fixed_ms = 0.0;
+        let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
+        let mut ids = Vec::new();
+        for i in 0..40 {
+            let mesh = m
+                .register_mesh(MeshDesc::new(
+                    format!("m{i}"),
+                    MeshKind::Static,
+                    1.0,
+                    vec![LodDesc {
+                        geometry: LodGeometry::Counts {
+                            vertices: 600,
+                            triangles: 1000,
+                        },
+                        geometric_error: 0.0,
+                    }],
+                ))
+                .unwrap();
+            let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
+            ids.push(m.add_instance(InstanceDesc::new(mesh, t)).unwrap());
+        }
+        let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+        let mut frame = 0;
+        loop {
+            let s = m
+                .update(FrameInput {
+                    frame,
+                    cameras: &cams,
+                })
+                .unwrap()
+                .stats
+                .clone();
+            assert!(
+                s.builds <= 1 || f64::from(s.build_estimated_ms) <= 1.0 + 1e-6,
+                "frame {frame}: {} builds, {} ms",
+                s.builds,
+                s.build_estimated_ms
+            );
+            if s.blas_count == 40 || frame == 200 {
+                return frame;
+            }
+            frame += 1;
+        }
+    };
+    let cheap = frames_to_build(1e-6);
+    let dear = frames_to_build(0.03); // 40 instances: 1.2 ms, more than the budget
+    assert!(cheap < 10, "cheap TLAS: {cheap} frames");
+    assert!(
+        dear >= 35 && dear < 200,
+        "dear TLAS: {dear} frames (one build a frame)"
+    );
+}
