@@ -1,0 +1,361 @@
+//! The speed–accuracy trade-off: sweeps the managed policy's culling angle, culling distance,
+//! r1/r2, LOD pixel error and memory budget over the same deterministic path, scores every
+//! point against the full-world ground truth, and charts error against memory, TLAS instances
+//! and GPU ms with the Pareto front, the defaults, `naive` and `seed` marked.
+//!
+//! ```text
+//! cargo run --release --example tradeoff -- [--frames 600] [--eval-every 20] [--size 320x180]
+//!     [--out out/tradeoff] [--only angle,distance,radii,lod,budget] [--json]
+//! ```
+//! Writes `points.csv`, `points.json` and `error_vs_{memory,tlas,gpu}.{png,svg}` to `--out`.
+
+#[path = "support/charts.rs"]
+mod charts;
+#[path = "support/cli.rs"]
+mod cli;
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::Context;
+use clap::{Parser, ValueEnum};
+use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
+use rtstream::as_manager::{Config, PolicyKind};
+use rtstream::driver::{self, PolicySummary, ReferenceCache, RunConfig};
+use serde::Serialize;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Knob {
+    /// Culling angle (0, 0.25, 0.5, 1, 2, 4 degrees).
+    Angle,
+    /// Culling distance (100, 150, 200, 250, 300 m).
+    Distance,
+    /// r1/r2 (100/150, 150/200, 200/250, 300/350 m).
+    Radii,
+    /// LOD pixel error (0.5, 1, 2, 4 px).
+    Lod,
+    /// Memory budget (4, 8, 16, 32, 64 MB).
+    Budget,
+}
+
+/// Sweeps the managed policy's knobs over one path and charts error against cost.
+#[derive(Debug, Parser)]
+#[command(version)]
+struct Cli {
+    #[command(flatten)]
+    run: cli::RunArgs,
+    /// Knobs to sweep (default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    only: Vec<Knob>,
+    /// Print the points as one JSON object on the last line of stdout.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// One point of the sweep.
+#[derive(Debug, Clone, Serialize)]
+struct SweepPoint {
+    knob: &'static str,
+    value: String,
+    is_default: bool,
+    #[serde(flatten)]
+    figures: PolicySummary,
+}
+
+fn points(knob: Knob) -> Vec<(String, Box<dyn Fn(&mut Config)>)> {
+    fn p(v: String, f: impl Fn(&mut Config) + 'static) -> (String, Box<dyn Fn(&mut Config)>) {
+        (v, Box::new(f))
+    }
+    match knob {
+        Knob::Angle => [0.0f32, 0.25, 0.5, 1.0, 2.0, 4.0]
+            .into_iter()
+            .map(|a| p(format!("{a}deg"), move |c| c.cull.min_angle = a.to_radians()))
+            .collect(),
+        Knob::Distance => [100.0f32, 150.0, 200.0, 250.0, 300.0]
+            .into_iter()
+            .map(|d| p(format!("{d}m"), move |c| c.cull.far_distance = d))
+            .collect(),
+        Knob::Radii => [(100.0f32, 150.0f32), (150.0, 200.0), (200.0, 250.0), (300.0, 350.0)]
+            .into_iter()
+            .map(|(a, b)| {
+                p(format!("{a}/{b}m"), move |c| {
+                    c.residency.r1 = a;
+                    c.residency.r2 = b;
+                })
+            })
+            .collect(),
+        Knob::Lod => [0.5f32, 1.0, 2.0, 4.0]
+            .into_iter()
+            .map(|px| p(format!("{px}px"), move |c| c.lod.max_pixel_error = px))
+            .collect(),
+        Knob::Budget => [4u64, 8, 16, 32, 64]
+            .into_iter()
+            .map(|mb| p(format!("{mb}MB"), move |c| c.memory.blas_bytes = mb << 20))
+            .collect(),
+    }
+}
+
+fn knob_name(k: Knob) -> &'static str {
+    match k {
+        Knob::Angle => "cull_angle",
+        Knob::Distance => "cull_distance",
+        Knob::Radii => "r1_r2",
+        Knob::Lod => "lod_px",
+        Knob::Budget => "budget",
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let mut cli = Cli::parse();
+    if cli.run.out == PathBuf::from("out/flythrough") {
+        cli.run.out = PathBuf::from("out/tradeoff");
+    }
+    let knobs = if cli.only.is_empty() {
+        vec![Knob::Angle, Knob::Distance, Knob::Radii, Knob::Lod, Knob::Budget]
+    } else {
+        cli.only.clone()
+    };
+    let mut base = cli.run.run_config()?;
+    base.deterministic = true;
+    base.all_geometry_reference = false;
+    base.maps = 0;
+    let out = cli.run.out.clone();
+    base.out_dir = None;
+    let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
+    let mut cache = ReferenceCache::default();
+    let default_config = base.managed.clone();
+
+    // The defaults and the baselines, in one run.
+    let mut runs: Vec<(String, RunConfig)> = vec![("defaults + baselines".into(), base.clone())];
+    let mut meta = vec![("default", "default".to_string(), true)];
+    for &k in &knobs {
+        for (value, set) in points(k) {
+            let mut c = base.clone();
+            set(&mut c.managed);
+            if c.managed == default_config {
+                continue; // the default run covers it
+            }
+            c.policies = vec![PolicyKind::Managed];
+            c.managed.validate().with_context(|| format!("{} = {value}", knob_name(k)))?;
+            runs.push((format!("{} = {value}", knob_name(k)), c));
+            meta.push((knob_name(k), value, false));
+        }
+    }
+    let mut sweep = Vec::new();
+    let mut baselines = Vec::new();
+    for (i, ((title, config), (knob, value, is_default))) in runs.iter().zip(meta).enumerate() {
+        eprintln!("[{}/{}] {title}", i + 1, runs.len());
+        let (bar, mut progress) = cli::progress_bar(config.frames, cli.quiet);
+        let report = driver::run_cached(ctx.clone(), config, &mut cache, &mut progress)
+            .with_context(|| format!("sweep point {title}"))?;
+        bar.finish_and_clear();
+        for p in report.summary.policies {
+            if p.policy == "managed" {
+                sweep.push(SweepPoint {
+                    knob,
+                    value: value.clone(),
+                    is_default,
+                    figures: p,
+                });
+            } else {
+                baselines.push(p);
+            }
+        }
+    }
+    let validation = ctx.validation_log().failure_count();
+    print_table(&sweep, &baselines);
+    std::fs::create_dir_all(&out)?;
+    write_csv(&out.join("points.csv"), &sweep, &baselines)?;
+    let json = serde_json::json!({
+        "frames": base.frames,
+        "seed": base.preset.seed,
+        "device": ctx.info().name,
+        "points": sweep,
+        "baselines": baselines,
+        "validation_messages": validation,
+    });
+    std::fs::write(out.join("points.json"), serde_json::to_string_pretty(&json)?)?;
+    for f in draw_charts(&out, &sweep, &baselines)? {
+        println!("wrote {}", f.display());
+    }
+    if cli.json {
+        println!("{json}");
+    }
+    Ok(())
+}
+
+fn print_table(sweep: &[SweepPoint], baselines: &[PolicySummary]) {
+    println!(
+        "{:<14} {:>9} {:>9} {:>9} {:>7} {:>8} {:>8} {:>9} {:>9} {:>9} {:>5}",
+        "knob", "value", "peak MB", "p95 MB", "TLAS", "upd p50", "gpu p99", "hit mean", "hit p95",
+        "shd mean", "front"
+    );
+    let front = front_of(sweep, |p| p.figures.peak_blas_bytes as f64);
+    let row = |knob: &str, value: &str, p: &PolicySummary, on_front: bool| {
+        println!(
+            "{:<14} {:>9} {:>9.1} {:>9.1} {:>7} {:>8.2} {:>8.2} {:>8.2}% {:>8.2}% {:>8.2}% {:>5}",
+            knob,
+            value,
+            p.peak_blas_bytes as f64 / 1e6,
+            p.p95_blas_bytes as f64 / 1e6,
+            p.peak_tlas_instances,
+            p.update_ms_p50,
+            p.gpu_as_ms_p99,
+            p.hit_mismatch_mean * 100.0,
+            p.hit_mismatch_p95 * 100.0,
+            p.shadow_mismatch_mean * 100.0,
+            if on_front { "*" } else { "" }
+        )
+    };
+    for (i, s) in sweep.iter().enumerate() {
+        row(s.knob, &s.value, &s.figures, front.contains(&i));
+    }
+    for b in baselines {
+        row(b.policy, "-", b, false);
+    }
+    println!("front: Pareto front of mean hit mismatch against peak BLAS bytes");
+}
+
+fn front_of(sweep: &[SweepPoint], cost: impl Fn(&SweepPoint) -> f64) -> Vec<usize> {
+    let pts: Vec<(f64, f64)> = sweep
+        .iter()
+        .map(|p| (cost(p), p.figures.hit_mismatch_mean))
+        .collect();
+    charts::pareto_front(&pts)
+}
+
+fn write_csv(
+    path: &std::path::Path,
+    sweep: &[SweepPoint],
+    baselines: &[PolicySummary],
+) -> anyhow::Result<()> {
+    #[derive(Serialize)]
+    struct Row<'a> {
+        knob: &'a str,
+        value: &'a str,
+        policy: &'a str,
+        peak_blas_bytes: u64,
+        p95_blas_bytes: u64,
+        peak_tlas_instances: u32,
+        p95_tlas_instances: u32,
+        update_ms_p50: f64,
+        update_ms_p99: f64,
+        gpu_as_ms_p50: f64,
+        gpu_as_ms_p99: f64,
+        hit_mismatch_mean: f64,
+        hit_mismatch_p95: f64,
+        shadow_mismatch_mean: f64,
+        shadow_mismatch_p95: f64,
+        over_budget_frames: u64,
+    }
+    let row = |knob: &'static str, value: &'static str, p: &PolicySummary| Row {
+        knob,
+        value,
+        policy: p.policy,
+        peak_blas_bytes: p.peak_blas_bytes,
+        p95_blas_bytes: p.p95_blas_bytes,
+        peak_tlas_instances: p.peak_tlas_instances,
+        p95_tlas_instances: p.p95_tlas_instances,
+        update_ms_p50: p.update_ms_p50,
+        update_ms_p99: p.update_ms_p99,
+        gpu_as_ms_p50: p.gpu_as_ms_p50,
+        gpu_as_ms_p99: p.gpu_as_ms_p99,
+        hit_mismatch_mean: p.hit_mismatch_mean,
+        hit_mismatch_p95: p.hit_mismatch_p95,
+        shadow_mismatch_mean: p.shadow_mismatch_mean,
+        shadow_mismatch_p95: p.shadow_mismatch_p95,
+        over_budget_frames: p.over_budget_frames,
+    };
+    let mut w = csv::Writer::from_path(path)?;
+    for s in sweep {
+        let mut r = row(s.knob, "", &s.figures);
+        r.value = &s.value;
+        w.serialize(r)?;
+    }
+    for b in baselines {
+        w.serialize(row("baseline", "", b))?;
+    }
+    w.flush()?;
+    Ok(())
+}
+
+fn draw_charts(
+    out: &std::path::Path,
+    sweep: &[SweepPoint],
+    baselines: &[PolicySummary],
+) -> anyhow::Result<Vec<PathBuf>> {
+    type Cost = fn(&PolicySummary) -> f64;
+    let axes: [(&str, &str, Cost, bool); 3] = [
+        ("error_vs_memory", "peak BLAS MB", |p| p.peak_blas_bytes as f64 / 1e6, true),
+        ("error_vs_tlas", "peak TLAS instances", |p| f64::from(p.peak_tlas_instances), true),
+        ("error_vs_gpu", "GPU AS ms p99", |p| p.gpu_as_ms_p99, false),
+    ];
+    let mut files = Vec::new();
+    for (stem, x_label, cost, log_x) in axes {
+        let label = |s: &SweepPoint| format!("{} {}", s.knob.replace('_', " "), s.value);
+        let pt = |p: &PolicySummary, l: String| charts::Point {
+            x: cost(p),
+            y: p.hit_mismatch_mean * 100.0,
+            label: l,
+        };
+        let front = front_of(sweep, |s| cost(&s.figures));
+        let mut series: Vec<charts::Series> = Vec::new();
+        let knobs = ["cull_angle", "cull_distance", "r1_r2", "lod_px", "budget"];
+        for k in knobs {
+            let pts: Vec<charts::Point> = sweep
+                .iter()
+                .filter(|s| s.knob == k)
+                .map(|s| pt(&s.figures, s.value.clone()))
+                .collect();
+            if !pts.is_empty() {
+                series.push(charts::Series {
+                    name: k.replace('_', " "),
+                    role: charts::Role::Sweep,
+                    points: pts,
+                });
+            }
+        }
+        series.push(charts::Series {
+            name: "Pareto front".into(),
+            role: charts::Role::Front,
+            points: front
+                .iter()
+                .map(|&i| pt(&sweep[i].figures, String::new()))
+                .collect(),
+        });
+        series.push(charts::Series {
+            name: "default".into(),
+            role: charts::Role::Default,
+            points: sweep
+                .iter()
+                .filter(|s| s.is_default)
+                .map(|s| pt(&s.figures, label(s)))
+                .collect(),
+        });
+        for b in baselines {
+            series.push(charts::Series {
+                name: b.policy.into(),
+                role: charts::Role::Baseline,
+                points: vec![pt(b, b.policy.into())],
+            });
+        }
+        files.extend(charts::scatter(
+            &out.join(stem),
+            &format!("mean geometric hit mismatch vs {x_label} (full-world ground truth)"),
+            x_label,
+            "hit mismatch, % of pixels",
+            log_x,
+            &series,
+        )?);
+    }
+    Ok(files)
+}
