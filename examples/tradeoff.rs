@@ -72,21 +72,30 @@ fn points(knob: Knob) -> Vec<(String, Box<dyn Fn(&mut Config)>)> {
     match knob {
         Knob::Angle => [0.0f32, 0.25, 0.5, 1.0, 2.0, 4.0]
             .into_iter()
-            .map(|a| p(format!("{a}deg"), move |c| c.cull.min_angle = a.to_radians()))
+            .map(|a| {
+                p(format!("{a}deg"), move |c| {
+                    c.cull.min_angle = a.to_radians()
+                })
+            })
             .collect(),
         Knob::Distance => [100.0f32, 150.0, 200.0, 250.0, 300.0]
             .into_iter()
             .map(|d| p(format!("{d}m"), move |c| c.cull.far_distance = d))
             .collect(),
-        Knob::Radii => [(100.0f32, 150.0f32), (150.0, 200.0), (200.0, 250.0), (300.0, 350.0)]
-            .into_iter()
-            .map(|(a, b)| {
-                p(format!("{a}/{b}m"), move |c| {
-                    c.residency.r1 = a;
-                    c.residency.r2 = b;
-                })
+        Knob::Radii => [
+            (100.0f32, 150.0f32),
+            (150.0, 200.0),
+            (200.0, 250.0),
+            (300.0, 350.0),
+        ]
+        .into_iter()
+        .map(|(a, b)| {
+            p(format!("{a}/{b}m"), move |c| {
+                c.residency.r1 = a;
+                c.residency.r2 = b;
             })
-            .collect(),
+        })
+        .collect(),
         Knob::Lod => [0.5f32, 1.0, 2.0, 4.0]
             .into_iter()
             .map(|px| p(format!("{px}px"), move |c| c.lod.max_pixel_error = px))
@@ -120,7 +129,13 @@ fn main() -> anyhow::Result<()> {
         cli.run.out = PathBuf::from("out/tradeoff");
     }
     let knobs = if cli.only.is_empty() {
-        vec![Knob::Angle, Knob::Distance, Knob::Radii, Knob::Lod, Knob::Budget]
+        vec![
+            Knob::Angle,
+            Knob::Distance,
+            Knob::Radii,
+            Knob::Lod,
+            Knob::Budget,
+        ]
     } else {
         cli.only.clone()
     };
@@ -145,7 +160,9 @@ fn main() -> anyhow::Result<()> {
                 continue; // the default run covers it
             }
             c.policies = vec![PolicyKind::Managed];
-            c.managed.validate().with_context(|| format!("{} = {value}", knob_name(k)))?;
+            c.managed
+                .validate()
+                .with_context(|| format!("{} = {value}", knob_name(k)))?;
             runs.push((format!("{} = {value}", knob_name(k)), c));
             meta.push((knob_name(k), value, false));
         }
@@ -183,7 +200,10 @@ fn main() -> anyhow::Result<()> {
         "baselines": baselines,
         "validation_messages": validation,
     });
-    std::fs::write(out.join("points.json"), serde_json::to_string_pretty(&json)?)?;
+    std::fs::write(
+        out.join("points.json"),
+        serde_json::to_string_pretty(&json)?,
+    )?;
     for f in draw_charts(&out, &sweep, &baselines)? {
         println!("wrote {}", f.display());
     }
@@ -196,8 +216,17 @@ fn main() -> anyhow::Result<()> {
 fn print_table(sweep: &[SweepPoint], baselines: &[PolicySummary]) {
     println!(
         "{:<14} {:>9} {:>9} {:>9} {:>7} {:>8} {:>8} {:>9} {:>9} {:>9} {:>5}",
-        "knob", "value", "peak MB", "p95 MB", "TLAS", "upd p50", "gpu p99", "hit mean", "hit p95",
-        "shd mean", "front"
+        "knob",
+        "value",
+        "peak MB",
+        "p95 MB",
+        "TLAS",
+        "upd p50",
+        "gpu p99",
+        "hit mean",
+        "hit p95",
+        "shd mean",
+        "front"
     );
     let front = front_of(sweep, |p| p.figures.peak_blas_bytes as f64);
     let row = |knob: &str, value: &str, p: &PolicySummary, on_front: bool| {
@@ -295,8 +324,18 @@ fn draw_charts(
 ) -> anyhow::Result<Vec<PathBuf>> {
     type Cost = fn(&PolicySummary) -> f64;
     let axes: [(&str, &str, Cost, bool); 3] = [
-        ("error_vs_memory", "peak BLAS MB", |p| p.peak_blas_bytes as f64 / 1e6, true),
-        ("error_vs_tlas", "peak TLAS instances", |p| f64::from(p.peak_tlas_instances), true),
+        (
+            "error_vs_memory",
+            "peak BLAS MB",
+            |p| p.peak_blas_bytes as f64 / 1e6,
+            true,
+        ),
+        (
+            "error_vs_tlas",
+            "peak TLAS instances",
+            |p| f64::from(p.peak_tlas_instances),
+            true,
+        ),
         ("error_vs_gpu", "GPU AS ms p99", |p| p.gpu_as_ms_p99, false),
     ];
     let mut files = Vec::new();

@@ -211,9 +211,8 @@ where
                         )
                         .map_err(|e| err(&e))?,
                 };
-                anno.label(s.name.as_str()).legend(move |(x, y)| {
-                    Circle::new((x + 8, y), 5, colour.filled())
-                });
+                anno.label(s.name.as_str())
+                    .legend(move |(x, y)| Circle::new((x + 8, y), 5, colour.filled()));
                 chart
                     .draw_series(pts.iter().filter(|p| !p.label.is_empty()).map(|p| {
                         EmptyElement::at((p.x, p.y))
@@ -400,13 +399,17 @@ where
     for (si, (name, values)) in series.iter().enumerate() {
         let colour = palette(si);
         chart
-            .draw_series(values.iter().enumerate().filter(|(_, v)| v.is_finite()).map(
-                |(g, &v)| {
-                    let x0 = g as f64 + 0.1 + 0.8 * si as f64 / k;
-                    let x1 = x0 + 0.8 / k;
-                    Rectangle::new([(x0, 0.0), (x1, v)], colour.filled())
-                },
-            ))
+            .draw_series(
+                values
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, v)| v.is_finite())
+                    .map(|(g, &v)| {
+                        let x0 = g as f64 + 0.1 + 0.8 * si as f64 / k;
+                        let x1 = x0 + 0.8 / k;
+                        Rectangle::new([(x0, 0.0), (x1, v)], colour.filled())
+                    }),
+            )
             .map_err(|e| err(&e))?
             .label(name.as_str())
             .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], colour.filled()));
@@ -427,7 +430,13 @@ mod tests {
 
     #[test]
     fn the_front_keeps_only_undominated_points() {
-        let pts = [(1.0, 5.0), (2.0, 3.0), (3.0, 4.0), (4.0, 1.0), (f64::NAN, 0.0)];
+        let pts = [
+            (1.0, 5.0),
+            (2.0, 3.0),
+            (3.0, 4.0),
+            (4.0, 1.0),
+            (f64::NAN, 0.0),
+        ];
         assert_eq!(pareto_front(&pts), vec![0, 1, 3]);
     }
 }

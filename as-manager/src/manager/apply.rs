@@ -8,7 +8,6 @@ use super::registrar::{Command, InstanceDesc};
 use super::state::{Hot, InstanceState, MeshState, NONE};
 use super::AsManager;
 use crate::backend::AsBackend;
-use crate::config::PolicyKind;
 use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use crate::{InstanceId, MeshId};
@@ -93,9 +92,6 @@ impl<B: AsBackend> AsManager<B> {
             floor_since: 0,
             instances: Vec::new(),
         });
-        if self.config.policy == PolicyKind::Naive {
-            self.naive_register_mesh(id.index);
-        }
     }
 
     /// Removes the mesh's instances and BLASes; returns the instance slots removed.
@@ -170,9 +166,6 @@ impl<B: AsBackend> AsManager<B> {
         };
         self.grid.insert(id.index, center, radius, hot);
         self.live_instances += 1;
-        if self.config.policy == PolicyKind::Naive {
-            self.naive_add_instance(id.index);
-        }
     }
 
     fn apply_transform(&mut self, id: InstanceId, t: Affine3A) {

@@ -9,44 +9,95 @@ use crate::mesh::MeshKind;
 use crate::Result;
 
 impl<B: AsBackend> AsManager<B> {
-    /// Naive: every LOD of a static mesh gets a BLAS as soon as it is registered.
-    pub(crate) fn naive_register_mesh(&mut self, mesh: u32) {
-        let m = self.t.meshes[mesh as usize]
-            .as_ref()
-            .expect("just registered");
-        if m.kind() != MeshKind::Static {
-            return;
+    /// The finest LOD of a mesh that is loaded: it holds data, or the backend needs none (the
+    /// model backend counts every LOD as loaded).
+    pub(crate) fn finest_loaded(&self, mesh: u32) -> Option<usize> {
+        let m = self.t.meshes[mesh as usize].as_ref()?;
+        let need = self.backend.needs_geometry();
+        (0..m.nlods as usize).find(|&l| !need || m.desc.lods[l].geometry.data().is_some())
+    }
+
+    /// Naive: a BLAS for every loaded LOD of every static mesh (built as soon as the LOD
+    /// loads, released when its data is evicted), and one for each skinned instance at its
+    /// mesh's finest loaded LOD.
+    fn naive_residency(&mut self) {
+        let need = self.backend.needs_geometry();
+        let frame = self.frame;
+        for mesh in 0..self.t.meshes.len() as u32 {
+            let Some(m) = self.t.meshes[mesh as usize].as_ref() else {
+                continue;
+            };
+            if m.kind() != MeshKind::Static {
+                continue;
+            }
+            let lods: Vec<(bool, u32, u32)> = (0..m.nlods as usize)
+                .map(|l| {
+                    let g = &m.desc.lods[l].geometry;
+                    (!need || g.data().is_some(), m.lod_entry[l], g.triangles())
+                })
+                .collect();
+            for (lod, (loaded, entry, tris)) in lods.into_iter().enumerate() {
+                match (loaded, entry != NONE) {
+                    (true, false) => {
+                        let s = self.t.new_entry(mesh, lod as u8, NONE, tris, frame);
+                        self.t.entries[s as usize].state = EntryState::Queued;
+                        self.t.meshes[mesh as usize]
+                            .as_mut()
+                            .expect("live")
+                            .lod_entry[lod] = s;
+                    }
+                    (false, true) => {
+                        self.release_entry(entry);
+                        self.stats.releases += 1;
+                    }
+                    // Queued entries whose data came back after a miss: queue again.
+                    (true, true) if self.t.entries[entry as usize].state == EntryState::Idle => {
+                        self.t.entries[entry as usize].state = EntryState::Queued;
+                    }
+                    _ => {}
+                }
+            }
         }
-        let tris: Vec<u32> = m.desc.lods.iter().map(|l| l.geometry.triangles()).collect();
-        for (lod, t) in tris.into_iter().enumerate() {
-            let s = self.t.new_entry(mesh, lod as u8, NONE, t, self.frame);
-            self.t.entries[s as usize].state = EntryState::Queued;
-            self.t.meshes[mesh as usize]
-                .as_mut()
+        for slot in 0..self.t.instances.len() as u32 {
+            let Some(inst) = self.t.instances[slot as usize].as_ref() else {
+                continue;
+            };
+            let mesh = inst.mesh;
+            let m = self.t.meshes[mesh as usize].as_ref().expect("live");
+            if m.kind() != MeshKind::Skinned {
+                continue;
+            }
+            let own = self.grid.get(slot).expect("indexed").data.own;
+            if self.t.entry_valid(own) {
+                let e = &self.t.entries[own.0 as usize];
+                // Not built and its data is gone: start again at the finest loaded LOD.
+                if e.state != EntryState::Idle || self.t.built(own) {
+                    continue;
+                }
+                self.release_entry(own.0);
+            }
+            let Some(lod) = self.finest_loaded(mesh) else {
+                continue;
+            };
+            let tris = self.t.meshes[mesh as usize]
+                .as_ref()
                 .expect("live")
-                .lod_entry[lod] = s;
+                .desc
+                .lods[lod]
+                .geometry
+                .triangles();
+            let s = self.t.new_entry(mesh, lod as u8, slot, tris, frame);
+            self.t.entries[s as usize].state = EntryState::Queued;
+            let key = self.t.key(s);
+            self.grid.get_mut(slot).expect("indexed").data.own = key;
         }
     }
 
-    /// Naive: a skinned instance gets its LOD-0 BLAS at once.
-    pub(crate) fn naive_add_instance(&mut self, slot: u32) {
-        let inst = self.t.instances[slot as usize]
-            .as_ref()
-            .expect("just added");
-        let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
-        if m.kind() != MeshKind::Skinned {
-            return;
-        }
-        let (mesh, t) = (inst.mesh, m.desc.lods[0].geometry.triangles());
-        let s = self.t.new_entry(mesh, 0, slot, t, self.frame);
-        self.t.entries[s as usize].state = EntryState::Queued;
-        let key = self.t.key(s);
-        self.grid.get_mut(slot).expect("indexed").data.own = key;
-    }
-
-    /// Naive frame: build everything queued (no budget), refit everything, no culling: every
-    /// instance with a built LOD-0 BLAS goes into the TLAS.
+    /// Naive frame: a BLAS for every loaded LOD, build everything queued (no budget), refit
+    /// everything, no culling: every instance goes into the TLAS at the finest LOD of its mesh
+    /// with a built BLAS (skinned: its own).
     pub(crate) fn naive_frame(&mut self) -> Result<()> {
+        self.naive_residency();
         self.schedule_builds(false)?;
         self.schedule_refits(false)?;
         self.tlas_list.clear();
@@ -57,14 +108,11 @@ impl<B: AsBackend> AsManager<B> {
             let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
             let loc = self.grid.loc(slot as u32).expect("indexed");
             let key = match m.kind() {
-                MeshKind::Static => (
-                    m.lod_entry[0],
-                    if m.lod_entry[0] == NONE {
-                        0
-                    } else {
-                        self.t.entries[m.lod_entry[0] as usize].generation
-                    },
-                ),
+                MeshKind::Static => m.lod_entry[..m.nlods as usize]
+                    .iter()
+                    .map(|&s| if s == NONE { (NONE, 0) } else { self.t.key(s) })
+                    .find(|&k| self.t.built(k))
+                    .unwrap_or((NONE, 0)),
                 MeshKind::Skinned => self.grid.at(loc).data.own,
             };
             if self.t.built(key) {
@@ -130,19 +178,26 @@ impl<B: AsBackend> AsManager<B> {
                 .is_none_or(|f| frame - f > rc.release_threshold as u64);
             if recent && !inst.seed_has {
                 let mesh_ix = inst.mesh;
+                // The finest LOD loaded now (the loop never looks at LODs again).
+                let Some(lod) = self.finest_loaded(mesh_ix) else {
+                    continue;
+                };
                 let m = self.t.meshes[mesh_ix as usize].as_ref().expect("live");
-                let tris = m.desc.lods[0].geometry.triangles();
+                let tris = m.desc.lods[lod].geometry.triangles();
                 let s = match m.kind() {
-                    MeshKind::Static if m.lod_entry[0] != NONE => m.lod_entry[0],
+                    MeshKind::Static if m.lod_entry[lod] != NONE => m.lod_entry[lod],
                     MeshKind::Static => {
-                        let s = self.t.new_entry(mesh_ix, 0, NONE, tris, frame);
+                        let s = self.t.new_entry(mesh_ix, lod as u8, NONE, tris, frame);
                         self.t.meshes[mesh_ix as usize]
                             .as_mut()
                             .expect("live")
-                            .lod_entry[0] = s;
+                            .lod_entry[lod] = s;
                         s
                     }
-                    MeshKind::Skinned => self.t.new_entry(mesh_ix, 0, slot as u32, tris, frame),
+                    MeshKind::Skinned => {
+                        self.t
+                            .new_entry(mesh_ix, lod as u8, slot as u32, tris, frame)
+                    }
                 };
                 let e = &mut self.t.entries[s as usize];
                 e.refs += 1;
@@ -159,6 +214,15 @@ impl<B: AsBackend> AsManager<B> {
                 }
             } else if inst.seed_has && stale {
                 self.seed_drop_ref(slot as u32);
+            } else if inst.seed_has {
+                // Its BLAS was never built and its data left: take the finest loaded LOD
+                // at the next create pass.
+                let shown = self.grid.get(slot as u32).expect("indexed").data.shown;
+                let idle = self.t.entry_valid(shown)
+                    && self.t.entries[shown.0 as usize].state == EntryState::Idle;
+                if idle {
+                    self.seed_drop_ref(slot as u32);
+                }
             }
         }
         self.schedule_builds(false)?;

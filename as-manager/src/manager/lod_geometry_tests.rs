@@ -216,3 +216,108 @@ fn set_lod_geometry_validates() {
         Err(AsError::UnknownMesh(_))
     ));
 }
+
+fn baseline(policy: PolicyKind) -> AsManager<ModelBackend> {
+    let mut b = ModelBackend::lavapipe();
+    b.require_geometry = true;
+    let cfg = Config {
+        policy,
+        ..Config::default()
+    };
+    AsManager::new(cfg, b).unwrap()
+}
+
+#[test]
+fn naive_builds_exactly_the_loaded_lods_and_shows_the_finest() {
+    let mut m = baseline(PolicyKind::Naive);
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    m.set_lod_geometry(mesh, 2, data(8)).unwrap();
+    // Far away: Naive has no culling and no residency radius.
+    let far = Affine3A::from_translation(Vec3::new(0.0, 0.0, 5000.0));
+    m.add_instance(InstanceDesc::new(mesh, far)).unwrap();
+    assert_eq!(run(&mut m, 0, 3), 1, "shown at the only loaded LOD");
+    assert_eq!(
+        m.stats().blas_count,
+        1,
+        "LODs 0 and 1 were never loaded: no BLAS"
+    );
+    let bytes_coarse = m.stats().blas_bytes;
+    // LOD 0 arrives: a second BLAS, and the instance is traced at LOD 0.
+    m.set_lod_geometry(mesh, 0, data(16)).unwrap();
+    assert_eq!(run(&mut m, 3, 6), 1);
+    assert_eq!(m.stats().blas_count, 2);
+    assert!(m.stats().blas_bytes > bytes_coarse);
+    let rec = m
+        .update(FrameInput {
+            frame: 6,
+            cameras: &CAM,
+        })
+        .unwrap()
+        .instances[0];
+    let lod0_addr = rec.blas_address;
+    // LOD 0 evicted: its BLAS is released, the instance falls back to LOD 2.
+    m.set_lod_geometry(
+        mesh,
+        0,
+        LodGeometry::Counts {
+            vertices: 289,
+            triangles: 512,
+        },
+    )
+    .unwrap();
+    assert_eq!(run(&mut m, 7, 10), 1);
+    assert_eq!(m.stats().blas_count, 1);
+    let rec = m
+        .update(FrameInput {
+            frame: 10,
+            cameras: &CAM,
+        })
+        .unwrap()
+        .instances[0];
+    assert_ne!(rec.blas_address, lod0_addr);
+    m.check_invariants().unwrap();
+}
+
+#[test]
+fn seed_builds_the_finest_loaded_lod_and_keeps_it() {
+    let mut m = baseline(PolicyKind::SeedR1R2);
+    let mesh = m
+        .register_mesh(MeshDesc::new(
+            "m",
+            MeshKind::Static,
+            1.0,
+            counts_chain(512, 3, 0.01),
+        ))
+        .unwrap();
+    m.set_lod_geometry(mesh, 1, data(12)).unwrap();
+    m.set_lod_geometry(mesh, 2, data(8)).unwrap();
+    let near = Affine3A::from_translation(Vec3::new(0.0, 0.0, 5.0));
+    m.add_instance(InstanceDesc::new(mesh, near)).unwrap();
+    assert_eq!(run(&mut m, 0, 6), 1);
+    assert_eq!(
+        m.stats().blas_count,
+        1,
+        "one BLAS: LOD 1, the finest loaded"
+    );
+    let bytes = m.stats().blas_bytes;
+    // LOD 1's data leaves: the built BLAS stays (the seed loop never revisits LODs).
+    m.set_lod_geometry(
+        mesh,
+        1,
+        LodGeometry::Counts {
+            vertices: 100,
+            triangles: 144,
+        },
+    )
+    .unwrap();
+    assert_eq!(run(&mut m, 6, 12), 1);
+    assert_eq!((m.stats().blas_count, m.stats().blas_bytes), (1, bytes));
+    m.check_invariants().unwrap();
+}
