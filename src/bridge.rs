@@ -200,7 +200,9 @@ impl WorldBridge {
                         self.unplace(m, inst.id);
                     }
                 }
-                WorldEvent::LoadFailed { level, mesh, error } => {
+                WorldEvent::LoadFailed {
+                    level, mesh, error, ..
+                } => {
                     self.stats.load_failures += 1;
                     tracing::warn!(?level, ?mesh, %error, "load failed; the world carries on");
                 }

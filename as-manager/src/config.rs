@@ -183,6 +183,37 @@ impl Default for CullConfig {
     }
 }
 
+/// The far field: beyond r2, group proxies stand for their instances (see
+/// `AsManager::register_group`). Only the `Managed` policy uses it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FarFieldConfig {
+    /// Show proxies at all.
+    pub enabled: bool,
+    /// Proxies farther than this from every camera (to their bounds) are not shown.
+    pub far_radius: f32,
+    /// A coarser node's proxy is shown once its error projects to at most this many pixels
+    /// (with `LodConfig`'s resolution and field of view); nearer, its children are shown.
+    pub max_pixel_error: f32,
+    /// A leaf group turns "far" (proxy) beyond r2 plus this many metres and "near" (detail)
+    /// within r2: the hysteresis of the hand-over.
+    pub handover_margin: f32,
+    /// Proxies of groups within r2 plus this many metres are built ahead, so a group that
+    /// leaves r2 finds its proxy ready.
+    pub lookahead: f32,
+}
+
+impl Default for FarFieldConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            far_radius: f32::INFINITY,
+            max_pixel_error: 8.0,
+            handover_margin: 25.0,
+            lookahead: 150.0,
+        }
+    }
+}
+
 /// TLAS record assembly.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AssemblyConfig {
@@ -224,6 +255,8 @@ pub struct Config {
     pub memory: MemoryBudget,
     /// Instance culling.
     pub cull: CullConfig,
+    /// Far-field proxies.
+    pub far_field: FarFieldConfig,
     /// Assembly.
     pub assembly: AssemblyConfig,
     /// Prior GPU cost model; measured timings refine it unless `freeze_cost_model` is set.
@@ -276,6 +309,19 @@ impl Config {
             "lod.vertical_fov must be in (0, pi)",
         )?;
         check(nonneg(l.hysteresis), "lod.hysteresis must be >= 0")?;
+        let f = &self.far_field;
+        check(
+            f.far_radius > 0.0 && !f.far_radius.is_nan(),
+            "far_field.far_radius must be > 0",
+        )?;
+        check(
+            pos(f.max_pixel_error),
+            "far_field.max_pixel_error must be > 0",
+        )?;
+        check(
+            nonneg(f.handover_margin) && nonneg(f.lookahead),
+            "far_field.handover_margin and lookahead must be >= 0",
+        )?;
         let b = &self.build;
         check(b.max_primitives > 0, "build.max_primitives must be > 0")?;
         check(pos(b.max_gpu_ms), "build.max_gpu_ms must be > 0")?;

@@ -28,6 +28,12 @@ pub enum AsError {
     /// The instance id is unknown or was removed.
     #[error("unknown instance {0:?}")]
     UnknownInstance(crate::InstanceId),
+    /// The group id is stale or was never issued.
+    #[error("unknown or removed group {0:?}")]
+    UnknownGroup(crate::GroupId),
+    /// A group's description is unusable (bounds, parent).
+    #[error("invalid group: {0}")]
+    InvalidGroup(String),
     /// The operation needs a skinned instance.
     #[error("instance {0:?} is not skinned")]
     NotSkinned(crate::InstanceId),

@@ -14,6 +14,21 @@ pub struct InstanceId {
     pub(crate) generation: u32,
 }
 
+/// A group of instances (e.g. a block of streaming levels) that a far-field proxy can stand
+/// for; groups form a tree (see `AsManager::register_group`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct GroupId {
+    pub(crate) index: u32,
+    pub(crate) generation: u32,
+}
+
+impl GroupId {
+    /// The slot index (stable while the group lives).
+    pub fn index(self) -> u32 {
+        self.index
+    }
+}
+
 impl MeshId {
     /// The slot index (stable while the mesh lives).
     pub fn index(self) -> u32 {

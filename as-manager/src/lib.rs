@@ -64,12 +64,13 @@ pub mod spatial;
 pub mod synth;
 
 pub use config::{
-    AssemblyConfig, BuildBudget, Config, CullConfig, CullMode, LodConfig, MemoryBudget, PolicyKind,
-    ResidencyConfig,
+    AssemblyConfig, BuildBudget, Config, CullConfig, CullMode, FarFieldConfig, LodConfig,
+    MemoryBudget, PolicyKind, ResidencyConfig,
 };
 pub use error::{AsError, Result};
-pub use ids::{InstanceId, MeshId};
+pub use ids::{GroupId, InstanceId, MeshId};
 pub use manager::{
-    AsManager, Camera, FrameInput, FrameOutput, FrameStats, ImageError, InstanceDesc, Registrar,
+    AsManager, Camera, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc,
+    Registrar,
 };
 pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind, MAX_LODS};

@@ -81,6 +81,8 @@ pub struct BakeReport {
     pub level_bytes: u64,
     /// Bytes of the mesh library.
     pub mesh_library_bytes: u64,
+    /// The far-field proxies written to [`crate::proxy::PROXY_FILE`].
+    pub proxies: crate::proxy::ProxyReport,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StreamingError + '_ {
@@ -149,12 +151,19 @@ pub fn bake(world: &GeneratedWorld, dir: impl AsRef<Path>) -> Result<BakeReport>
         levels,
         meshes,
     };
+    let (proxies, mut proxy_report) =
+        crate::proxy::build_proxies(world, &crate::proxy::ProxyConfig::default());
+    let bytes = crate::proxy::encode_proxies(&proxies);
+    proxy_report.file_bytes = bytes.len() as u64;
+    let proxy_path = dir.join(crate::proxy::PROXY_FILE);
+    std::fs::write(&proxy_path, &bytes).map_err(io(&proxy_path))?;
     let path = dir.join(MANIFEST_FILE);
     std::fs::write(&path, encode_manifest(&manifest)).map_err(io(&path))?;
     Ok(BakeReport {
         level_files: world.levels.len(),
         level_bytes,
         mesh_library_bytes: lib.len() as u64,
+        proxies: proxy_report,
     })
 }
 

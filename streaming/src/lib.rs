@@ -46,6 +46,7 @@ mod loader;
 mod lod;
 pub mod model;
 pub mod procedural;
+pub mod proxy;
 pub mod skin;
 mod world;
 
@@ -60,4 +61,5 @@ pub use model::{
     Aabb, Instance, InstanceId, Level, LevelId, LodGeometry, MaterialClass, Mesh, MeshId, Motion,
     SkinWeights, Sphere,
 };
+pub use proxy::{ProxyId, ProxyNode, ProxyTree};
 pub use world::{Camera, SkinnedFrame, StreamConfig, StreamStats, World, WorldEvent};

@@ -83,7 +83,7 @@ pub fn build_lod_chain(
 }
 
 /// Keeps only the vertices the index buffer uses (in first-use order) and remaps the indices.
-fn compact(
+pub(crate) fn compact(
     positions: &[[f32; 3]],
     indices: &[u32],
     skin: Option<&SkinWeights>,

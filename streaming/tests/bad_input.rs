@@ -187,6 +187,7 @@ fn corrupted_baked_files_fail_and_other_levels_keep_streaming() {
                     level: Some(l),
                     mesh: None,
                     error,
+                    ..
                 } if l.0 as usize == *i => Some(error.clone()),
                 _ => None,
             })

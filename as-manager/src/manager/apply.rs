@@ -50,6 +50,18 @@ impl<B: AsBackend> AsManager<B> {
                         }
                     }
                 }
+                Command::RegisterGroup(id, desc) => self.far.register(id, desc),
+                Command::SetGroupProxy(id, proxy) => {
+                    // The proxy's BLAS belongs to its mesh: unregistering the mesh frees it;
+                    // a proxy no longer named is released like any unkept BLAS.
+                    self.far.set_proxy(id, proxy.map(|(m, e)| (m.index, e)));
+                    if let Some((m, _)) = proxy {
+                        if let Some(Some(mesh)) = self.t.meshes.get_mut(m.index as usize) {
+                            mesh.proxy = true;
+                        }
+                    }
+                }
+                Command::UnregisterGroup(id) => self.far.unregister(id),
                 Command::SetPose(id, pose) => {
                     if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
                         i.pose = pose;
@@ -91,6 +103,7 @@ impl<B: AsBackend> AsManager<B> {
             lod_floor: 0,
             floor_since: 0,
             instances: Vec::new(),
+            proxy: false,
         });
     }
 
@@ -143,6 +156,10 @@ impl<B: AsBackend> AsManager<B> {
             radius,
             pose: None,
             pose_version: 0,
+            group: desc
+                .group
+                .filter(|g| self.far.is_live(*g))
+                .map_or(NONE, |g| g.index),
             seed_request: None,
             seed_keep: None,
             seed_has: false,

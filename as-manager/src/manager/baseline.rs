@@ -27,7 +27,7 @@ impl<B: AsBackend> AsManager<B> {
             let Some(m) = self.t.meshes[mesh as usize].as_ref() else {
                 continue;
             };
-            if m.kind() != MeshKind::Static {
+            if m.kind() != MeshKind::Static || m.proxy {
                 continue;
             }
             let lods: Vec<(bool, u32, u32)> = (0..m.nlods as usize)

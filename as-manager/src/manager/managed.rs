@@ -16,6 +16,7 @@ impl<B: AsBackend> AsManager<B> {
         {
             let _s = tracing::trace_span!("residency").entered();
             self.residency_pass();
+            self.far_prepare();
             self.upkeep_entries();
         }
         {
@@ -29,9 +30,11 @@ impl<B: AsBackend> AsManager<B> {
         {
             let _s = tracing::trace_span!("cull").entered();
             self.select_and_cull();
+            self.far_select();
         }
         let _s = tracing::trace_span!("assemble").entered();
         self.assemble_records();
+        self.records.extend_from_slice(&self.far.records);
         Ok(())
     }
 
@@ -189,11 +192,20 @@ impl<B: AsBackend> AsManager<B> {
     fn select_and_cull(&mut self) {
         let frame = self.frame;
         self.tlas_list.clear();
+        self.tlas_groups.clear();
+        let far = self.config.far_field.enabled;
         let mut culled_count = 0;
         for vi in 0..self.visits.len() {
             let v = self.visits[vi];
             let ge = self.grid.at_mut(v.loc);
             let radius = ge.radius;
+            let group = if far {
+                self.t.instances[ge.slot as usize]
+                    .as_ref()
+                    .map_or(NONE, |i| i.group)
+            } else {
+                NONE
+            };
             let h = &mut ge.data;
             let t = &mut self.t;
             let mesh = t.meshes[h.mesh as usize].as_ref().expect("live mesh");
@@ -231,6 +243,11 @@ impl<B: AsBackend> AsManager<B> {
             let culled = self.culler.cull(radius, v.center_dist, h.culled);
             h.shown = chosen;
             h.culled = culled;
+            if chosen.0 == NONE && !culled && group != NONE {
+                if let Some(u) = self.far.leaf_unready(group) {
+                    *u += 1;
+                }
+            }
             if chosen.0 != NONE {
                 if culled {
                     culled_count += 1;
@@ -241,6 +258,7 @@ impl<B: AsBackend> AsManager<B> {
                     let handle = e.handle.expect("built entry has a handle");
                     self.tlas_list
                         .push((v.loc, self.backend.blas_address(handle)));
+                    self.tlas_groups.push(group);
                 }
             }
         }

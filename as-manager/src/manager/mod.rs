@@ -2,6 +2,7 @@
 
 mod apply;
 mod baseline;
+mod far;
 mod managed;
 mod registrar;
 mod schedule;
@@ -11,7 +12,7 @@ use std::collections::VecDeque;
 
 use glam::{Affine3A, Vec3};
 
-pub use registrar::{InstanceDesc, Registrar};
+pub use registrar::{GroupDesc, InstanceDesc, Registrar};
 use state::{EntryState, Tables};
 
 use crate::backend::model::CostModel;
@@ -103,6 +104,14 @@ pub struct FrameStats {
     pub worst_refit_quality: f32,
     /// OOM answers from the backend this frame.
     pub oom_events: u32,
+    /// Far-field proxy records in the TLAS.
+    pub proxy_instances: u32,
+    /// Bytes of the proxies' BLASes in the TLAS.
+    pub proxy_blas_bytes: u64,
+    /// Proxy BLASes evicted (memory) this frame: near detail goes first, proxies last.
+    pub proxies_evicted: u32,
+    /// Leaf groups whose detail a proxy stands for this frame.
+    pub far_groups_covered: u32,
     /// GPU ms measured by the backend and received this frame.
     pub measured_gpu_ms: f64,
     /// Image error of this frame against a reference frame, when the caller evaluated it (see
@@ -177,6 +186,10 @@ pub struct AsManager<B: AsBackend> {
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
+    /// The far-field group tree.
+    far: far::FarField,
+    /// Leaf group of each `tlas_list` entry (NONE: none), for the far field.
+    tlas_groups: Vec<u32>,
     /// GPU ms set aside this frame for the TLAS and refits (see `schedule_builds`).
     gpu_reserved_ms: f64,
     /// Last frame's TLAS instances and refitted triangles.
@@ -212,6 +225,8 @@ impl<B: AsBackend> AsManager<B> {
             lod: LodSelector::new(&config.lod),
             culler: InstanceCuller::new(&config.cull),
             costs: config.cost_prior,
+            far: far::FarField::default(),
+            tlas_groups: Vec::new(),
             gpu_reserved_ms: 0.0,
             prev_tlas_instances: 0,
             prev_refit_prims: 0,
@@ -263,6 +278,25 @@ impl<B: AsBackend> AsManager<B> {
     /// See [`Registrar::unregister_mesh`].
     pub fn unregister_mesh(&self, id: crate::MeshId) -> Result<()> {
         self.registrar.unregister_mesh(id)
+    }
+
+    /// See [`Registrar::register_group`].
+    pub fn register_group(&self, desc: GroupDesc) -> Result<crate::GroupId> {
+        self.registrar.register_group(desc)
+    }
+
+    /// See [`Registrar::set_group_proxy`].
+    pub fn set_group_proxy(
+        &self,
+        group: crate::GroupId,
+        proxy: Option<(crate::MeshId, f32)>,
+    ) -> Result<()> {
+        self.registrar.set_group_proxy(group, proxy)
+    }
+
+    /// See [`Registrar::unregister_group`].
+    pub fn unregister_group(&self, group: crate::GroupId) -> Result<()> {
+        self.registrar.unregister_group(group)
     }
 
     /// See [`Registrar::add_instance`].
@@ -561,6 +595,8 @@ impl<B: AsBackend> AsManager<B> {
     }
 }
 
+#[cfg(test)]
+mod far_tests;
 #[cfg(test)]
 mod lod_geometry_tests;
 #[cfg(test)]

@@ -9,7 +9,7 @@ use parking_lot::Mutex;
 
 use crate::ids::IdAllocator;
 use crate::mesh::{LodGeometry, MeshDesc, MeshKind};
-use crate::{AsError, InstanceId, MeshId, Result};
+use crate::{AsError, GroupId, InstanceId, MeshId, Result};
 
 /// Parameters of a placed instance.
 #[derive(Debug, Clone, PartialEq)]
@@ -26,6 +26,24 @@ pub struct InstanceDesc {
     pub sbt_offset: u32,
     /// Extra instance flags (`record::INSTANCE_*`); FORCE_OPAQUE is added for opaque meshes.
     pub flags: u8,
+    /// The leaf group the instance belongs to (its far-field proxy stands for it beyond r2).
+    pub group: Option<GroupId>,
+}
+
+/// A group of instances: a node of the far-field tree. Leaves are what instances name
+/// ([`InstanceDesc::group`]); a parent's proxy stands for all its leaves at once, farther away.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GroupDesc {
+    /// The parent node (None for a root).
+    pub parent: Option<GroupId>,
+    /// World bounds of everything the group holds (its instances and its proxy).
+    pub bounds_min: [f32; 3],
+    /// Upper corner of the bounds.
+    pub bounds_max: [f32; 3],
+    /// `instanceCustomIndex` of the proxy's TLAS record (24 bits).
+    pub custom_index: u32,
+    /// Visibility mask of the proxy's TLAS record.
+    pub mask: u8,
 }
 
 impl InstanceDesc {
@@ -38,6 +56,7 @@ impl InstanceDesc {
             mask: 0xff,
             sbt_offset: 0,
             flags: 0,
+            group: None,
         }
     }
 }
@@ -51,6 +70,9 @@ pub(crate) enum Command {
     RemoveInstance(InstanceId),
     SetPose(InstanceId, Option<Arc<Vec<[f32; 3]>>>),
     SetLodGeometry(MeshId, usize, LodGeometry),
+    RegisterGroup(GroupId, GroupDesc),
+    SetGroupProxy(GroupId, Option<(MeshId, f32)>),
+    UnregisterGroup(GroupId),
 }
 
 #[derive(Debug, Default)]
@@ -58,6 +80,7 @@ pub(crate) struct Pending {
     pub commands: Vec<Command>,
     pub meshes: IdAllocator,
     pub instances: IdAllocator,
+    pub groups: IdAllocator,
     pub mesh_kind: Vec<MeshKind>,
     pub mesh_lods: Vec<u8>,
     pub instance_skinned: Vec<bool>,
@@ -166,6 +189,9 @@ impl Registrar {
         if !p.meshes.is_live(desc.mesh.index, desc.mesh.generation) {
             return Err(AsError::UnknownMesh(desc.mesh));
         }
+        if let Some(g) = desc.group {
+            Self::live_group(&p, g)?;
+        }
         let skinned = p.mesh_kind[desc.mesh.index as usize] == MeshKind::Skinned;
         let (index, generation) = p.instances.alloc();
         if p.instance_skinned.len() <= index as usize {
@@ -175,6 +201,66 @@ impl Registrar {
         let id = InstanceId { index, generation };
         p.commands.push(Command::AddInstance(id, desc));
         Ok(id)
+    }
+
+    fn live_group(p: &Pending, id: GroupId) -> Result<()> {
+        if p.groups.is_live(id.index, id.generation) {
+            Ok(())
+        } else {
+            Err(AsError::UnknownGroup(id))
+        }
+    }
+
+    /// Queues a far-field group (a node of the proxy tree; register parents first).
+    pub fn register_group(&self, desc: GroupDesc) -> Result<GroupId> {
+        let (lo, hi) = (desc.bounds_min, desc.bounds_max);
+        if !lo.iter().chain(&hi).all(|v| v.is_finite()) || (0..3).any(|i| lo[i] > hi[i]) {
+            return Err(AsError::InvalidGroup(format!("bounds {lo:?}..{hi:?}")));
+        }
+        if desc.custom_index >= 1 << 24 {
+            return Err(AsError::InvalidGroup(
+                "customIndex must fit in 24 bits".into(),
+            ));
+        }
+        let mut p = self.pending.lock();
+        if let Some(parent) = desc.parent {
+            Self::live_group(&p, parent)?;
+        }
+        let (index, generation) = p.groups.alloc();
+        let id = GroupId { index, generation };
+        p.commands.push(Command::RegisterGroup(id, desc));
+        Ok(id)
+    }
+
+    /// Queues the proxy of a group: a registered static mesh whose geometry is in world space
+    /// (shown with the identity transform), and its geometric error in metres. `None` clears
+    /// it. The manager shows the proxy in the TLAS instead of the group's instances where they
+    /// are beyond r2 (see [`crate::FarFieldConfig`]).
+    pub fn set_group_proxy(&self, group: GroupId, proxy: Option<(MeshId, f32)>) -> Result<()> {
+        let mut p = self.pending.lock();
+        Self::live_group(&p, group)?;
+        if let Some((mesh, error)) = proxy {
+            if !p.meshes.is_live(mesh.index, mesh.generation) {
+                return Err(AsError::UnknownMesh(mesh));
+            }
+            if p.mesh_kind[mesh.index as usize] != MeshKind::Static || !error.is_finite() {
+                return Err(AsError::InvalidGroup(
+                    "a proxy is a static mesh with a finite error".into(),
+                ));
+            }
+        }
+        p.commands.push(Command::SetGroupProxy(group, proxy));
+        Ok(())
+    }
+
+    /// Queues the removal of a group (its instances keep their place but lose their proxy;
+    /// its children become roots).
+    pub fn unregister_group(&self, id: GroupId) -> Result<()> {
+        let mut p = self.pending.lock();
+        Self::live_group(&p, id)?;
+        p.groups.kill(id.index);
+        p.commands.push(Command::UnregisterGroup(id));
+        Ok(())
     }
 
     fn live_instance(p: &Pending, id: InstanceId) -> Result<()> {

@@ -60,11 +60,20 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Eviction order: not near any camera this frame first, then farthest, then least
     /// recently in the TLAS. Larger is evicted first.
-    fn eviction_score(&self, slot: u32) -> (bool, f32, u64) {
+    /// Far-field proxies come last, whatever their distance.
+    fn eviction_score(&self, slot: u32) -> (bool, bool, f32, u64) {
         let e = &self.t.entries[slot as usize];
+        let proxy = self.t.meshes[e.mesh as usize]
+            .as_ref()
+            .is_some_and(|m| m.proxy);
         let near = e.dist_frame == self.frame;
         let age = self.frame - e.last_in_tlas.unwrap_or(0).min(self.frame);
-        (!near, if near { e.min_dist } else { f32::INFINITY }, age)
+        (
+            !proxy,
+            !near,
+            if near { e.min_dist } else { f32::INFINITY },
+            age,
+        )
     }
 
     /// Evicts built entries scoring worse than `than` (or any when `None`) until `need` more
@@ -78,7 +87,7 @@ impl<B: AsBackend> AsManager<B> {
             return false; // wait for in-flight frees
         }
         let min_life = self.config.residency.min_resident_frames as u64;
-        let mut cands: Vec<(bool, f32, u64, u32)> = self
+        let mut cands: Vec<(bool, bool, f32, u64, u32)> = self
             .t
             .active
             .iter()
@@ -88,18 +97,26 @@ impl<B: AsBackend> AsManager<B> {
                 e.state == EntryState::Built && self.frame.saturating_sub(e.created) >= min_life
             })
             .map(|s| {
-                let (far, d, age) = self.eviction_score(s);
-                (far, d, age, s)
+                let (detail, far, d, age) = self.eviction_score(s);
+                (detail, far, d, age, s)
             })
-            .filter(|&(far, d, _, _)| than.is_none_or(|t| far || d > t))
+            .filter(|&(_, far, d, _, _)| than.is_none_or(|t| far || d > t))
             .collect();
-        cands.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.total_cmp(&a.1)).then(b.2.cmp(&a.2)));
-        for (_, _, _, s) in cands {
+        cands.sort_by(|a, b| {
+            b.0.cmp(&a.0)
+                .then(b.1.cmp(&a.1))
+                .then(b.2.total_cmp(&a.2))
+                .then(b.3.cmp(&a.3))
+        });
+        for (detail, _, _, _, s) in cands {
             if self.live_bytes + need <= budget {
                 break;
             }
             self.release_entry(s);
             self.stats.evictions += 1;
+            if !detail {
+                self.stats.proxies_evicted += 1;
+            }
         }
         self.memory_in_use() + need <= budget
     }

@@ -27,6 +27,8 @@ pub(crate) struct MeshState {
     pub floor_since: u64,
     /// Live instances of this mesh (slots).
     pub instances: Vec<u32>,
+    /// Some group's far-field proxy (the baselines never build it).
+    pub proxy: bool,
 }
 
 impl MeshState {
@@ -124,6 +126,8 @@ pub(crate) struct InstanceState {
     pub radius: f32,
     pub pose: Option<Arc<Vec<[f32; 3]>>>,
     pub pose_version: u64,
+    /// Its far-field leaf group slot (NONE if none).
+    pub group: u32,
     /// Seed baseline marks.
     pub seed_request: Option<u64>,
     pub seed_keep: Option<u64>,

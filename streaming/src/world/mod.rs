@@ -114,6 +114,17 @@ pub struct World {
     requests: std::collections::VecDeque<(u64, u64)>,
     /// Deterministic mode: results that arrived before their turn, by ticket.
     early: std::collections::BTreeMap<u64, Done>,
+    /// The far-field proxies (read at open), or why the file could not be read.
+    proxies: Option<std::result::Result<crate::proxy::ProxyFile, Arc<crate::StreamingError>>>,
+    /// Per proxy node: resident, or its failure reported.
+    proxy_state: Vec<ProxyState>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ProxyState {
+    Out,
+    Resident,
+    Failed,
 }
 
 impl World {
@@ -166,6 +177,16 @@ impl World {
             manifest: m,
         });
         let pool = LoaderPool::new(Arc::clone(&shared), config.loader_threads)?;
+        // Proxies are small and read whole here; a bad file is reported by the first update
+        // and the levels stream regardless.
+        let proxies = if dir.as_os_str().is_empty() {
+            None
+        } else {
+            match crate::proxy::read_proxies(&dir, shared.manifest.levels.len()) {
+                Ok(p) => p.map(Ok),
+                Err(e) => Some(Err(Arc::new(e))),
+            }
+        };
         Ok(World {
             config,
             dir,
@@ -181,6 +202,13 @@ impl World {
             frame: 0,
             requests: std::collections::VecDeque::new(),
             early: std::collections::BTreeMap::new(),
+            proxy_state: vec![
+                ProxyState::Out;
+                proxies
+                    .as_ref()
+                    .map_or(0, |p| p.as_ref().map_or(0, |f| f.tree.nodes.len()))
+            ],
+            proxies,
         })
     }
 
@@ -279,7 +307,69 @@ impl World {
         }
         self.residency(cameras, &mut ev);
         self.stream_lods(cameras, &mut ev);
+        self.stream_proxies(cameras, &mut ev);
         ev
+    }
+
+    /// The far-field proxy tree (None when the world has no readable proxy file).
+    pub fn proxy_tree(&self) -> Option<&crate::proxy::ProxyTree> {
+        match &self.proxies {
+            Some(Ok(f)) => Some(&f.tree),
+            _ => None,
+        }
+    }
+
+    /// Proxies within the far radius become resident (geometry from memory: the file was read
+    /// at open); beyond 1.1x it they leave. Failures are reported once.
+    fn stream_proxies(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
+        let Some(p) = &self.proxies else { return };
+        let file = match p {
+            Ok(f) => f,
+            Err(e) => {
+                if self.proxy_state.is_empty() {
+                    self.proxy_state.push(ProxyState::Failed);
+                    ev.push(WorldEvent::LoadFailed {
+                        level: None,
+                        mesh: None,
+                        proxy: None,
+                        error: Arc::clone(e),
+                    });
+                }
+                return;
+            }
+        };
+        let far = self.config.far_radius;
+        for (i, node) in file.tree.nodes.iter().enumerate() {
+            let d = cameras
+                .iter()
+                .map(|c| node.bounds.distance_xz(c.position))
+                .fold(f32::INFINITY, f32::min);
+            match self.proxy_state[i] {
+                ProxyState::Out if d <= far => match &file.geometry[i] {
+                    Ok(g) => {
+                        self.proxy_state[i] = ProxyState::Resident;
+                        ev.push(WorldEvent::ProxyLoaded {
+                            node: node.id,
+                            geometry: Arc::clone(g),
+                        });
+                    }
+                    Err(e) => {
+                        self.proxy_state[i] = ProxyState::Failed;
+                        ev.push(WorldEvent::LoadFailed {
+                            level: None,
+                            mesh: None,
+                            proxy: Some(node.id),
+                            error: Arc::clone(e),
+                        });
+                    }
+                },
+                ProxyState::Resident if d > far * 1.1 => {
+                    self.proxy_state[i] = ProxyState::Out;
+                    ev.push(WorldEvent::ProxyEvicted { node: node.id });
+                }
+                _ => {}
+            }
+        }
     }
 
     /// Deterministic mode: applies, in request order, every result requested at least `n`
@@ -374,6 +464,7 @@ impl World {
                         ev.push(WorldEvent::LoadFailed {
                             level: Some(level),
                             mesh: None,
+                            proxy: None,
                             error: Arc::new(e),
                         });
                     }
@@ -400,6 +491,7 @@ impl World {
                         ev.push(WorldEvent::LoadFailed {
                             level: None,
                             mesh: Some((mesh, lod as u8)),
+                            proxy: None,
                             error: Arc::new(e),
                         });
                     }
@@ -441,6 +533,7 @@ impl World {
                             ev.push(WorldEvent::LoadFailed {
                                 level: Some(level),
                                 mesh: Some((m, lod as u8)),
+                                proxy: None,
                                 error: Arc::new(e),
                             });
                         }

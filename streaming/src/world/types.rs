@@ -6,6 +6,7 @@ use glam::Vec3;
 
 use crate::error::StreamingError;
 use crate::model::{Aabb, Instance, InstanceId, LevelId, LodGeometry, MeshId};
+use crate::proxy::ProxyId;
 
 /// A viewpoint that drives streaming.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -37,6 +38,9 @@ pub struct StreamConfig {
     pub lod_evict_factor: f32,
     /// At most this many loader jobs in flight (closer requests go first).
     pub max_in_flight: usize,
+    /// Far-field proxies within this distance (XZ, to the node's bounds) of a camera are
+    /// resident; they leave beyond 1.1x it. Default: the whole map.
+    pub far_radius: f32,
     /// Deterministic streaming: `Some(n)` applies every loader result exactly `n` frames after
     /// its request, in request order, waiting for the loader when it is late (`n` = 0 waits in
     /// the same frame). With the same cameras per frame the event stream is then identical
@@ -56,6 +60,7 @@ impl Default for StreamConfig {
             lod_evict_factor: 1.5,
             max_in_flight: 64,
             apply_after_frames: None,
+            far_radius: f32::INFINITY,
         }
     }
 }
@@ -100,12 +105,28 @@ pub enum WorldEvent {
         /// LOD index.
         lod: u8,
     },
+    /// A far-field proxy is resident (within [`StreamConfig::far_radius`]): register it. Its
+    /// place in the quadtree is in [`World::proxy_tree`](crate::World::proxy_tree).
+    ProxyLoaded {
+        /// The node.
+        node: ProxyId,
+        /// World-space geometry (no transform to apply).
+        geometry: Arc<LodGeometry>,
+    },
+    /// A proxy left the far radius: release what was built from it.
+    ProxyEvicted {
+        /// The node.
+        node: ProxyId,
+    },
     /// Something could not be loaded; the rest of the world carries on.
     LoadFailed {
         /// The level being loaded, if any.
         level: Option<LevelId>,
         /// The mesh LOD being loaded, if any.
         mesh: Option<(MeshId, u8)>,
+        /// The proxy being loaded, if any (the proxy file as a whole when `level`, `mesh` and
+        /// `proxy` are all None).
+        proxy: Option<ProxyId>,
         /// What went wrong (names the file).
         error: Arc<StreamingError>,
     },

@@ -1,0 +1,390 @@
+//! The far field: beyond r2, group proxies stand for their instances.
+//!
+//! Groups form a tree (leaves are what instances name; a parent's proxy covers all its leaves).
+//! Each frame (`Managed` only):
+//! 1. `far_prepare` (before the BLAS upkeep): distances of every node to the nearest camera;
+//!    leaves turn "far" beyond r2 + `handover_margin` and "near" within r2 (hysteresis in
+//!    between); the proxies the display cut will want — and, ahead of time, those of leaves
+//!    approaching r2 and of children about to replace their parent — are requested, so they
+//!    build through the ordinary scheduler within the frame budgets.
+//! 2. `select_and_cull` counts, per leaf, the unculled instances within r2 that have no BLAS
+//!    to show yet (`unready`).
+//! 3. `far_select`: a leaf wants its proxy when it is far, or when it was showing its proxy
+//!    and its detail is not complete yet (the hand-over: the proxy leaves only once every
+//!    unculled instance within r2 has its BLAS). The display cut walks the tree from the roots:
+//!    a parent is shown when all its leaves are far, its proxy is built and its error projects
+//!    under `max_pixel_error`; otherwise its children, falling back to the parent when a child
+//!    has nothing built. Every leaf under a shown proxy is "covered": its instances are taken
+//!    out of the TLAS, so no frame shows a group's proxy and its detail together. A near leaf
+//!    whose proxy is not built shows its detail, so none shows neither.
+//!
+//! Proxies cost a tree walk per frame (a few thousand nodes), not a pass over the instances.
+
+use glam::{Affine3A, Vec3};
+
+use super::state::{EntryState, NONE};
+use super::AsManager;
+use crate::backend::AsBackend;
+use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
+use crate::{GroupDesc, GroupId};
+
+#[derive(Debug, Clone)]
+pub(crate) struct GroupNode {
+    desc: GroupDesc,
+    parent: u32,
+    children: Vec<u32>,
+    /// (proxy mesh slot, error in metres).
+    proxy: Option<(u32, f32)>,
+    /// Distance from the nearest camera to the bounds, this frame.
+    dist: f32,
+    /// Leaf: detail (true) or proxy (false) side of the hand-over hysteresis.
+    near: bool,
+    /// Leaf: covered by a shown proxy last frame.
+    covered: bool,
+    /// Leaf: unculled instances within r2 without a BLAS to show, this frame.
+    pub unready: u32,
+    /// Proxy culled last frame (culling hysteresis).
+    culled: bool,
+}
+
+/// The group tree and last frame's picks.
+#[derive(Debug, Default)]
+pub(crate) struct FarField {
+    nodes: Vec<Option<GroupNode>>,
+    generations: Vec<u32>,
+    /// Proxy records of this frame.
+    pub records: Vec<TlasInstance>,
+    /// Leaves covered by a proxy this frame (slots), for the invariants.
+    pub covered: Vec<u32>,
+}
+
+impl FarField {
+    pub fn is_live(&self, id: GroupId) -> bool {
+        self.generations.get(id.index as usize) == Some(&id.generation)
+            && matches!(self.nodes.get(id.index as usize), Some(Some(_)))
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.nodes.iter().all(Option::is_none)
+    }
+
+    pub fn register(&mut self, id: GroupId, desc: GroupDesc) {
+        let i = id.index as usize;
+        if self.nodes.len() <= i {
+            self.nodes.resize(i + 1, None);
+            self.generations.resize(i + 1, u32::MAX);
+        }
+        let parent = desc
+            .parent
+            .filter(|p| self.is_live(*p))
+            .map_or(NONE, |p| p.index);
+        if parent != NONE {
+            if let Some(Some(p)) = self.nodes.get_mut(parent as usize) {
+                p.children.push(id.index);
+            }
+        }
+        self.generations[i] = id.generation;
+        self.nodes[i] = Some(GroupNode {
+            desc,
+            parent,
+            children: Vec::new(),
+            proxy: None,
+            dist: f32::INFINITY,
+            near: false,
+            covered: false,
+            unready: 0,
+            culled: false,
+        });
+    }
+
+    pub fn set_proxy(&mut self, id: GroupId, proxy: Option<(u32, f32)>) {
+        if self.is_live(id) {
+            if let Some(Some(n)) = self.nodes.get_mut(id.index as usize) {
+                n.proxy = proxy;
+            }
+        }
+    }
+
+    pub fn unregister(&mut self, id: GroupId) {
+        if !self.is_live(id) {
+            return;
+        }
+        let Some(n) = self.nodes[id.index as usize].take() else {
+            return;
+        };
+        if let Some(Some(p)) = self.nodes.get_mut(n.parent as usize) {
+            p.children.retain(|&c| c != id.index);
+        }
+        for c in n.children {
+            if let Some(Some(child)) = self.nodes.get_mut(c as usize) {
+                child.parent = NONE;
+            }
+        }
+    }
+
+    /// The leaf slot an instance's group names, if it is a live leaf.
+    pub fn leaf_unready(&mut self, group: u32) -> Option<&mut u32> {
+        match self.nodes.get_mut(group as usize) {
+            Some(Some(n)) if n.children.is_empty() => Some(&mut n.unready),
+            _ => None,
+        }
+    }
+
+    fn node(&self, i: u32) -> &GroupNode {
+        self.nodes[i as usize].as_ref().expect("live group")
+    }
+
+    fn roots(&self) -> Vec<u32> {
+        (0..self.nodes.len() as u32)
+            .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent == NONE))
+            .collect()
+    }
+
+    /// Whether a leaf is covered by a proxy this frame.
+    pub fn is_covered(&self, group: u32) -> bool {
+        matches!(self.nodes.get(group as usize), Some(Some(n)) if n.covered)
+    }
+}
+
+fn aabb_distance(lo: [f32; 3], hi: [f32; 3], p: Vec3) -> f32 {
+    let d = (Vec3::from(lo) - p).max(p - Vec3::from(hi)).max(Vec3::ZERO);
+    d.length()
+}
+
+impl<B: AsBackend> AsManager<B> {
+    fn far_on(&self) -> bool {
+        self.config.far_field.enabled && !self.far.is_empty()
+    }
+
+    /// Pixels a proxy error of `error` metres spans at `dist` metres.
+    fn projected_px(&self, error: f32, dist: f32) -> f32 {
+        let l = &self.config.lod;
+        let pixel_angle = l.vertical_fov / l.screen_height_px;
+        error / (dist.max(1e-3) * pixel_angle)
+    }
+
+    /// Step 1 (see the module docs): distances, hand-over states, proxy requests.
+    pub(crate) fn far_prepare(&mut self) {
+        if !self.far_on() {
+            return;
+        }
+        let r2 = self.config.residency.r2;
+        let f = self.config.far_field.clone();
+        let cams = self.cam_pos.clone();
+        for n in self.far.nodes.iter_mut().flatten() {
+            n.dist = cams
+                .iter()
+                .map(|&c| aabb_distance(n.desc.bounds_min, n.desc.bounds_max, c))
+                .fold(f32::INFINITY, f32::min);
+            n.unready = 0;
+            if n.children.is_empty() {
+                if n.dist <= r2 {
+                    n.near = true;
+                } else if n.dist > r2 + f.handover_margin {
+                    n.near = false;
+                }
+            }
+        }
+        let mut want = Vec::new();
+        let mut stack = self.far.roots();
+        while let Some(i) = stack.pop() {
+            let n = self.far.node(i);
+            if n.dist > f.far_radius {
+                continue;
+            }
+            if n.children.is_empty() {
+                // Far or soon far, or still handing over.
+                let soon = n.dist > r2 - f.handover_margin;
+                if soon || !n.near || n.covered {
+                    want.push(i);
+                }
+                continue;
+            }
+            let px = n
+                .proxy
+                .map_or(f32::INFINITY, |(_, e)| self.projected_px(e, n.dist));
+            if n.dist > r2 + f.lookahead && px <= f.max_pixel_error {
+                want.push(i);
+                // Its children will replace it when the camera comes closer: build them ahead.
+                if px > f.max_pixel_error * 0.5 {
+                    want.extend(n.children.iter().copied());
+                }
+            } else {
+                stack.extend(n.children.iter().copied());
+            }
+        }
+        let frame = self.frame;
+        for i in want {
+            let n = self.far.node(i);
+            let (Some((mesh, _)), dist) = (n.proxy, n.dist) else {
+                continue;
+            };
+            self.request_proxy(mesh, dist, frame);
+        }
+    }
+
+    fn request_proxy(&mut self, mesh: u32, dist: f32, frame: u64) {
+        let Some(Some(m)) = self.t.meshes.get(mesh as usize) else {
+            return;
+        };
+        let tris = m.lod_tris[0];
+        let mut slot = m.lod_entry[0];
+        if slot == NONE {
+            slot = self.t.new_entry(mesh, 0, NONE, tris, frame);
+            self.t.meshes[mesh as usize]
+                .as_mut()
+                .expect("live")
+                .lod_entry[0] = slot;
+        }
+        let e = &mut self.t.entries[slot as usize];
+        e.last_request = frame;
+        e.last_keep = frame;
+        if e.dist_frame != frame {
+            e.dist_frame = frame;
+            e.min_dist = dist;
+        } else {
+            e.min_dist = e.min_dist.min(dist);
+        }
+        if e.state == EntryState::Idle {
+            e.state = EntryState::Queued;
+            e.queued_since = frame;
+            e.streak_start = frame;
+        }
+    }
+
+    fn proxy_built(&self, group: u32) -> Option<(u32, u64)> {
+        let (mesh, _) = self.far.node(group).proxy?;
+        let m = self.t.meshes.get(mesh as usize)?.as_ref()?;
+        let s = m.lod_entry[0];
+        if s == NONE || self.t.entries[s as usize].state != EntryState::Built {
+            return None;
+        }
+        let h = self.t.entries[s as usize].handle?;
+        Some((s, self.backend.blas_address(h)))
+    }
+
+    /// Picks of the display cut under `i`: (group, entry slot, address). `None` when some far
+    /// leaf under `i` would show nothing.
+    fn display_cut(&self, i: u32, picks: &mut Vec<(u32, u32, u64)>) -> bool {
+        let f = &self.config.far_field;
+        let r2 = self.config.residency.r2;
+        let n = self.far.node(i);
+        if n.dist > f.far_radius {
+            return true;
+        }
+        if n.children.is_empty() {
+            let wants = !n.near || (n.covered && n.unready > 0);
+            if !wants {
+                return true;
+            }
+            return match self.proxy_built(i) {
+                Some((slot, addr)) => {
+                    picks.push((i, slot, addr));
+                    true
+                }
+                // A near leaf shows its detail instead; a far one has nothing.
+                None => n.near,
+            };
+        }
+        let all_far = n.dist > r2 + f.handover_margin;
+        let parent = if all_far { self.proxy_built(i) } else { None };
+        let px = n
+            .proxy
+            .map_or(f32::INFINITY, |(_, e)| self.projected_px(e, n.dist));
+        if let (Some((slot, addr)), true) = (parent, px <= f.max_pixel_error) {
+            picks.push((i, slot, addr));
+            return true;
+        }
+        let mark = picks.len();
+        let mut complete = true;
+        for &c in &n.children {
+            complete &= self.display_cut(c, picks);
+        }
+        if !complete {
+            if let Some((slot, addr)) = parent {
+                // A child has nothing built yet: the coarser parent covers them all.
+                picks.truncate(mark);
+                picks.push((i, slot, addr));
+                return true;
+            }
+        }
+        complete
+    }
+
+    fn mark_covered(&mut self, i: u32) {
+        let children = self.far.node(i).children.clone();
+        if children.is_empty() {
+            self.far.nodes[i as usize].as_mut().expect("live").covered = true;
+            self.far.covered.push(i);
+        }
+        for c in children {
+            self.mark_covered(c);
+        }
+    }
+
+    /// Step 3 (see the module docs): the display cut, the detail it covers taken out of the
+    /// TLAS list, the proxy records.
+    pub(crate) fn far_select(&mut self) {
+        self.far.records.clear();
+        self.far.covered.clear();
+        if !self.far_on() {
+            self.tlas_groups.clear();
+            return;
+        }
+        let mut picks = Vec::new();
+        for r in self.far.roots() {
+            self.display_cut(r, &mut picks);
+        }
+        for n in self.far.nodes.iter_mut().flatten() {
+            n.covered = false;
+        }
+        let frame = self.frame;
+        let mut proxy_bytes = 0;
+        for &(g, slot, addr) in &picks {
+            let n = self.far.node(g);
+            let radius =
+                0.5 * (Vec3::from(n.desc.bounds_max) - Vec3::from(n.desc.bounds_min)).length();
+            let centre = 0.5 * (Vec3::from(n.desc.bounds_max) + Vec3::from(n.desc.bounds_min));
+            let centre_dist = self
+                .cam_pos
+                .iter()
+                .map(|c| c.distance(centre))
+                .fold(f32::INFINITY, f32::min);
+            let (custom, mask, was_culled) = (n.desc.custom_index, n.desc.mask, n.culled);
+            // Culling decides what is traced, not what is covered: a culled proxy's detail
+            // stays out too (it is beyond r2 or handing over).
+            self.mark_covered(g);
+            let culled = self.culler.cull(radius, centre_dist, was_culled);
+            self.far.nodes[g as usize].as_mut().expect("live").culled = culled;
+            let e = &mut self.t.entries[slot as usize];
+            e.last_keep = frame;
+            if culled {
+                continue;
+            }
+            e.last_in_tlas = Some(frame);
+            proxy_bytes += e.bytes;
+            self.far.records.push(TlasInstance::new(
+                &Affine3A::IDENTITY,
+                custom,
+                mask,
+                0,
+                INSTANCE_FORCE_OPAQUE,
+                addr,
+            ));
+        }
+        // Take the covered leaves' detail out of the TLAS list.
+        if !self.far.covered.is_empty() {
+            let mut keep = Vec::with_capacity(self.tlas_list.len());
+            for (item, &g) in self.tlas_list.iter().zip(&self.tlas_groups) {
+                if g == NONE || !self.far.is_covered(g) {
+                    keep.push(*item);
+                }
+            }
+            self.tlas_list = keep;
+        }
+        self.tlas_groups.clear();
+        self.stats.proxy_instances = self.far.records.len() as u32;
+        self.stats.proxy_blas_bytes = proxy_bytes;
+        self.stats.far_groups_covered = self.far.covered.len() as u32;
+    }
+}

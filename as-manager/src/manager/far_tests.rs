@@ -1,0 +1,277 @@
+//! The far field on the model backend: a grid of leaf groups with parents, a camera walking
+//! slowly across r2.
+
+use std::collections::{HashMap, HashSet};
+
+use glam::{Affine3A, Vec3};
+
+use crate::backend::model::ModelBackend;
+use crate::synth::counts_chain;
+use crate::*;
+
+const LEAVES: i32 = 16; // 16 x 16 leaves of 50 m: 800 m
+const LEAF_M: f32 = 50.0;
+const PROXY_CI: u32 = 100_000;
+
+struct World {
+    m: AsManager<ModelBackend>,
+    /// Group slot -> the leaf numbers (x * LEAVES + z) under it.
+    leaves_of: HashMap<u32, Vec<u32>>,
+}
+
+fn world(config: Config) -> World {
+    let m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
+    let proxy_mesh = |m: &AsManager<ModelBackend>, n: u32| {
+        m.register_mesh(MeshDesc::new(
+            format!("proxy{n}"),
+            MeshKind::Static,
+            50.0,
+            counts_chain(512, 1, 0.0),
+        ))
+        .unwrap()
+    };
+    let mut leaves_of = HashMap::new();
+    let mut n = 0;
+    // Parents: 2x2 blocks of leaves.
+    for px in 0..LEAVES / 2 {
+        for pz in 0..LEAVES / 2 {
+            let lo = [px as f32 * 2.0 * LEAF_M, 0.0, pz as f32 * 2.0 * LEAF_M];
+            let parent = m
+                .register_group(GroupDesc {
+                    parent: None,
+                    bounds_min: lo,
+                    bounds_max: [lo[0] + 2.0 * LEAF_M, 10.0, lo[2] + 2.0 * LEAF_M],
+                    custom_index: PROXY_CI + n,
+                    mask: 0xff,
+                })
+                .unwrap();
+            n += 1;
+            m.set_group_proxy(parent, Some((proxy_mesh(&m, n), 4.0)))
+                .unwrap();
+            let mut under = Vec::new();
+            for (dx, dz) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                let (x, z) = (px * 2 + dx, pz * 2 + dz);
+                let leaf_no = (x * LEAVES + z) as u32;
+                under.push(leaf_no);
+                let lo = [x as f32 * LEAF_M, 0.0, z as f32 * LEAF_M];
+                let leaf = m
+                    .register_group(GroupDesc {
+                        parent: Some(parent),
+                        bounds_min: lo,
+                        bounds_max: [lo[0] + LEAF_M, 10.0, lo[2] + LEAF_M],
+                        custom_index: PROXY_CI + n,
+                        mask: 0xff,
+                    })
+                    .unwrap();
+                n += 1;
+                m.set_group_proxy(leaf, Some((proxy_mesh(&m, n), 1.0)))
+                    .unwrap();
+                leaves_of.insert(leaf.index(), vec![leaf_no]);
+                // A house mesh per leaf, so detail memory grows with what is near.
+                let mesh = m
+                    .register_mesh(MeshDesc::new(
+                        format!("house{leaf_no}"),
+                        MeshKind::Static,
+                        2.0,
+                        counts_chain(2000, 3, 0.02),
+                    ))
+                    .unwrap();
+                for k in 0..4 {
+                    let p = Vec3::new(
+                        lo[0] + 12.0 + 25.0 * (k % 2) as f32,
+                        2.0,
+                        lo[2] + 12.0 + 25.0 * (k / 2) as f32,
+                    );
+                    let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
+                    d.custom_index = leaf_no;
+                    d.group = Some(leaf);
+                    m.add_instance(d).unwrap();
+                }
+            }
+            leaves_of.insert(parent.index(), under);
+        }
+    }
+    World { m, leaves_of }
+}
+
+fn config() -> Config {
+    let mut c = Config::default();
+    c.cull.mode = CullMode::Off;
+    c.freeze_cost_model = true;
+    c
+}
+
+/// The proxy group slot of a proxy record: customIndex order matches registration order, and
+/// group slots are allocated in the same order.
+fn group_of_record(ci: u32) -> u32 {
+    ci - PROXY_CI
+}
+
+#[test]
+fn a_slow_walk_across_r2_never_shows_a_group_twice_or_not_at_all() {
+    let mut w = world(config());
+    let r2 = w.m.config().residency.r2;
+    let margin = w.m.config().far_field.handover_margin;
+    let mut frames_with_proxies = 0;
+    for frame in 0..400u64 {
+        // 1.5 m a frame from one corner towards the other.
+        let eye = Vec3::new(20.0 + 1.5 * frame as f32, 2.0, 20.0 + 1.5 * frame as f32);
+        let cams = [Camera::new(eye, Vec3::new(1.0, 0.0, 1.0).normalize())];
+        let out =
+            w.m.update(FrameInput {
+                frame,
+                cameras: &cams,
+            })
+            .unwrap();
+        let (mut detail, mut proxied) = (HashSet::new(), HashSet::new());
+        for r in out.instances {
+            let ci = r.custom_index_and_mask & 0x00ff_ffff;
+            if ci >= PROXY_CI {
+                proxied.extend(w.leaves_of[&group_of_record(ci)].iter().copied());
+            } else {
+                detail.insert(ci);
+            }
+        }
+        let both: Vec<_> = detail.intersection(&proxied).collect();
+        assert!(
+            both.is_empty(),
+            "frame {frame}: leaves {both:?} show proxy and detail"
+        );
+        let s = out.stats.clone();
+        assert!(s.memory_in_use() <= s.memory_budget);
+        assert_eq!(
+            s.proxy_instances as usize,
+            out.instances
+                .iter()
+                .filter(|r| (r.custom_index_and_mask & 0xffffff) >= PROXY_CI)
+                .count()
+        );
+        if s.proxy_instances > 0 {
+            frames_with_proxies += 1;
+        }
+        // After warm-up every leaf beyond r2 + margin is covered by a proxy.
+        if frame >= 60 {
+            for x in 0..LEAVES {
+                for z in 0..LEAVES {
+                    let lo = Vec3::new(x as f32 * LEAF_M, 0.0, z as f32 * LEAF_M);
+                    let hi = lo + Vec3::new(LEAF_M, 10.0, LEAF_M);
+                    let d = (lo - eye).max(eye - hi).max(Vec3::ZERO).length();
+                    let no = (x * LEAVES + z) as u32;
+                    if d > r2 + margin {
+                        assert!(
+                            proxied.contains(&no),
+                            "frame {frame}: far leaf {no} ({d:.0} m) has no proxy"
+                        );
+                    }
+                }
+            }
+        }
+        w.m.check_invariants().unwrap();
+    }
+    assert!(frames_with_proxies > 300);
+}
+
+#[test]
+fn far_field_off_shows_no_proxy() {
+    let mut c = config();
+    c.far_field.enabled = false;
+    let mut w = world(c);
+    for frame in 0..40u64 {
+        let cams = [Camera::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
+        let out =
+            w.m.update(FrameInput {
+                frame,
+                cameras: &cams,
+            })
+            .unwrap();
+        assert_eq!(out.stats.proxy_instances, 0);
+        assert!(out
+            .instances
+            .iter()
+            .all(|r| (r.custom_index_and_mask & 0xffffff) < PROXY_CI));
+    }
+}
+
+#[test]
+fn under_a_tight_budget_detail_is_evicted_before_proxies() {
+    // Proxies: 64 + 256 nodes x 512 triangles x 104 B ≈ 17 MB; houses 2000 triangles each.
+    let mut c = config();
+    c.memory.blas_bytes = 10 << 20;
+    let mut w = world(c);
+    let (mut evictions, mut proxies_evicted) = (0, 0);
+    for frame in 0..300u64 {
+        let eye = Vec3::new(20.0 + 2.5 * frame as f32, 2.0, 400.0);
+        let cams = [Camera::new(eye, Vec3::X)];
+        let s =
+            w.m.update(FrameInput {
+                frame,
+                cameras: &cams,
+            })
+            .unwrap()
+            .stats
+            .clone();
+        assert!(s.memory_in_use() <= s.memory_budget, "frame {frame}");
+        evictions += s.evictions;
+        proxies_evicted += s.proxies_evicted;
+    }
+    eprintln!("evictions {evictions}, of which proxies {proxies_evicted}");
+    assert!(evictions > 0, "the budget is tight enough to evict");
+    assert!(
+        proxies_evicted < evictions,
+        "{proxies_evicted} of {evictions} evictions were proxies"
+    );
+}
+
+#[test]
+fn group_registration_errors_are_typed() {
+    let m = AsManager::new(config(), ModelBackend::lavapipe()).unwrap();
+    let bad = GroupDesc {
+        parent: None,
+        bounds_min: [0.0, 0.0, 0.0],
+        bounds_max: [-1.0, 1.0, 1.0],
+        custom_index: 0,
+        mask: 0xff,
+    };
+    assert!(matches!(
+        m.register_group(bad.clone()),
+        Err(AsError::InvalidGroup(_))
+    ));
+    let ok = GroupDesc {
+        bounds_max: [1.0, 1.0, 1.0],
+        ..bad
+    };
+    let g = m.register_group(ok.clone()).unwrap();
+    m.unregister_group(g).unwrap();
+    assert!(matches!(
+        m.unregister_group(g),
+        Err(AsError::UnknownGroup(_))
+    ));
+    assert!(matches!(
+        m.register_group(GroupDesc {
+            parent: Some(g),
+            ..ok
+        }),
+        Err(AsError::UnknownGroup(_))
+    ));
+    let skinned = m
+        .register_mesh(MeshDesc::new(
+            "s",
+            MeshKind::Skinned,
+            1.0,
+            counts_chain(64, 1, 0.0),
+        ))
+        .unwrap();
+    let g2 = m
+        .register_group(GroupDesc {
+            parent: None,
+            bounds_min: [0.0; 3],
+            bounds_max: [1.0; 3],
+            custom_index: 0,
+            mask: 0xff,
+        })
+        .unwrap();
+    assert!(matches!(
+        m.set_group_proxy(g2, Some((skinned, 1.0))),
+        Err(AsError::InvalidGroup(_))
+    ));
+}

@@ -1,0 +1,456 @@
+//! Level proxies (HLOD) for the far field, baked with the world.
+//!
+//! A quadtree over the level grid: one node per 2x2 block of levels (depth 1, the leaves), 4x4
+//! (depth 2), 8x8 (depth 3) and 16x16 (depth 4); partial blocks at the map's edge are fine. A
+//! leaf merges the static opaque instances' coarsest LODs of its levels (world space; skinned
+//! and non-opaque instances are left out) and simplifies the result to a triangle budget with
+//! meshoptimizer; a parent merges its children's proxies and simplifies again, so errors only
+//! grow up the tree. Each node records its geometric error in metres.
+//!
+//! Proxies live in their own file (`proxies.bin`): a checksummed index, then one checksummed
+//! chunk per node, so one corrupt node loses only itself.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use crate::error::{FormatError, Result, StreamingError};
+use crate::format::{self, frame, unframe, Reader, Writer};
+use crate::generate::GeneratedWorld;
+use crate::lod::compact;
+use crate::model::{Aabb, LevelId, LodGeometry, MaterialClass, MeshId, Motion};
+
+/// The proxy file of a baked world.
+pub const PROXY_FILE: &str = "proxies.bin";
+/// Magic of the proxy index.
+pub const PROXY_INDEX_MAGIC: [u8; 4] = *b"RTSP";
+
+/// A proxy node's id: its index in [`ProxyTree::nodes`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ProxyId(pub u32);
+
+/// One node of the proxy quadtree (its geometry is kept apart).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProxyNode {
+    /// Its id.
+    pub id: ProxyId,
+    /// 1 for 2x2 levels, 2 for 4x4, 3 for 8x8, 4 for 16x16.
+    pub depth: u8,
+    /// The block's first level cell (x, z) and its side in cells (`1 << depth`).
+    pub cell: [i32; 2],
+    /// World bounds of what it merges.
+    pub bounds: Aabb,
+    /// Geometric error against the instances' finest LODs is at least the LOD chain's; this is
+    /// the error of the proxy against the coarsest LODs it merges, in metres.
+    pub error: f32,
+    /// Its parent (None for a root).
+    pub parent: Option<ProxyId>,
+    /// Its children (empty for a leaf).
+    pub children: Vec<ProxyId>,
+    /// Levels it covers.
+    pub levels: Vec<LevelId>,
+    /// Triangles of its geometry.
+    pub triangles: u32,
+}
+
+/// The quadtree's structure.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ProxyTree {
+    /// Every node, leaves first.
+    pub nodes: Vec<ProxyNode>,
+    /// The leaf covering each level (indexed by level id).
+    pub leaf_of_level: Vec<Option<ProxyId>>,
+}
+
+impl ProxyTree {
+    /// The leaf (2x2 block) holding `level`.
+    pub fn leaf_of(&self, level: LevelId) -> Option<ProxyId> {
+        self.leaf_of_level.get(level.0 as usize).copied().flatten()
+    }
+
+    /// Nodes without a parent.
+    pub fn roots(&self) -> impl Iterator<Item = &ProxyNode> {
+        self.nodes.iter().filter(|n| n.parent.is_none())
+    }
+
+    /// A node.
+    pub fn node(&self, id: ProxyId) -> Option<&ProxyNode> {
+        self.nodes.get(id.0 as usize)
+    }
+}
+
+/// How proxies are built.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProxyConfig {
+    /// Depths to build (1 = 2x2 blocks only ... 4 = up to 16x16).
+    pub max_depth: u8,
+    /// Triangle budget of every node.
+    pub triangles: u32,
+    /// Worker threads.
+    pub threads: usize,
+}
+
+impl Default for ProxyConfig {
+    fn default() -> Self {
+        Self {
+            max_depth: 4,
+            triangles: 512,
+            threads: std::thread::available_parallelism().map_or(2, |n| n.get()),
+        }
+    }
+}
+
+/// Figures of a proxy build.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ProxyReport {
+    /// Nodes.
+    pub nodes: u32,
+    /// Triangles over all nodes.
+    pub triangles: u64,
+    /// Bytes of the proxy file.
+    pub file_bytes: u64,
+    /// Largest node geometry in bytes (positions and indices).
+    pub max_node_bytes: u64,
+    /// Build time, microseconds.
+    pub build_us: u64,
+}
+
+/// The proxies of a world: the tree and each node's world-space geometry.
+#[derive(Debug, Clone, Default)]
+pub struct Proxies {
+    /// Structure.
+    pub tree: ProxyTree,
+    /// Geometry per node (world-space positions; no skin).
+    pub geometry: Vec<Arc<LodGeometry>>,
+}
+
+fn merge(parts: &[(&LodGeometry, glam::Mat4)]) -> LodGeometry {
+    let mut positions = Vec::new();
+    let mut indices = Vec::new();
+    for (g, t) in parts {
+        let base = positions.len() as u32;
+        positions.extend(
+            g.positions
+                .iter()
+                .map(|p| t.transform_point3(glam::Vec3::from(*p)).to_array()),
+        );
+        indices.extend(g.indices.iter().map(|i| i + base));
+    }
+    LodGeometry {
+        positions,
+        indices,
+        error: 0.0,
+        skin: None,
+    }
+}
+
+/// Simplifies `g` to at most `triangles`; returns it with its error (metres) added.
+fn simplify(g: LodGeometry, triangles: u32, base_error: f32) -> LodGeometry {
+    if g.triangle_count() <= triangles as usize || g.positions.is_empty() {
+        return LodGeometry {
+            error: base_error,
+            ..g
+        };
+    }
+    let mut err = 0.0f32;
+    let idx = meshopt::simplify_sloppy_decoder(
+        &g.indices,
+        &g.positions,
+        triangles as usize * 3,
+        f32::MAX,
+        Some(&mut err),
+    );
+    let err = err * meshopt::simplify_scale_decoder(&g.positions);
+    compact(&g.positions, &idx, None, base_error + err.max(0.0))
+}
+
+/// Builds the proxy tree of `world` (deterministic: the same world gives the same bytes).
+pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, ProxyReport) {
+    let started = Instant::now();
+    let mut nodes: Vec<ProxyNode> = Vec::new();
+    let mut geometry: Vec<Arc<LodGeometry>> = Vec::new();
+    let mut leaf_of_level = vec![None; world.levels.len()];
+    // Depth 1 from the levels, then each depth from the one below.
+    let mut below: Vec<u32> = Vec::new();
+    for depth in 1..=cfg.max_depth.max(1) {
+        let mut blocks: std::collections::BTreeMap<(i32, i32), Vec<u32>> = Default::default();
+        if depth == 1 {
+            for l in &world.levels {
+                blocks
+                    .entry((l.cell[0] >> 1, l.cell[1] >> 1))
+                    .or_default()
+                    .push(l.id.0);
+            }
+        } else {
+            for &c in &below {
+                let n = &nodes[c as usize];
+                let s = 1 << depth;
+                blocks
+                    .entry((n.cell[0].div_euclid(s), n.cell[1].div_euclid(s)))
+                    .or_default()
+                    .push(c);
+            }
+        }
+        if depth > 1 && blocks.len() == below.len() {
+            break; // one node per block already: nothing coarser to add
+        }
+        let jobs: Vec<((i32, i32), Vec<u32>)> = blocks.into_iter().collect();
+        let built: Vec<(Aabb, LodGeometry)> = parallel_map(&jobs, cfg.threads, |(_, members)| {
+            if depth == 1 {
+                let mut parts = Vec::new();
+                let mut bounds = Aabb::EMPTY;
+                let mut err = 0.0f32;
+                for &l in members {
+                    for inst in &world.levels[l as usize].instances {
+                        if inst.material != MaterialClass::Opaque || inst.motion != Motion::Static {
+                            continue;
+                        }
+                        let mesh = &world.meshes[inst.mesh.0 as usize];
+                        let Some(g) = mesh.lods.last() else { continue };
+                        parts.push((&**g, inst.transform));
+                        bounds = bounds.union(inst.aabb);
+                        err = err.max(g.error * inst.max_scale());
+                    }
+                }
+                (bounds, simplify(merge(&parts), cfg.triangles, err))
+            } else {
+                let parts: Vec<(&LodGeometry, glam::Mat4)> = members
+                    .iter()
+                    .map(|&c| (&*geometry[c as usize], glam::Mat4::IDENTITY))
+                    .collect();
+                let bounds = members
+                    .iter()
+                    .fold(Aabb::EMPTY, |b, &c| b.union(nodes[c as usize].bounds));
+                let err = members
+                    .iter()
+                    .map(|&c| nodes[c as usize].error)
+                    .fold(0.0f32, f32::max);
+                (bounds, simplify(merge(&parts), cfg.triangles, err))
+            }
+        });
+        let mut level_ids = Vec::new();
+        for (((bx, bz), members), (bounds, g)) in jobs.into_iter().zip(built) {
+            let id = ProxyId(nodes.len() as u32);
+            let s = 1 << depth;
+            let levels: Vec<LevelId> = if depth == 1 {
+                members.iter().map(|&l| LevelId(l)).collect()
+            } else {
+                members
+                    .iter()
+                    .flat_map(|&c| nodes[c as usize].levels.clone())
+                    .collect()
+            };
+            let children: Vec<ProxyId> = if depth == 1 {
+                for l in &levels {
+                    leaf_of_level[l.0 as usize] = Some(id);
+                }
+                Vec::new()
+            } else {
+                members.iter().map(|&c| ProxyId(c)).collect()
+            };
+            for c in &children {
+                nodes[c.0 as usize].parent = Some(id);
+            }
+            nodes.push(ProxyNode {
+                id,
+                depth,
+                cell: [bx * s, bz * s],
+                bounds,
+                error: g.error,
+                parent: None,
+                children,
+                levels,
+                triangles: g.triangle_count() as u32,
+            });
+            geometry.push(Arc::new(g));
+            level_ids.push(id.0);
+        }
+        below = level_ids;
+    }
+    let report = ProxyReport {
+        nodes: nodes.len() as u32,
+        triangles: geometry.iter().map(|g| g.triangle_count() as u64).sum(),
+        file_bytes: 0,
+        max_node_bytes: geometry
+            .iter()
+            .map(|g| g.byte_size() as u64)
+            .max()
+            .unwrap_or(0),
+        build_us: started.elapsed().as_micros() as u64,
+    };
+    (
+        Proxies {
+            tree: ProxyTree {
+                nodes,
+                leaf_of_level,
+            },
+            geometry,
+        },
+        report,
+    )
+}
+
+fn parallel_map<T: Sync, R: Send>(
+    items: &[T],
+    threads: usize,
+    f: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let chunk = items.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|s| {
+        let handles: Vec<_> = items
+            .chunks(chunk)
+            .map(|c| s.spawn(|| c.iter().map(&f).collect::<Vec<R>>()))
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().expect("proxy worker panicked"))
+            .collect()
+    })
+}
+
+/// Encodes the proxy file: the index, then one chunk per node.
+pub fn encode_proxies(p: &Proxies) -> Vec<u8> {
+    let chunks: Vec<Vec<u8>> = p
+        .geometry
+        .iter()
+        .enumerate()
+        .map(|(i, g)| format::encode_lod(MeshId(i as u32), 0, g))
+        .collect();
+    let mut w = Writer::default();
+    w.u32(p.tree.nodes.len() as u32);
+    let mut offset = 0u64;
+    for (n, c) in p.tree.nodes.iter().zip(&chunks) {
+        w.u32(n.id.0);
+        w.u8(n.depth);
+        w.i32(n.cell[0]);
+        w.i32(n.cell[1]);
+        w.aabb(&n.bounds);
+        w.f32(n.error);
+        w.u32(n.parent.map_or(u32::MAX, |p| p.0));
+        w.u32(n.triangles);
+        w.u32(n.levels.len() as u32);
+        for l in &n.levels {
+            w.u32(l.0);
+        }
+        w.u64(offset);
+        w.u64(c.len() as u64);
+        offset += c.len() as u64;
+    }
+    let mut out = frame(PROXY_INDEX_MAGIC, &w.0);
+    let index_len = out.len() as u64;
+    let mut file = index_len.to_le_bytes().to_vec();
+    file.append(&mut out);
+    for c in chunks {
+        file.extend_from_slice(&c);
+    }
+    file
+}
+
+/// A proxy file read back: the tree, and per node its geometry or why it could not be read.
+#[derive(Debug, Default)]
+pub struct ProxyFile {
+    /// Structure (from the checksummed index).
+    pub tree: ProxyTree,
+    /// Per node: its geometry, or the typed error of its chunk.
+    pub geometry: Vec<std::result::Result<Arc<LodGeometry>, Arc<StreamingError>>>,
+}
+
+/// Decodes a proxy file (`path` names errors). A corrupt index fails the whole file; a corrupt
+/// node chunk fails only that node.
+pub fn decode_proxies(bytes: &[u8], path: &Path, levels: usize) -> Result<ProxyFile> {
+    let fail = |reason: FormatError| StreamingError::Format {
+        path: path.to_owned(),
+        reason,
+    };
+    let mut head = Reader::new(bytes);
+    let index_len = head.u64().map_err(fail)? as usize;
+    let index_bytes = head.bytes(index_len).map_err(fail)?;
+    let chunks = &bytes[8 + index_len..];
+    let mut r = Reader::new(unframe(PROXY_INDEX_MAGIC, index_bytes).map_err(fail)?);
+    let n = r.count(4).map_err(fail)?;
+    let mut nodes = Vec::with_capacity(n);
+    let mut spans = Vec::with_capacity(n);
+    let mut leaf_of_level = vec![None; levels];
+    let inconsistent = |s: String| fail(FormatError::Inconsistent(s));
+    for i in 0..n {
+        let id = r.u32().map_err(fail)?;
+        if id as usize != i {
+            return Err(inconsistent(format!("node {i} says it is node {id}")));
+        }
+        let depth = r.u8().map_err(fail)?;
+        let cell = [r.i32().map_err(fail)?, r.i32().map_err(fail)?];
+        let bounds = r.aabb().map_err(fail)?;
+        let error = r.f32().map_err(fail)?;
+        let parent = r.u32().map_err(fail)?;
+        let triangles = r.u32().map_err(fail)?;
+        let nl = r.count(4).map_err(fail)?;
+        let mut lv = Vec::with_capacity(nl);
+        for _ in 0..nl {
+            let l = r.u32().map_err(fail)?;
+            if l as usize >= levels {
+                return Err(inconsistent(format!("node {i} covers unknown level {l}")));
+            }
+            lv.push(LevelId(l));
+        }
+        let (off, len) = (r.u64().map_err(fail)?, r.u64().map_err(fail)?);
+        if parent != u32::MAX && (parent as usize >= n || parent as usize <= i) {
+            return Err(inconsistent(format!("node {i} has parent {parent}")));
+        }
+        if depth == 1 {
+            for l in &lv {
+                leaf_of_level[l.0 as usize] = Some(ProxyId(id));
+            }
+        }
+        spans.push((off, len));
+        nodes.push(ProxyNode {
+            id: ProxyId(id),
+            depth,
+            cell,
+            bounds,
+            error,
+            parent: (parent != u32::MAX).then_some(ProxyId(parent)),
+            children: Vec::new(),
+            levels: lv,
+            triangles,
+        });
+    }
+    for i in 0..nodes.len() {
+        if let Some(p) = nodes[i].parent {
+            nodes[p.0 as usize].children.push(ProxyId(i as u32));
+        }
+    }
+    let geometry = spans
+        .iter()
+        .enumerate()
+        .map(|(i, &(off, len))| {
+            let bytes = usize::try_from(off)
+                .ok()
+                .zip(usize::try_from(len).ok())
+                .and_then(|(o, l)| chunks.get(o..o.checked_add(l)?))
+                .ok_or(FormatError::Truncated {
+                    offset: off as usize,
+                    needed: len as usize,
+                    available: chunks.len().saturating_sub(off as usize),
+                })
+                .and_then(|b| format::decode_lod(b, MeshId(i as u32), 0));
+            bytes.map(Arc::new).map_err(|reason| Arc::new(fail(reason)))
+        })
+        .collect();
+    Ok(ProxyFile {
+        tree: ProxyTree {
+            nodes,
+            leaf_of_level,
+        },
+        geometry,
+    })
+}
+
+/// Reads `dir`'s proxy file; `Ok(None)` when the world has none (an older bake).
+pub fn read_proxies(dir: &Path, levels: usize) -> Result<Option<ProxyFile>> {
+    let path = dir.join(PROXY_FILE);
+    match std::fs::read(&path) {
+        Ok(bytes) => decode_proxies(&bytes, &path, levels).map(Some),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(source) => Err(StreamingError::Io { path, source }),
+    }
+}
