@@ -77,11 +77,12 @@ fn print_table(r: &RunReport) {
         s.reference.never_loaded_instances
     );
     println!(
-        "{:<8} {:>9} {:>9} {:>7} {:>8} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>9} {:>5}",
+        "{:<12} {:>9} {:>9} {:>7} {:>13} {:>8} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>9} {:>5}",
         "policy",
         "peak MB",
         "p95 MB",
         "TLAS",
+        "far field",
         "upd p50",
         "upd p99",
         "gpu p50",
@@ -94,11 +95,20 @@ fn print_table(r: &RunReport) {
     );
     for p in &s.policies {
         println!(
-            "{:<8} {:>9.1} {:>9.1} {:>7} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}% {:>8.2}% {:>8.2}% {:>8.2}% {:>5}",
+            "{:<12} {:>9.1} {:>9.1} {:>7} {:>13} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}% {:>8.2}% {:>8.2}% {:>8.2}% {:>5}",
             p.policy,
             p.peak_blas_bytes as f64 / 1e6,
             p.p95_blas_bytes as f64 / 1e6,
             p.peak_tlas_instances,
+            if p.peak_proxy_instances > 0 {
+                format!(
+                    "{} / {:.1} MB",
+                    p.peak_proxy_instances,
+                    p.peak_proxy_blas_bytes as f64 / 1e6
+                )
+            } else {
+                "off".to_string()
+            },
             p.update_ms_p50,
             p.update_ms_p99,
             p.gpu_as_ms_p50,
@@ -120,7 +130,7 @@ fn print_table(r: &RunReport) {
         let all = p.error_all_geometry.as_ref().map_or(String::new(), |e| {
             format!("; vs all geometry {:.2}%", e.hit_mismatch.mean * 100.0)
         });
-        println!("  {:<8} {}{all}", p.policy, bands.join(", "));
+        println!("  {:<12} {}{all}", p.policy, bands.join(", "));
     }
     println!("validation messages: {}", s.validation_messages);
     for f in &r.files {

@@ -29,14 +29,17 @@ use rtstream_as_manager::{
 };
 use rtstream_renderer::InstanceShading;
 use rtstream_streaming::{
-    Aabb, Instance, InstanceId, LevelId, Manifest, MaterialClass, MeshId, Motion, World, WorldEvent,
+    Aabb, Instance, InstanceId, LevelId, Manifest, MaterialClass, MeshId, Motion, ProxyId,
+    ProxyTree, World, WorldEvent,
 };
 
 /// What the renderer needs of one customIndex.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShadingSlot {
-    /// The streaming instance.
+    /// The streaming instance (for a far-field proxy: none, see `proxy`).
     pub instance: InstanceId,
+    /// The far-field proxy node this slot shades, if it is one (it stands for many instances).
+    pub proxy: Option<ProxyId>,
     /// Its level.
     pub level: LevelId,
     /// Its mesh.
@@ -93,7 +96,17 @@ pub struct WorldBridge {
     free_slots: Vec<u32>,
     stats: BridgeStats,
     counts_only: bool,
+    /// Far field: the manager group of each proxy node, its level's leaf, and each node's
+    /// proxy mesh while resident.
+    groups: Vec<Option<rtstream_as_manager::GroupId>>,
+    level_leaf: Vec<Option<ProxyId>>,
+    proxy_meshes: HashMap<ProxyId, rtstream_as_manager::MeshId>,
+    proxy_errors: Vec<f32>,
+    proxy_bounds: Vec<Aabb>,
 }
+
+/// The base colour of far-field proxies (they merge terrain and buildings).
+pub const PROXY_COLOR: [f32; 4] = [0.42, 0.46, 0.38, 1.0];
 
 /// The base colour every image of a mesh uses (managed frames and the ground truth alike, so
 /// colour metrics compare like with like): terrain green, other meshes a stable muted colour.
@@ -128,6 +141,95 @@ impl WorldBridge {
         Self {
             manifest_meshes: manifest.map(|m| m.meshes.clone()).unwrap_or_default(),
             ..Self::default()
+        }
+    }
+
+    /// Registers the world's far-field proxy tree as manager groups (parents first), so that
+    /// placed instances name their leaf and `ProxyLoaded` events give groups their proxies.
+    /// Without it the bridge ignores proxies (the baselines' bridges).
+    pub fn register_proxy_tree<B: AsBackend>(&mut self, m: &AsManager<B>, tree: &ProxyTree) {
+        self.groups = vec![None; tree.nodes.len()];
+        self.proxy_errors = tree.nodes.iter().map(|n| n.error).collect();
+        self.proxy_bounds = tree.nodes.iter().map(|n| n.bounds).collect();
+        self.level_leaf = tree.leaf_of_level.clone();
+        // Leaves first in the tree: parents are registered before their children here.
+        for n in tree.nodes.iter().rev() {
+            let parent = n.parent.and_then(|p| self.groups[p.0 as usize]);
+            let slot = self.free_slots.pop().unwrap_or(self.slots.len() as u32);
+            let desc = rtstream_as_manager::GroupDesc {
+                parent,
+                bounds_min: n.bounds.min.to_array(),
+                bounds_max: n.bounds.max.to_array(),
+                custom_index: slot,
+                mask: 0xff,
+            };
+            match m.register_group(desc) {
+                Ok(g) => {
+                    if self.slots.len() <= slot as usize {
+                        self.slots.resize(slot as usize + 1, None);
+                    }
+                    self.slots[slot as usize] = Some(ShadingSlot {
+                        instance: InstanceId(u32::MAX),
+                        proxy: Some(n.id),
+                        level: LevelId(u32::MAX),
+                        mesh: MeshId(u32::MAX),
+                        base_color: PROXY_COLOR,
+                    });
+                    self.groups[n.id.0 as usize] = Some(g);
+                }
+                Err(e) => {
+                    self.free_slots.push(slot);
+                    self.reject("group", e);
+                }
+            }
+        }
+    }
+
+    fn proxy_loaded<B: AsBackend>(
+        &mut self,
+        m: &AsManager<B>,
+        node: ProxyId,
+        g: &rtstream_streaming::LodGeometry,
+    ) {
+        let Some(Some(group)) = self.groups.get(node.0 as usize).copied() else {
+            return; // no proxy tree registered: ignore
+        };
+        let b = self.proxy_bounds[node.0 as usize];
+        let centre = (b.min + b.max) * 0.5;
+        let radius = ((b.max - b.min).length() * 0.5).max(1e-3);
+        let mut desc = MeshDesc::new(
+            format!("proxy{}", node.0),
+            MeshKind::Static,
+            radius,
+            vec![LodDesc {
+                geometry: self.geometry_of(g),
+                geometric_error: 0.0,
+            }],
+        );
+        desc.bounds_center = centre.to_array();
+        let error = self.proxy_errors[node.0 as usize];
+        match m.register_mesh(desc) {
+            Ok(mesh) => match m.set_group_proxy(group, Some((mesh, error))) {
+                Ok(()) => {
+                    self.proxy_meshes.insert(node, mesh);
+                }
+                Err(e) => self.reject("group proxy", e),
+            },
+            Err(e) => self.reject("proxy mesh", e),
+        }
+    }
+
+    fn proxy_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, node: ProxyId) {
+        let Some(mesh) = self.proxy_meshes.remove(&node) else {
+            return;
+        };
+        if let Some(Some(group)) = self.groups.get(node.0 as usize).copied() {
+            if let Err(e) = m.set_group_proxy(group, None) {
+                self.reject("group proxy removal", e);
+            }
+        }
+        if let Err(e) = m.unregister_mesh(mesh) {
+            self.reject("proxy mesh removal", e);
         }
     }
 
@@ -200,6 +302,10 @@ impl WorldBridge {
                         self.unplace(m, inst.id);
                     }
                 }
+                WorldEvent::ProxyLoaded { node, geometry } => {
+                    self.proxy_loaded(m, *node, geometry)
+                }
+                WorldEvent::ProxyEvicted { node } => self.proxy_evicted(m, *node),
                 WorldEvent::LoadFailed {
                     level, mesh, error, ..
                 } => {
@@ -362,6 +468,15 @@ impl WorldBridge {
         debug_assert!(slot < 1 << 24, "customIndex fits in 24 bits");
         let mut desc = InstanceDesc::new(mesh.id, Affine3A::from_mat4(inst.transform));
         desc.custom_index = slot;
+        // Static instances join their level's far-field leaf (skinned ones never do).
+        if inst.motion == Motion::Static {
+            desc.group = self
+                .level_leaf
+                .get(level.0 as usize)
+                .copied()
+                .flatten()
+                .and_then(|leaf| self.groups.get(leaf.0 as usize).copied().flatten());
+        }
         let (color, skinned) = (mesh.color, mesh.skinned);
         match m.add_instance(desc) {
             Ok(id) => {
@@ -370,6 +485,7 @@ impl WorldBridge {
                 }
                 self.slots[slot as usize] = Some(ShadingSlot {
                     instance: inst.id,
+                    proxy: None,
                     level,
                     mesh: inst.mesh,
                     base_color: color,

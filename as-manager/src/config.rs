@@ -200,6 +200,9 @@ pub struct FarFieldConfig {
     /// Proxies of groups within r2 plus this many metres are built ahead, so a group that
     /// leaves r2 finds its proxy ready.
     pub lookahead: f32,
+    /// Share of the per-frame build budget proxies may use (they are built first, so the far
+    /// field keeps up while near detail streams; detail takes the rest).
+    pub build_share: f32,
 }
 
 impl Default for FarFieldConfig {
@@ -207,9 +210,10 @@ impl Default for FarFieldConfig {
         Self {
             enabled: true,
             far_radius: f32::INFINITY,
-            max_pixel_error: 8.0,
+            max_pixel_error: 48.0,
             handover_margin: 25.0,
             lookahead: 150.0,
+            build_share: 0.5,
         }
     }
 }
@@ -321,6 +325,10 @@ impl Config {
         check(
             nonneg(f.handover_margin) && nonneg(f.lookahead),
             "far_field.handover_margin and lookahead must be >= 0",
+        )?;
+        check(
+            (0.0..=1.0).contains(&f.build_share),
+            "far_field.build_share must be in [0, 1]",
         )?;
         let b = &self.build;
         check(b.max_primitives > 0, "build.max_primitives must be > 0")?;

@@ -103,6 +103,15 @@ pub struct RunArgs {
     /// then identical under any load.
     #[arg(long)]
     pub deterministic: bool,
+    /// Far-field proxies beyond r2 (the managed policy).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    pub far_field: bool,
+    /// Also run the managed policy with its far field off (`managed-near`) in the same run.
+    #[arg(long)]
+    pub compare_far_field: bool,
+    /// Far-field cut: a proxy is shown once its error projects under this many pixels.
+    #[arg(long)]
+    pub far_px: Option<f32>,
     /// Skip the all-geometry reference (non-opaque as opaque).
     #[arg(long)]
     pub opaque_only: bool,
@@ -124,19 +133,24 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
+/// A world preset with its seed and, optionally, another asset directory.
+pub fn world_preset(preset: Preset, seed: u64, asset_dir: Option<&PathBuf>) -> WorldPreset {
+    let mut p = match preset {
+        Preset::Default => WorldPreset::default_world(),
+        Preset::Small => WorldPreset::small(16, seed),
+        Preset::Large => WorldPreset::large_world(),
+    };
+    p.seed = seed;
+    if let Some(dir) = asset_dir {
+        p.asset_dir = dir.clone();
+    }
+    p
+}
+
 impl RunArgs {
     /// The world preset.
     pub fn world_preset(&self) -> WorldPreset {
-        let mut p = match self.preset {
-            Preset::Default => WorldPreset::default_world(),
-            Preset::Small => WorldPreset::small(16, self.seed),
-            Preset::Large => WorldPreset::large_world(),
-        };
-        p.seed = self.seed;
-        if let Some(dir) = &self.asset_dir {
-            p.asset_dir = dir.clone();
-        }
-        p
+        world_preset(self.preset, self.seed, self.asset_dir.as_ref())
     }
 
     /// The driver configuration.
@@ -153,6 +167,7 @@ impl RunArgs {
             size: self.size,
             deterministic: self.deterministic,
             all_geometry_reference: !self.opaque_only,
+            near_only_too: self.compare_far_field,
             out_dir: Some(self.out.clone()),
             maps: self.maps,
             ..RunConfig::default()
@@ -177,6 +192,10 @@ impl RunArgs {
         }
         if let Some(px) = self.lod_px {
             m.lod.max_pixel_error = px;
+        }
+        m.far_field.enabled = self.far_field;
+        if let Some(px) = self.far_px {
+            m.far_field.max_pixel_error = px;
         }
         if let Some(ms) = self.max_build_ms {
             m.build.max_gpu_ms = ms;

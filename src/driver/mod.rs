@@ -75,6 +75,9 @@ pub struct RunConfig {
     pub stream_delay_frames: u32,
     /// Also score against the all-geometry reference (non-opaque instances as opaque).
     pub all_geometry_reference: bool,
+    /// Also run the managed policy with its far field off (`managed-near`), to compare in
+    /// the same run.
+    pub near_only_too: bool,
     /// Output directory for the CSV, summary, pictures and maps (None: write nothing).
     pub out_dir: Option<PathBuf>,
     /// Top-down maps at this many evenly spaced frames.
@@ -104,6 +107,7 @@ impl Default for RunConfig {
             deterministic: false,
             stream_delay_frames: 2,
             all_geometry_reference: true,
+            near_only_too: false,
             out_dir: None,
             maps: 3,
             frames_in_flight: 2,
@@ -121,6 +125,9 @@ pub fn policy_name(p: PolicyKind) -> &'static str {
     }
 }
 
+/// The name of the managed policy run with its far field off.
+pub const MANAGED_NEAR: &str = "managed-near";
+
 /// Live figures handed to the progress callback after every frame.
 #[derive(Debug, Clone)]
 pub struct Progress {
@@ -135,7 +142,7 @@ pub struct Progress {
 }
 
 struct PolicyRun {
-    kind: PolicyKind,
+    name: &'static str,
     manager: AsManager<VulkanBackend>,
     bridge: WorldBridge,
     /// The last frame's TLAS and its records.
@@ -240,10 +247,19 @@ pub fn run_cached(
         .cloned()
         .ok_or_else(|| Error::InvalidRun("the baked world has no manifest".into()))?;
     let mut path = CameraPath::new(&manifest, config.preset.seed);
+    let mut specs: Vec<(PolicyKind, &'static str, bool)> = config
+        .policies
+        .iter()
+        .map(|&k| (k, policy_name(k), k == PolicyKind::Managed))
+        .collect();
+    if config.near_only_too {
+        specs.push((PolicyKind::Managed, MANAGED_NEAR, false));
+    }
     let mut policies = Vec::new();
-    for &kind in &config.policies {
+    for (kind, name, far) in specs {
         let mut c = config.managed.clone();
         c.policy = kind;
+        c.far_field.enabled &= far;
         c.freeze_cost_model |= config.deterministic;
         if kind != PolicyKind::Managed {
             c.memory.blas_bytes = 1 << 50; // the baselines have no budget
@@ -256,10 +272,16 @@ pub fn run_cached(
                 ..VulkanBackendDesc::default()
             },
         )?;
+        let far_on = c.far_field.enabled;
+        let manager = AsManager::new(c, backend)?;
+        let mut bridge = WorldBridge::new(Some(&manifest));
+        if let (true, Some(tree)) = (far_on, world.proxy_tree()) {
+            bridge.register_proxy_tree(&manager, tree);
+        }
         policies.push(PolicyRun {
-            kind,
-            manager: AsManager::new(c, backend)?,
-            bridge: WorldBridge::new(Some(&manifest)),
+            name,
+            manager,
+            bridge,
             tlas: TlasHandle(0),
             records: Vec::new(),
             worst: None,
@@ -300,7 +322,7 @@ pub fn run_cached(
                 cameras: &mcams,
             })?;
             let update_ms = t.elapsed().as_secs_f64() * 1e3;
-            rows.push(FrameRow::new(frame, p.kind, out.stats, update_ms));
+            rows.push(FrameRow::new(frame, p.name, out.stats, update_ms));
             p.tlas = out.tlas;
             p.records.clear();
             p.records.extend_from_slice(out.instances);
@@ -347,7 +369,12 @@ pub fn run_cached(
                         reference,
                         &view,
                         edges,
-                        |ci| bridge.slot(ci).map(|s| s.instance.0),
+                        |ci| {
+                            bridge
+                                .slot(ci)
+                                .filter(|s| s.proxy.is_none())
+                                .map(|s| s.instance.0)
+                        },
                         |ci| ids.get(ci as usize).copied(),
                     )
                     .map_err(Error::InvalidRun)?;
@@ -411,7 +438,7 @@ pub fn run_cached(
     let mut report = RunReport::new(
         config,
         &rows,
-        &policies.iter().map(|p| p.kind).collect::<Vec<_>>(),
+        &policies.iter().map(|p| p.name).collect::<Vec<_>>(),
         report::ReferenceInfo {
             instances: truth.instance_count(TruthKind::Opaque),
             all_geometry_instances: truth.instance_count(TruthKind::AllGeometry),
@@ -429,9 +456,9 @@ pub fn run_cached(
     if let Some(dir) = &config.out_dir {
         for p in &policies {
             if let Some((_, frame, w3, pic)) = &p.worst {
-                let file = dir.join(format!("worst_{}.png", policy_name(p.kind)));
+                let file = dir.join(format!("worst_{}.png", p.name));
                 rtstream_renderer::save_rgba_png(&file, *w3, config.size.1, pic)?;
-                report.set_worst_frame(p.kind, *frame, &file);
+                report.set_worst_frame(p.name, *frame, &file);
                 files.push(file);
             }
         }

@@ -2,12 +2,12 @@
 
 use std::path::{Path, PathBuf};
 
-use rtstream_as_manager::{FrameStats, PolicyKind};
+use rtstream_as_manager::FrameStats;
 use serde::Serialize;
 
 use super::score::{BandEdges, FrameScore};
 use super::stats::Summary;
-use super::{policy_name, RunConfig};
+use super::RunConfig;
 use crate::error::{Error, Result};
 
 /// One policy's figures of one frame.
@@ -37,6 +37,10 @@ pub struct FrameRow {
     pub compactions: u32,
     /// Memory evictions this frame.
     pub evictions: u32,
+    /// Far-field proxy records in the TLAS.
+    pub proxy_instances: u32,
+    /// Bytes of those proxies' BLASes.
+    pub proxy_blas_bytes: u64,
     /// Wall time of `update` (policy and Vulkan recording), ms.
     pub update_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
@@ -49,10 +53,10 @@ pub struct FrameRow {
 
 impl FrameRow {
     /// A row from a frame's stats.
-    pub fn new(frame: u64, policy: PolicyKind, s: &FrameStats, update_ms: f64) -> Self {
+    pub fn new(frame: u64, policy: &'static str, s: &FrameStats, update_ms: f64) -> Self {
         Self {
             frame,
-            policy: policy_name(policy),
+            policy,
             blas_count: s.blas_count,
             blas_bytes: s.blas_bytes,
             retiring_bytes: s.retiring_bytes,
@@ -63,6 +67,8 @@ impl FrameRow {
             refits: s.refits,
             compactions: s.compactions,
             evictions: s.evictions,
+            proxy_instances: s.proxy_instances,
+            proxy_blas_bytes: s.proxy_blas_bytes,
             update_ms,
             gpu_as_ms: s.measured_gpu_ms,
             score: None,
@@ -91,6 +97,8 @@ struct CsvRow {
     refits: u32,
     compactions: u32,
     evictions: u32,
+    proxy_instances: u32,
+    proxy_blas_bytes: u64,
     update_ms: f64,
     gpu_as_ms: f64,
     hit_mismatch: Option<f64>,
@@ -171,6 +179,10 @@ pub struct PolicySummary {
     pub peak_blas_count: u32,
     /// Peak TLAS instances.
     pub peak_tlas_instances: u32,
+    /// Peak far-field proxy records in the TLAS.
+    pub peak_proxy_instances: u32,
+    /// Peak bytes of the proxies' BLASes in the TLAS.
+    pub peak_proxy_blas_bytes: u64,
     /// 95th percentile of TLAS instances.
     pub p95_tlas_instances: u32,
     /// `update` wall time (policy and Vulkan recording), median.
@@ -299,7 +311,7 @@ impl RunReport {
     pub(crate) fn new(
         config: &RunConfig,
         rows: &[FrameRow],
-        policies: &[PolicyKind],
+        policies: &[&'static str],
         reference: ReferenceInfo,
         validation_messages: u64,
         render_ms: &[(usize, f64)],
@@ -309,8 +321,7 @@ impl RunReport {
         let edges = BandEdges::new(config.managed.residency.r1, config.managed.residency.r2);
         let mut summaries = Vec::new();
         let mut evaluated = 0;
-        for (pi, &kind) in policies.iter().enumerate() {
-            let name = policy_name(kind);
+        for (pi, &name) in policies.iter().enumerate() {
             let mine: Vec<&FrameRow> = rows.iter().filter(|r| r.policy == name).collect();
             let bytes = Summary::of(mine.iter().map(|r| r.blas_bytes as f64));
             let tlas = Summary::of(mine.iter().map(|r| f64::from(r.tlas_instances)));
@@ -334,6 +345,8 @@ impl RunReport {
                 p95_blas_bytes: bytes.p95 as u64,
                 peak_blas_count: mine.iter().map(|r| r.blas_count).max().unwrap_or(0),
                 peak_tlas_instances: mine.iter().map(|r| r.tlas_instances).max().unwrap_or(0),
+                peak_proxy_instances: mine.iter().map(|r| r.proxy_instances).max().unwrap_or(0),
+                peak_proxy_blas_bytes: mine.iter().map(|r| r.proxy_blas_bytes).max().unwrap_or(0),
                 p95_tlas_instances: tlas.p95 as u32,
                 update_ms_p50: update.p50,
                 update_ms_p99: update.p99,
@@ -381,9 +394,9 @@ impl RunReport {
         }
     }
 
-    pub(crate) fn set_worst_frame(&mut self, kind: PolicyKind, frame: u64, file: &Path) {
+    pub(crate) fn set_worst_frame(&mut self, name: &str, frame: u64, file: &Path) {
         for p in &mut self.summary.policies {
-            if p.policy == policy_name(kind) && p.error.worst_frame == Some(frame) {
+            if p.policy == name && p.error.worst_frame == Some(frame) {
                 p.worst_frame_png = Some(file.to_owned());
             }
         }
@@ -419,6 +432,8 @@ impl RunReport {
                 refits: r.refits,
                 compactions: r.compactions,
                 evictions: r.evictions,
+                proxy_instances: r.proxy_instances,
+                proxy_blas_bytes: r.proxy_blas_bytes,
                 update_ms: r.update_ms,
                 gpu_as_ms: r.gpu_as_ms,
                 hit_mismatch: s.map(|s| s.hit_mismatch),

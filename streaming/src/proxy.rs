@@ -86,6 +86,8 @@ pub struct ProxyConfig {
     pub max_depth: u8,
     /// Triangle budget of every node.
     pub triangles: u32,
+    /// Leaves merge each instance's coarsest LOD whose error is at most this (metres).
+    pub source_error: f32,
     /// Worker threads.
     pub threads: usize,
 }
@@ -94,7 +96,8 @@ impl Default for ProxyConfig {
     fn default() -> Self {
         Self {
             max_depth: 4,
-            triangles: 512,
+            triangles: 768,
+            source_error: 1.0,
             threads: std::thread::available_parallelism().map_or(2, |n| n.get()),
         }
     }
@@ -206,7 +209,18 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
                             continue;
                         }
                         let mesh = &world.meshes[inst.mesh.0 as usize];
-                        let Some(g) = mesh.lods.last() else { continue };
+                        // The coarsest LOD still within the leaf's source error: the very
+                        // coarsest LODs of tall buildings are pyramids, not what a skyline is.
+                        let scale = inst.max_scale();
+                        let Some(g) = mesh
+                            .lods
+                            .iter()
+                            .rev()
+                            .find(|g| g.error * scale <= cfg.source_error)
+                            .or(mesh.lods.first())
+                        else {
+                            continue;
+                        };
                         parts.push((&**g, inst.transform));
                         bounds = bounds.union(inst.aabb);
                         err = err.max(g.error * inst.max_scale());

@@ -354,7 +354,7 @@ impl<B: AsBackend> AsManager<B> {
             // Culling decides what is traced, not what is covered: a culled proxy's detail
             // stays out too (it is beyond r2 or handing over).
             self.mark_covered(g);
-            let culled = self.culler.cull(radius, centre_dist, was_culled);
+            let culled = self.culler.cull_small(radius, centre_dist, was_culled);
             self.far.nodes[g as usize].as_mut().expect("live").culled = culled;
             let e = &mut self.t.entries[slot as usize];
             e.last_keep = frame;

@@ -138,7 +138,21 @@ impl<B: AsBackend> AsManager<B> {
             .filter(|&s| self.t.entries[s as usize].state == EntryState::Queued)
             .map(|s| (self.priority(s), s))
             .collect();
-        queue.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        // Far-field proxies first, within their share of the budget; then near detail.
+        let is_proxy = |t: &super::state::Tables, s: u32| {
+            t.meshes[t.entries[s as usize].mesh as usize]
+                .as_ref()
+                .is_some_and(|m| m.proxy)
+        };
+        queue.sort_by(|a, b| {
+            is_proxy(&self.t, b.1)
+                .cmp(&is_proxy(&self.t, a.1))
+                .then(a.0.total_cmp(&b.0))
+                .then(a.1.cmp(&b.1))
+        });
+        let proxy_ms_max = f64::from(self.config.far_field.build_share.clamp(0.0, 1.0));
+        let mut proxy_ms = 0.0f64;
+        let mut detail_admitted = 0usize;
         let b = self.config.build.clone();
         // Builds leave the compaction headroom free.
         let build_budget =
@@ -192,18 +206,27 @@ impl<B: AsBackend> AsManager<B> {
             let size = self
                 .backend
                 .blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
-            if budgeted {
-                let oversized = tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64;
-                if oversized && !admitted.is_empty() {
+            let proxy = is_proxy(&self.t, slot);
+            let oversized =
+                !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
+            if budgeted && proxy {
+                // Proxies: their share of the build budget, no item beyond it.
+                if proxy_ms + est > proxy_ms_max * build_ms {
                     continue;
                 }
-                // The first item always goes (progress even when the TLAS and refits take
-                // the whole budget); later ones only within what is left.
-                if !admitted.is_empty()
+            } else if budgeted {
+                if oversized && detail_admitted > 0 {
+                    continue;
+                }
+                // The first detail item always goes (progress even when the TLAS and refits
+                // take the whole budget); later ones only within what is left.
+                if detail_admitted > 0
                     && (prims + tris as u64 > b.max_primitives || ms + est > build_ms)
                 {
                     continue;
                 }
+            }
+            if budgeted {
                 if self.memory_in_use() + bytes + size.as_bytes > build_budget {
                     // Coarser LOD first, then evict what matters less.
                     if kind == MeshKind::Static && lod + 1 < nlods {
@@ -227,6 +250,11 @@ impl<B: AsBackend> AsManager<B> {
                 let _ = prio;
                 prims += tris as u64;
                 ms += est;
+                if proxy {
+                    proxy_ms += est;
+                } else {
+                    detail_admitted += 1;
+                }
                 bytes += size.as_bytes;
                 self.stats.oversized_admitted |= oversized;
                 admitted.push(Admitted {

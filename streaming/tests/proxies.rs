@@ -1,0 +1,153 @@
+//! Far-field proxies: baked with the world into their own checksummed file, read back
+//! identically, streamed within the far radius, and a corrupt proxy loses only itself.
+
+mod common;
+
+use std::collections::HashSet;
+
+use glam::Vec3;
+use rtstream_streaming::proxy::{
+    build_proxies, encode_proxies, read_proxies, ProxyConfig, PROXY_FILE,
+};
+use rtstream_streaming::{
+    Camera, MaterialClass, Motion, ProxyId, StreamConfig, StreamingError, World, WorldEvent,
+};
+
+/// Streams with deterministic application (no waiting on wall clock) until `frames` frames.
+fn stream(dir: &std::path::Path, config: StreamConfig, frames: u64) -> Vec<WorldEvent> {
+    let config = StreamConfig {
+        apply_after_frames: Some(1),
+        ..config
+    };
+    let mut w = World::open(dir, config).expect("open");
+    let cam = [Camera::from(Vec3::new(0.0, 2.0, 0.0))];
+    (0..frames).flat_map(|f| w.update(f, &cam)).collect()
+}
+
+#[test]
+fn bake_writes_proxies_and_reads_them_back() {
+    let (world, dir) = common::baked_small("proxies-roundtrip", 8);
+    let file = read_proxies(&dir, world.levels.len())
+        .expect("readable")
+        .expect("a proxy file");
+    let (built, report) = build_proxies(&world, &ProxyConfig::default());
+    assert_eq!(file.tree, built.tree, "the index round-trips");
+    for (i, g) in file.geometry.iter().enumerate() {
+        let g = g.as_ref().expect("every chunk reads");
+        assert_eq!(**g, *built.geometry[i], "node {i} geometry round-trips");
+    }
+    // Deterministic: the same world gives the same bytes.
+    let again = build_proxies(&world, &ProxyConfig::default()).0;
+    assert_eq!(encode_proxies(&again), std::fs::read(dir.join(PROXY_FILE)).unwrap());
+    // 8x8 levels: 16 leaves (2x2), 4 (4x4), 1 (8x8).
+    let depths: Vec<u8> = file.tree.nodes.iter().map(|n| n.depth).collect();
+    assert_eq!(depths.iter().filter(|&&d| d == 1).count(), 16);
+    assert_eq!(depths.iter().filter(|&&d| d == 2).count(), 4);
+    assert_eq!(depths.iter().filter(|&&d| d == 3).count(), 1);
+    assert_eq!(report.nodes, 21);
+    // Every level has one leaf; every leaf's bounds hold its static opaque instances; every
+    // parent's bounds hold its children's.
+    for l in &world.levels {
+        let leaf = file.tree.leaf_of(l.id).expect("a leaf per level");
+        let b = file.tree.node(leaf).unwrap().bounds;
+        for i in l.instances.iter().filter(|i| {
+            i.material == MaterialClass::Opaque && i.motion == Motion::Static
+        }) {
+            assert!(b.min.cmple(i.aabb.min + 1e-3).all() && b.max.cmpge(i.aabb.max - 1e-3).all());
+        }
+    }
+    for n in &file.tree.nodes {
+        for c in &n.children {
+            let cb = file.tree.node(*c).unwrap().bounds;
+            assert!(n.bounds.min.cmple(cb.min).all() && n.bounds.max.cmpge(cb.max).all());
+            assert!(file.tree.node(*c).unwrap().error <= n.error + 1e-6, "errors grow up the tree");
+        }
+        assert!(n.triangles > 0 && n.triangles <= ProxyConfig::default().triangles);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn proxies_stream_within_the_far_radius() {
+    let (_, dir) = common::baked_small("proxies-radius", 8);
+    let all = stream(&dir, StreamConfig::default(), 3);
+    let loaded: HashSet<ProxyId> = all
+        .iter()
+        .filter_map(|e| match e {
+            WorldEvent::ProxyLoaded { node, .. } => Some(*node),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(loaded.len(), 21, "the default far radius is the whole map");
+    let near = stream(
+        &dir,
+        StreamConfig {
+            far_radius: 60.0,
+            ..StreamConfig::default()
+        },
+        3,
+    );
+    let n = near
+        .iter()
+        .filter(|e| matches!(e, WorldEvent::ProxyLoaded { .. }))
+        .count();
+    assert!(n > 0 && n < 21, "{n} proxies within 60 m");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_corrupt_proxy_is_a_typed_error_and_the_levels_still_stream() {
+    let (world, dir) = common::baked_small("proxies-corrupt", 8);
+    let path = dir.join(PROXY_FILE);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Flip a byte in the last node's chunk.
+    let n = bytes.len();
+    bytes[n - 20] ^= 0xff;
+    std::fs::write(&path, &bytes).unwrap();
+    let events = stream(&dir, StreamConfig::default(), 4);
+    let failed: Vec<_> = events
+        .iter()
+        .filter_map(|e| match e {
+            WorldEvent::LoadFailed {
+                proxy: Some(p),
+                error,
+                ..
+            } => Some((*p, error.clone())),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(failed.len(), 1, "one corrupt node");
+    assert!(matches!(*failed[0].1, StreamingError::Format { .. }));
+    let proxies = events
+        .iter()
+        .filter(|e| matches!(e, WorldEvent::ProxyLoaded { .. }))
+        .count();
+    assert_eq!(proxies, 20, "the other nodes load");
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, WorldEvent::LevelLoaded { .. })));
+
+    // A truncated file: the index fails as a whole (typed), the levels stream.
+    std::fs::write(&path, &bytes[..10]).unwrap();
+    assert!(matches!(
+        read_proxies(&dir, world.levels.len()),
+        Err(StreamingError::Format { .. })
+    ));
+    let events = stream(&dir, StreamConfig::default(), 4);
+    assert!(events.iter().any(|e| matches!(
+        e,
+        WorldEvent::LoadFailed {
+            level: None,
+            mesh: None,
+            proxy: None,
+            ..
+        }
+    )));
+    assert!(!events
+        .iter()
+        .any(|e| matches!(e, WorldEvent::ProxyLoaded { .. })));
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, WorldEvent::LevelLoaded { .. })));
+    std::fs::remove_dir_all(&dir).ok();
+}
