@@ -71,17 +71,30 @@ fn main() -> anyhow::Result<()> {
         }
         let bytes: Vec<u64> = nodes
             .iter()
-            .map(|&i| file.geometry[i].as_ref().map_or(0, |g| g.byte_size() as u64))
+            .map(|&i| {
+                file.geometry[i]
+                    .as_ref()
+                    .map_or(0, |g| g.byte_size() as u64)
+            })
             .collect();
         depths.push(Depth {
             depth: d,
             nodes: nodes.len(),
-            triangles: nodes.iter().map(|&i| u64::from(file.tree.nodes[i].triangles)).sum(),
+            triangles: nodes
+                .iter()
+                .map(|&i| u64::from(file.tree.nodes[i].triangles))
+                .sum(),
             bytes_per_proxy_mean: bytes.iter().sum::<u64>() as f64 / nodes.len() as f64,
             bytes_per_proxy_max: bytes.iter().copied().max().unwrap_or(0),
-            error_m_mean: nodes.iter().map(|&i| f64::from(file.tree.nodes[i].error)).sum::<f64>()
+            error_m_mean: nodes
+                .iter()
+                .map(|&i| f64::from(file.tree.nodes[i].error))
+                .sum::<f64>()
                 / nodes.len() as f64,
-            error_m_max: nodes.iter().map(|&i| file.tree.nodes[i].error).fold(0.0, f32::max),
+            error_m_max: nodes
+                .iter()
+                .map(|&i| file.tree.nodes[i].error)
+                .fold(0.0, f32::max),
         });
     }
     println!(

@@ -302,9 +302,7 @@ impl WorldBridge {
                         self.unplace(m, inst.id);
                     }
                 }
-                WorldEvent::ProxyLoaded { node, geometry } => {
-                    self.proxy_loaded(m, *node, geometry)
-                }
+                WorldEvent::ProxyLoaded { node, geometry } => self.proxy_loaded(m, *node, geometry),
                 WorldEvent::ProxyEvicted { node } => self.proxy_evicted(m, *node),
                 WorldEvent::LoadFailed {
                     level, mesh, error, ..

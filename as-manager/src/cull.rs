@@ -34,7 +34,11 @@ impl InstanceCuller {
     /// The projected-angle test alone (for far-field proxies, which live beyond any culling
     /// distance by design): culled when small, unless the mode has no angle test.
     pub fn cull_small(&self, radius: f32, center_dist: f32, was_culled: bool) -> bool {
-        let tan2 = if was_culled { self.tan2_back } else { self.tan2 };
+        let tan2 = if was_culled {
+            self.tan2_back
+        } else {
+            self.tan2
+        };
         let small = radius * radius < tan2 * center_dist * center_dist;
         match self.mode {
             CullMode::Off | CullMode::Far => false,

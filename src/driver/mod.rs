@@ -71,6 +71,11 @@ pub struct RunConfig {
     /// Deterministic mode (see the module docs). Off by default: a real-time run applies
     /// loads as they arrive and learns the device's costs.
     pub deterministic: bool,
+    /// Deterministic mode freezes the cost model at the NVIDIA H200 fit
+    /// ([`CostModel::nvidia`](rtstream_as_manager::backend::model::CostModel::nvidia)), so the
+    /// per-frame GPU budget admits the work an H200 would on any device (lavapipe included)
+    /// and runs on both give the same decisions. False keeps `managed.cost_prior`.
+    pub gpu_equivalent_costs: bool,
     /// In deterministic mode, loader results are applied this many frames after their request.
     pub stream_delay_frames: u32,
     /// Also score against the all-geometry reference (non-opaque instances as opaque).
@@ -106,6 +111,7 @@ impl Default for RunConfig {
             size: (320, 180),
             deterministic: false,
             stream_delay_frames: 2,
+            gpu_equivalent_costs: true,
             all_geometry_reference: true,
             near_only_too: false,
             out_dir: None,
@@ -261,6 +267,9 @@ pub fn run_cached(
         c.policy = kind;
         c.far_field.enabled &= far;
         c.freeze_cost_model |= config.deterministic;
+        if config.deterministic && config.gpu_equivalent_costs {
+            c.cost_prior = rtstream_as_manager::backend::model::CostModel::nvidia();
+        }
         if kind != PolicyKind::Managed {
             c.memory.blas_bytes = 1 << 50; // the baselines have no budget
         }

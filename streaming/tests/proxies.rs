@@ -38,7 +38,10 @@ fn bake_writes_proxies_and_reads_them_back() {
     }
     // Deterministic: the same world gives the same bytes.
     let again = build_proxies(&world, &ProxyConfig::default()).0;
-    assert_eq!(encode_proxies(&again), std::fs::read(dir.join(PROXY_FILE)).unwrap());
+    assert_eq!(
+        encode_proxies(&again),
+        std::fs::read(dir.join(PROXY_FILE)).unwrap()
+    );
     // 8x8 levels: 16 leaves (2x2), 4 (4x4), 1 (8x8).
     let depths: Vec<u8> = file.tree.nodes.iter().map(|n| n.depth).collect();
     assert_eq!(depths.iter().filter(|&&d| d == 1).count(), 16);
@@ -50,9 +53,11 @@ fn bake_writes_proxies_and_reads_them_back() {
     for l in &world.levels {
         let leaf = file.tree.leaf_of(l.id).expect("a leaf per level");
         let b = file.tree.node(leaf).unwrap().bounds;
-        for i in l.instances.iter().filter(|i| {
-            i.material == MaterialClass::Opaque && i.motion == Motion::Static
-        }) {
+        for i in l
+            .instances
+            .iter()
+            .filter(|i| i.material == MaterialClass::Opaque && i.motion == Motion::Static)
+        {
             assert!(b.min.cmple(i.aabb.min + 1e-3).all() && b.max.cmpge(i.aabb.max - 1e-3).all());
         }
     }
@@ -60,7 +65,10 @@ fn bake_writes_proxies_and_reads_them_back() {
         for c in &n.children {
             let cb = file.tree.node(*c).unwrap().bounds;
             assert!(n.bounds.min.cmple(cb.min).all() && n.bounds.max.cmpge(cb.max).all());
-            assert!(file.tree.node(*c).unwrap().error <= n.error + 1e-6, "errors grow up the tree");
+            assert!(
+                file.tree.node(*c).unwrap().error <= n.error + 1e-6,
+                "errors grow up the tree"
+            );
         }
         assert!(n.triangles > 0 && n.triangles <= ProxyConfig::default().triangles);
     }

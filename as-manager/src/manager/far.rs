@@ -56,6 +56,7 @@ pub(crate) struct FarField {
     pub records: Vec<TlasInstance>,
     /// Leaves covered by a proxy this frame (slots), for the invariants.
     pub covered: Vec<u32>,
+    max_leaf_extent: f32,
 }
 
 impl FarField {
@@ -140,6 +141,16 @@ impl FarField {
             .collect()
     }
 
+    /// Whether `group` is a leaf on the near (detail) side of the hand-over.
+    pub fn is_near_leaf(&self, group: u32) -> bool {
+        matches!(self.nodes.get(group as usize), Some(Some(n)) if n.children.is_empty() && n.near)
+    }
+
+    /// The largest leaf diagonal (how far beyond r2 a near leaf's instances can lie).
+    pub fn max_leaf_extent(&self) -> f32 {
+        self.max_leaf_extent
+    }
+
     /// Whether a leaf is covered by a proxy this frame.
     pub fn is_covered(&self, group: u32) -> bool {
         matches!(self.nodes.get(group as usize), Some(Some(n)) if n.covered)
@@ -185,6 +196,14 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
         }
+        self.far.max_leaf_extent = self
+            .far
+            .nodes
+            .iter()
+            .flatten()
+            .filter(|n| n.children.is_empty())
+            .map(|n| (Vec3::from(n.desc.bounds_max) - Vec3::from(n.desc.bounds_min)).length())
+            .fold(0.0, f32::max);
         let mut want = Vec::new();
         let mut stack = self.far.roots();
         while let Some(i) = stack.pop() {

@@ -15,8 +15,8 @@ impl<B: AsBackend> AsManager<B> {
     pub(crate) fn managed_frame(&mut self) -> Result<()> {
         {
             let _s = tracing::trace_span!("residency").entered();
-            self.residency_pass();
             self.far_prepare();
+            self.residency_pass();
             self.upkeep_entries();
         }
         {
@@ -45,6 +45,13 @@ impl<B: AsBackend> AsManager<B> {
         let r1 = self.config.residency.r1;
         let frame = self.frame;
         let need_data = self.backend.needs_geometry();
+        // A far-field group within r2 is near as a whole: its instances beyond r2 are near
+        // field too (its proxy is not shown), so the query reaches a group's extent further.
+        let ext = if self.config.far_field.enabled {
+            self.far.max_leaf_extent()
+        } else {
+            0.0
+        };
         let Self {
             grid,
             visits,
@@ -52,24 +59,38 @@ impl<B: AsBackend> AsManager<B> {
             cam_fwd,
             t,
             lod,
+            far,
             ..
         } = self;
         visits.clear();
         let cams: &[Vec3] = cam_pos;
         let fwds: &[Vec3] = cam_fwd;
-        grid.query(cams, r2, |loc, ge| {
+        grid.query(cams, r2 + ext, |loc, ge| {
             let c = Vec3::from(ge.center);
             let mut d2 = f32::INFINITY;
             for p in cams {
                 d2 = d2.min(p.distance_squared(c));
             }
-            let reach = r2 + ge.radius;
+            let reach = r2 + ext + ge.radius;
             if d2 > reach * reach {
                 return; // no square root for the rejected
             }
             let center_dist = d2.sqrt();
             let surface_dist = (center_dist - ge.radius).max(0.0);
-            visits.push(Visit { loc, center_dist });
+            let beyond_r2 = surface_dist > r2;
+            if beyond_r2 {
+                let group = t.instances[ge.slot as usize]
+                    .as_ref()
+                    .map_or(super::state::NONE, |i| i.group);
+                if !far.is_near_leaf(group) {
+                    return;
+                }
+            }
+            visits.push(Visit {
+                loc,
+                center_dist,
+                beyond_r2,
+            });
             let h = &mut ge.data;
             let mesh = t.meshes[h.mesh as usize]
                 .as_ref()
@@ -121,7 +142,7 @@ impl<B: AsBackend> AsManager<B> {
                     MeshKind::Skinned => h.own = t.key(slot),
                 }
             }
-            let requested = surface_dist <= r1;
+            let requested = surface_dist <= r1 || beyond_r2;
             let in_view = requested && cams.iter().zip(fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
             let e = &mut t.entries[slot as usize];
             if requested {
@@ -240,7 +261,11 @@ impl<B: AsBackend> AsManager<B> {
             } else {
                 (NONE, 0)
             };
-            let culled = self.culler.cull(radius, v.center_dist, h.culled);
+            let culled = if v.beyond_r2 {
+                self.culler.cull_small(radius, v.center_dist, h.culled)
+            } else {
+                self.culler.cull(radius, v.center_dist, h.culled)
+            };
             h.shown = chosen;
             h.culled = culled;
             if chosen.0 == NONE && !culled && group != NONE {

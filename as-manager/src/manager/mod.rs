@@ -155,6 +155,8 @@ pub(crate) struct Visit {
     pub loc: GridLoc,
     /// Distance from the nearest camera to the centre.
     pub center_dist: f32,
+    /// Beyond r2, visited because its far-field group is near (angle culling only).
+    pub beyond_r2: bool,
 }
 
 /// The BLAS/TLAS manager. See the crate docs for the frame pipeline.

@@ -207,8 +207,7 @@ impl<B: AsBackend> AsManager<B> {
                 .backend
                 .blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
             let proxy = is_proxy(&self.t, slot);
-            let oversized =
-                !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
+            let oversized = !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
             if budgeted && proxy {
                 // Proxies: their share of the build budget, no item beyond it.
                 if proxy_ms + est > proxy_ms_max * build_ms {
