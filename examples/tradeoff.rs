@@ -5,7 +5,7 @@
 //!
 //! ```text
 //! cargo run --release --example tradeoff -- [--frames 600] [--eval-every 20] [--size 320x180]
-//!     [--out out/tradeoff] [--only angle,distance,radii,lod,budget] [--json]
+//!     [--out out/tradeoff] [--only angle,distance,radii,lod,budget,far] [--json]
 //! ```
 //! Writes `points.csv`, `points.json` and `error_vs_{memory,tlas,gpu}.{png,svg}` to `--out`.
 
@@ -36,6 +36,8 @@ enum Knob {
     Lod,
     /// Memory budget (4, 8, 16, 32, 64 MB).
     Budget,
+    /// Far-field cut: proxy error in pixels (6, 12, 24, 48) or off.
+    Far,
 }
 
 /// Sweeps the managed policy's knobs over one path and charts error against cost.
@@ -104,6 +106,14 @@ fn points(knob: Knob) -> Vec<(String, Box<dyn Fn(&mut Config)>)> {
             .into_iter()
             .map(|mb| p(format!("{mb}MB"), move |c| c.memory.blas_bytes = mb << 20))
             .collect(),
+        Knob::Far => {
+            let mut v: Vec<_> = [6.0f32, 12.0, 24.0, 48.0]
+                .into_iter()
+                .map(|px| p(format!("{px}px"), move |c| c.far_field.max_pixel_error = px))
+                .collect();
+            v.push(p("off".into(), |c| c.far_field.enabled = false));
+            v
+        }
     }
 }
 
@@ -114,6 +124,7 @@ fn knob_name(k: Knob) -> &'static str {
         Knob::Radii => "r1_r2",
         Knob::Lod => "lod_px",
         Knob::Budget => "budget",
+        Knob::Far => "far_field",
     }
 }
 
@@ -348,7 +359,14 @@ fn draw_charts(
         };
         let front = front_of(sweep, |s| cost(&s.figures));
         let mut series: Vec<charts::Series> = Vec::new();
-        let knobs = ["cull_angle", "cull_distance", "r1_r2", "lod_px", "budget"];
+        let knobs = [
+            "cull_angle",
+            "cull_distance",
+            "r1_r2",
+            "lod_px",
+            "budget",
+            "far_field",
+        ];
         for k in knobs {
             let pts: Vec<charts::Point> = sweep
                 .iter()

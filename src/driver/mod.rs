@@ -161,9 +161,17 @@ struct PolicyRun {
 /// preset; another preset's bake is replaced). Returns the generated world.
 pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld> {
     let world = generate(preset)?;
+    let proxies = rtstream_streaming::proxy::ProxyConfig::default();
     let stamp = format!(
-        "{} seed={} size={} grid={} instances={} v1\n",
-        preset.name, preset.seed, preset.size_m, preset.grid, preset.instances
+        "{} seed={} size={} grid={} instances={} proxies={}x{}/{} v2\n",
+        preset.name,
+        preset.seed,
+        preset.size_m,
+        preset.grid,
+        preset.instances,
+        proxies.max_depth,
+        proxies.triangles,
+        proxies.source_error
     );
     let stamp_path = dir.join("preset.txt");
     let current = std::fs::read_to_string(&stamp_path).ok();
