@@ -146,6 +146,7 @@ fn main() -> anyhow::Result<()> {
             Knob::Radii,
             Knob::Lod,
             Knob::Budget,
+            Knob::Far,
         ]
     } else {
         cli.only.clone()

@@ -57,13 +57,18 @@ struct Run {
 }
 
 impl Run {
-    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize) -> Self {
+    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize, far: bool) -> Self {
         let config = Config {
             policy,
             ..Config::default()
         };
         let manager = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
-        world.populate(&manager).unwrap();
+        if far {
+            // The default world's level blocks: 2x2 levels of 71 m, four depths.
+            world.populate_with_groups(&manager, 143.0, 4).unwrap();
+        } else {
+            world.populate(&manager).unwrap();
+        }
         let mut r = Run {
             world: world.clone(),
             manager,
@@ -123,12 +128,15 @@ fn bench_update(c: &mut Criterion) {
         .warm_up_time(Duration::from_millis(500))
         .measurement_time(Duration::from_secs(3));
     for (wname, world) in [("default", default), ("million", million)] {
-        for (pname, policy) in [
-            ("managed", PolicyKind::Managed),
-            ("seed_r1r2", PolicyKind::SeedR1R2),
+        for (pname, policy, far) in [
+            ("managed", PolicyKind::Managed, false),
+            ("managed_far", PolicyKind::Managed, true),
+            ("seed_r1r2", PolicyKind::SeedR1R2, false),
         ] {
             for cams in [1usize, 4, 5] {
-                if (wname == "million" && cams != 1) || (policy != PolicyKind::Managed && cams == 5)
+                if (wname == "million" && cams != 1)
+                    || (policy != PolicyKind::Managed && cams == 5)
+                    || (far && cams != 1)
                 {
                     continue;
                 }
@@ -142,15 +150,16 @@ fn bench_update(c: &mut Criterion) {
                 let id = BenchmarkId::new(format!("{wname}/{pname}"), &cam_label);
                 g.bench_function(id, |b| {
                     let run = run.get_or_insert_with(|| {
-                        let mut r = Run::new(world, policy, cams);
+                        let mut r = Run::new(world, policy, cams, far);
                         let n = if policy == PolicyKind::Managed { 2000 } else if wname == "million" { 30 } else { 200 };
                         r.per_frame(&format!("{wname}/{pname}/{cam_label}"), n);
                         let s = r.manager.stats().clone();
                         eprintln!(
-                            "[{wname}/{pname}/{cam_label}] instances {} visited {} tlas {} blas {} bytes {:.1} MiB",
+                            "[{wname}/{pname}/{cam_label}] instances {} visited {} tlas {} (proxies {}) blas {} bytes {:.1} MiB",
                             s.instances,
                             s.instances_visited,
                             s.tlas_instances,
+                            s.proxy_instances,
                             s.blas_count,
                             s.memory_in_use() as f64 / (1 << 20) as f64
                         );
@@ -163,7 +172,7 @@ fn bench_update(c: &mut Criterion) {
     }
     let mut naive: Option<Run> = None;
     g.bench_function(BenchmarkId::new("default/naive", "1cam"), |b| {
-        let run = naive.get_or_insert_with(|| Run::new(default, PolicyKind::Naive, 1));
+        let run = naive.get_or_insert_with(|| Run::new(default, PolicyKind::Naive, 1, false));
         b.iter(|| black_box(run.step()))
     });
     g.finish();

@@ -224,6 +224,72 @@ impl SynthWorld {
         Ok((mesh_ids, ids))
     }
 
+    /// Like [`SynthWorld::populate`], with a far-field group tree over the map: leaves of
+    /// `leaf_m` x `leaf_m` metres (static instances join the leaf they stand in), parents of
+    /// 2x2 children up to `depths` levels, each node with a counts-only proxy of 768
+    /// triangles whose error doubles per level (from 4 m). Returns the instance ids.
+    pub fn populate_with_groups<B: crate::backend::AsBackend>(
+        &self,
+        m: &AsManager<B>,
+        leaf_m: f32,
+        depths: u32,
+    ) -> Result<Vec<InstanceId>> {
+        use crate::{GroupDesc, GroupId};
+        let mesh_ids = self
+            .meshes
+            .iter()
+            .map(|d| m.register_mesh(d.clone()))
+            .collect::<Result<Vec<_>>>()?;
+        let half = self.params.extent * 0.5;
+        let cells = (self.params.extent / leaf_m).ceil().max(1.0) as i32;
+        let mut groups: std::collections::HashMap<(u32, i32, i32), GroupId> = Default::default();
+        let mut ci = 0x80_0000u32;
+        for level in (0..depths).rev() {
+            let size = 1i32 << level;
+            let n = (cells + size - 1) / size;
+            for x in 0..n {
+                for z in 0..n {
+                    let lo = [-half + (x * size) as f32 * leaf_m, -10.0, -half + (z * size) as f32 * leaf_m];
+                    let side = size as f32 * leaf_m;
+                    let parent = (level + 1 < depths)
+                        .then(|| groups.get(&(level + 1, x / 2, z / 2)).copied())
+                        .flatten();
+                    let g = m.register_group(GroupDesc {
+                        parent,
+                        bounds_min: lo,
+                        bounds_max: [lo[0] + side, 60.0, lo[2] + side],
+                        custom_index: ci,
+                        mask: 0xff,
+                    })?;
+                    ci += 1;
+                    let proxy = m.register_mesh(MeshDesc::new(
+                        format!("proxy{level}_{x}_{z}"),
+                        MeshKind::Static,
+                        side,
+                        counts_chain(768, 1, 0.0),
+                    ))?;
+                    m.set_group_proxy(g, Some((proxy, 4.0 * (1u32 << level) as f32)))?;
+                    groups.insert((level, x, z), g);
+                }
+            }
+        }
+        let mut ids = Vec::with_capacity(self.instances.len());
+        for (i, (mesh, t)) in self.instances.iter().enumerate() {
+            let mut d = InstanceDesc::new(mesh_ids[*mesh], *t);
+            d.custom_index = (i as u32) & 0x7f_ffff;
+            if self.meshes[*mesh].kind == MeshKind::Static {
+                let p = t.translation;
+                let (x, z) = (
+                    ((p.x + half) / leaf_m).floor() as i32,
+                    ((p.z + half) / leaf_m).floor() as i32,
+                );
+                d.group = groups.get(&(0, x, z)).copied();
+            }
+            ids.push(m.add_instance(d)?);
+        }
+        Ok(ids)
+    }
+
     /// A camera on a closed path through the world at `speed` m per frame, looking ahead.
     pub fn camera_on_path(&self, frame: u64, speed: f32) -> Camera {
         path_camera(self.params.extent, frame, speed)
