@@ -203,6 +203,8 @@ pub struct FarFieldConfig {
     /// Share of the per-frame build budget proxies may use (they are built first, so the far
     /// field keeps up while near detail streams; detail takes the rest).
     pub build_share: f32,
+    /// Share of the BLAS memory budget proxies may hold; they never evict to get it.
+    pub memory_share: f32,
 }
 
 impl Default for FarFieldConfig {
@@ -214,6 +216,7 @@ impl Default for FarFieldConfig {
             handover_margin: 25.0,
             lookahead: 150.0,
             build_share: 0.5,
+            memory_share: 0.5,
         }
     }
 }
@@ -327,8 +330,8 @@ impl Config {
             "far_field.handover_margin and lookahead must be >= 0",
         )?;
         check(
-            (0.0..=1.0).contains(&f.build_share),
-            "far_field.build_share must be in [0, 1]",
+            (0.0..=1.0).contains(&f.build_share) && (0.0..=1.0).contains(&f.memory_share),
+            "far_field.build_share and memory_share must be in [0, 1]",
         )?;
         let b = &self.build;
         check(b.max_primitives > 0, "build.max_primitives must be > 0")?;

@@ -249,7 +249,11 @@ impl SynthWorld {
             let n = (cells + size - 1) / size;
             for x in 0..n {
                 for z in 0..n {
-                    let lo = [-half + (x * size) as f32 * leaf_m, -10.0, -half + (z * size) as f32 * leaf_m];
+                    let lo = [
+                        -half + (x * size) as f32 * leaf_m,
+                        -10.0,
+                        -half + (z * size) as f32 * leaf_m,
+                    ];
                     let side = size as f32 * leaf_m;
                     let parent = (level + 1 < depths)
                         .then(|| groups.get(&(level + 1, x / 2, z / 2)).copied())

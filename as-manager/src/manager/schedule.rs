@@ -151,6 +151,18 @@ impl<B: AsBackend> AsManager<B> {
                 .then(a.1.cmp(&b.1))
         });
         let proxy_ms_max = f64::from(self.config.far_field.build_share.clamp(0.0, 1.0));
+        let mut proxy_bytes: u64 = if budgeted && self.config.far_field.enabled {
+            self.t
+                .active
+                .iter()
+                .filter(|&&s| {
+                    self.t.entries[s as usize].state == EntryState::Built && is_proxy(&self.t, s)
+                })
+                .map(|&s| self.t.entries[s as usize].bytes)
+                .sum()
+        } else {
+            0
+        };
         let mut proxy_ms = 0.0f64;
         let mut detail_admitted = 0usize;
         let b = self.config.build.clone();
@@ -226,6 +238,16 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
             if budgeted {
+                // A proxy only takes memory that is free, and only while the proxies in use
+                // stay within their share of the budget: it never evicts, so near detail keeps
+                // the memory it needs (and evicts proxies last when it must).
+                let share = f64::from(self.config.far_field.memory_share.clamp(0.0, 1.0));
+                if proxy
+                    && (self.memory_in_use() + bytes + size.as_bytes > build_budget
+                        || (proxy_bytes + size.as_bytes) as f64 > share * build_budget as f64)
+                {
+                    continue;
+                }
                 if self.memory_in_use() + bytes + size.as_bytes > build_budget {
                     // Coarser LOD first, then evict what matters less.
                     if kind == MeshKind::Static && lod + 1 < nlods {
@@ -251,6 +273,7 @@ impl<B: AsBackend> AsManager<B> {
                 ms += est;
                 if proxy {
                     proxy_ms += est;
+                    proxy_bytes += size.as_bytes;
                 } else {
                     detail_admitted += 1;
                 }
