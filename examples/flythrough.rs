@@ -10,6 +10,8 @@
 //! cargo run --release --example flythrough -- --deterministic --json
 //! ```
 
+#[path = "support/charts.rs"]
+mod charts;
 #[path = "support/cli.rs"]
 mod cli;
 
@@ -57,6 +59,32 @@ fn main() -> anyhow::Result<()> {
     let report = driver::run(&config, &mut progress).context("the fly-through failed")?;
     bar.finish_and_clear();
     print_table(&report);
+    if report.summary.evaluated_frames > 0 {
+        let bands: Vec<String> = report.summary.bands.to_vec();
+        let series: Vec<(String, Vec<f64>)> = report
+            .summary
+            .policies
+            .iter()
+            .map(|p| {
+                (
+                    p.policy.to_string(),
+                    p.mismatch_by_band
+                        .iter()
+                        .map(|b| b.hit_mismatch_mean * 100.0)
+                        .collect(),
+                )
+            })
+            .collect();
+        for f in charts::bars(
+            &cli.run.out.join("error_by_band"),
+            "where the error lives: hit mismatch by distance band (full-world ground truth)",
+            "hit mismatch, % of all pixels",
+            &bands,
+            &series,
+        )? {
+            println!("wrote {}", f.display());
+        }
+    }
     if cli.json {
         println!("{}", report.json());
     }
@@ -93,9 +121,16 @@ fn print_table(r: &RunReport) {
         "shd p95",
         "over"
     );
+    let pct = |v: f64| {
+        if s.evaluated_frames == 0 {
+            "-".to_string()
+        } else {
+            format!("{:.2}%", v * 100.0)
+        }
+    };
     for p in &s.policies {
         println!(
-            "{:<12} {:>9.1} {:>9.1} {:>7} {:>13} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>8.2}% {:>8.2}% {:>8.2}% {:>8.2}% {:>5}",
+            "{:<12} {:>9.1} {:>9.1} {:>7} {:>13} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>9} {:>9} {:>9} {:>9} {:>5}",
             p.policy,
             p.peak_blas_bytes as f64 / 1e6,
             p.p95_blas_bytes as f64 / 1e6,
@@ -113,10 +148,10 @@ fn print_table(r: &RunReport) {
             p.update_ms_p99,
             p.gpu_as_ms_p50,
             p.gpu_as_ms_p99,
-            p.hit_mismatch_mean * 100.0,
-            p.hit_mismatch_p95 * 100.0,
-            p.shadow_mismatch_mean * 100.0,
-            p.shadow_mismatch_p95 * 100.0,
+            pct(p.hit_mismatch_mean),
+            pct(p.hit_mismatch_p95),
+            pct(p.shadow_mismatch_mean),
+            pct(p.shadow_mismatch_p95),
             p.over_budget_frames
         );
     }

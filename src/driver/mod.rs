@@ -107,7 +107,7 @@ impl Default for RunConfig {
                 mesh_budget_bytes: 1 << 30,
                 ..StreamConfig::default()
             },
-            eval_every: 20,
+            eval_every: 18,
             size: (320, 180),
             deterministic: false,
             stream_delay_frames: 2,

@@ -69,8 +69,9 @@ fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
     assert_eq!(run(&mut m, 4, 8), 1);
     assert_eq!(m.instance_lod(inst), Some(0), "finer data arrived: refined");
 
-    // LOD 0 evicted: the target falls back to the resident LOD 2 (the built LOD-0 BLAS may
-    // stay until released normally); nothing is built from counts and nothing flickers.
+    // LOD 0's data evicted: its BLAS is built and needs no CPU data, so it keeps serving (it
+    // would otherwise fall back to the coarse LOD 2 right next to the camera); nothing is
+    // built from counts and nothing flickers.
     m.set_lod_geometry(
         mesh,
         0,
@@ -80,10 +81,20 @@ fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
         },
     )
     .unwrap();
+    let builds_before = m.backend().counters().builds;
     for f in 8..60 {
         assert_eq!(run(&mut m, f, f + 1), 1, "the instance stays visible");
     }
-    assert_eq!(m.instance_lod(inst), Some(2));
+    assert_eq!(
+        m.instance_lod(inst),
+        Some(0),
+        "the built LOD-0 BLAS keeps serving"
+    );
+    assert_eq!(
+        m.backend().counters().builds,
+        builds_before,
+        "nothing rebuilt"
+    );
 }
 
 #[test]

@@ -109,7 +109,12 @@ impl<B: AsBackend> AsManager<B> {
                 mesh.lod_floor as usize,
             );
             // A GPU builds only from resident data: the nearest LOD that has some.
-            let Some(lodi) = mesh.with_data(lodi, need_data) else {
+            let built = |l: usize| {
+                mesh.kind == MeshKind::Static
+                    && mesh.lod_entry[l] != NONE
+                    && t.entries[mesh.lod_entry[l] as usize].state == EntryState::Built
+            };
+            let Some(lodi) = mesh.with_data(lodi, need_data, built) else {
                 return;
             };
             h.lod_target = lodi as u8;

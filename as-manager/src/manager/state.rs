@@ -40,15 +40,32 @@ impl MeshState {
         &self.errors[..self.nlods as usize]
     }
 
-    /// `lod` if it has data, else the nearest LOD with data (coarser first, then finer); any
-    /// LOD when `need_data` is false. `None`: no LOD has data.
-    pub fn with_data(&self, lod: usize, need_data: bool) -> Option<usize> {
+    /// `lod` if it has data or a built BLAS, else the nearest LOD with a built BLAS (finer
+    /// first: showing it costs nothing more), else the nearest with data (coarser first, then
+    /// finer); any LOD when `need_data` is false. `None`: no LOD is usable.
+    ///
+    /// A built BLAS needs no CPU data: streaming may have evicted a LOD's data while its BLAS
+    /// still serves, and ignoring it would fall back to the coarsest LOD next to the camera.
+    pub fn with_data(
+        &self,
+        lod: usize,
+        need_data: bool,
+        built: impl Fn(usize) -> bool,
+    ) -> Option<usize> {
         let lods = &self.desc.lods;
         if !need_data {
             return Some(lod);
         }
         let has = |l: usize| lods[l].geometry.data().is_some();
-        (lod..lods.len()).chain((0..lod).rev()).find(|&l| has(l))
+        if has(lod) || built(lod) {
+            return Some(lod);
+        }
+        let n = lods.len();
+        let finer_first = (0..lod).rev().chain(lod + 1..n);
+        if let Some(l) = finer_first.clone().find(|&l| built(l)) {
+            return Some(l);
+        }
+        (lod..n).chain((0..lod).rev()).find(|&l| has(l))
     }
 }
 
