@@ -67,8 +67,11 @@ struct SweepPoint {
     figures: PolicySummary,
 }
 
-fn points(knob: Knob) -> Vec<(String, Box<dyn Fn(&mut Config)>)> {
-    fn p(v: String, f: impl Fn(&mut Config) + 'static) -> (String, Box<dyn Fn(&mut Config)>) {
+/// A sweep point: its label and how it changes the default configuration.
+type Point = (String, Box<dyn Fn(&mut Config)>);
+
+fn points(knob: Knob) -> Vec<Point> {
+    fn p(v: String, f: impl Fn(&mut Config) + 'static) -> Point {
         (v, Box::new(f))
     }
     match knob {
@@ -136,7 +139,7 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let mut cli = Cli::parse();
-    if cli.run.out == PathBuf::from("out/flythrough") {
+    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
         cli.run.out = PathBuf::from("out/tradeoff");
     }
     let knobs = if cli.only.is_empty() {

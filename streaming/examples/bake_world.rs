@@ -55,7 +55,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 WorldEvent::LevelLoaded { .. } => loads += 1,
                 WorldEvent::LevelUnloaded { .. } => unloads += 1,
                 WorldEvent::MeshLodLoaded { .. } => lods += 1,
-                WorldEvent::MeshLodEvicted { .. } => {}
+                WorldEvent::MeshLodEvicted { .. }
+                | WorldEvent::ProxyLoaded { .. }
+                | WorldEvent::ProxyEvicted { .. } => {}
                 WorldEvent::LoadFailed { error, .. } => {
                     fails += 1;
                     eprintln!("load failed: {error}");

@@ -69,6 +69,7 @@ impl Consumer {
                     self.fine_evictions += 1;
                 }
                 WorldEvent::LoadFailed { error, .. } => panic!("unexpected failure: {error}"),
+                WorldEvent::ProxyLoaded { .. } | WorldEvent::ProxyEvicted { .. } => {}
             }
         }
     }

@@ -3,7 +3,7 @@
 //! per proxy, error in metres) with their build time.
 //!
 //! ```text
-//! cargo run --release --example bake_world -- [--preset default|small|large] [--seed N]
+//! cargo run --release --example bake_report -- [--preset default|small|large] [--seed N]
 //!     [--out DIR] [--json]
 //! ```
 
