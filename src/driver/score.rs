@@ -216,32 +216,47 @@ mod tests {
     use glam::Vec3;
     use rtstream_renderer::{PassStats, PixelHit};
 
+    /// Rows of a 1080-row image: the given hits on the top row, sky elsewhere (so a pixel's
+    /// footprint is that of a 1080p frame).
+    const ROWS: u32 = 1080;
+
     fn frame(hits: &[(u32, f32, u32)]) -> Frame {
-        let n = hits.len();
+        let w = hits.len();
+        let n = w * ROWS as usize;
+        let mut all: Vec<PixelHit> = hits
+            .iter()
+            .map(|&(instance, t, shadowed)| PixelHit {
+                instance,
+                primitive: 0,
+                shadowed,
+                t_bits: if instance == PixelHit::MISS { -1.0f32 } else { t }.to_bits(),
+            })
+            .collect();
+        all.resize(
+            n,
+            PixelHit {
+                instance: PixelHit::MISS,
+                primitive: PixelHit::MISS,
+                shadowed: 0,
+                t_bits: (-1.0f32).to_bits(),
+            },
+        );
         Frame {
-            width: n as u32,
-            height: 1,
+            width: w as u32,
+            height: ROWS,
             color: vec![[100, 100, 100, 255]; n],
-            hits: hits
-                .iter()
-                .map(|&(instance, t, shadowed)| PixelHit {
-                    instance,
-                    primitive: 0,
-                    shadowed,
-                    t_bits: if instance == PixelHit::MISS {
-                        -1.0f32
-                    } else {
-                        t
-                    }
-                    .to_bits(),
-                })
-                .collect(),
+            hits: all,
             sun_visibility: vec![1.0; n],
             ambient: vec![1.0; n],
             normals: vec![[0.0, 0.0, -1.0]; n],
             render_ms: 0.0,
             passes: PassStats::default(),
         }
+    }
+
+    /// A share of all pixels as a pixel count.
+    fn count(share: f64, s: &FrameScore) -> u64 {
+        (share * s.pixels as f64).round() as u64
     }
 
     const MISS: u32 = PixelHit::MISS;
@@ -268,22 +283,21 @@ mod tests {
         assert_eq!(v[1], PixelVerdict::Agree);
         assert_eq!(v[2], PixelVerdict::Wrong);
         assert_eq!(v[3], PixelVerdict::Wrong);
-        assert!((s.hit_mismatch - 0.5).abs() < 1e-9);
-        assert!((s.identity_mismatch - 0.5).abs() < 1e-9, "pixels 0 and 3");
+        assert_eq!(count(s.hit_mismatch, &s), 2);
+        assert_eq!(count(s.identity_mismatch, &s), 2, "pixels 0 and 3");
         assert_eq!(s.bands[0].pixels, 4);
     }
 
     #[test]
     fn grazing_surfaces_get_a_wider_tolerance() {
-        let mut reference = frame(&[(1, 100.0, 0)]);
-        let managed = frame(&[(1, 104.0, 0)]);
+        let mut reference = frame(&[(1, 1000.0, 0)]);
+        let managed = frame(&[(1, 1010.5, 0)]);
         let edges = BandEdges::new(200.0, 250.0);
-        // Facing the camera: 4% off is wrong.
+        // Facing the camera: 1.05% off is wrong (the footprint at 1 km is 1.07 m).
         let (s, _) = score(&managed, &reference, &cam(), edges, Some, Some).unwrap();
-        assert_eq!(s.hit_mismatch, 1.0);
-        // At grazing incidence (cos floored at 0.1) a one-pixel-high image has a footprint of
-        // 2·tan(30°)·100 m / 0.1 ≈ 1155 m: 4 m is within it.
-        reference.normals[0] = [0.0, 1.0, 0.0];
+        assert_eq!(count(s.hit_mismatch, &s), 1);
+        // At grazing incidence (cos floored at 0.1) the footprint is 10.7 m: 10.5 m is within.
+        reference.normals[0] = [1.0, 0.0, 0.0]; // perpendicular to the ray
         let (s, _) = score(&managed, &reference, &cam(), edges, Some, Some).unwrap();
         assert_eq!(s.hit_mismatch, 0.0);
     }
