@@ -229,7 +229,12 @@ mod tests {
                 instance,
                 primitive: 0,
                 shadowed,
-                t_bits: if instance == PixelHit::MISS { -1.0f32 } else { t }.to_bits(),
+                t_bits: if instance == PixelHit::MISS {
+                    -1.0f32
+                } else {
+                    t
+                }
+                .to_bits(),
             })
             .collect();
         all.resize(

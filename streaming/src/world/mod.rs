@@ -621,8 +621,6 @@ impl World {
             self.config.load_radius,
             self.config.unload_radius.max(self.config.load_radius),
         );
-        // Nearest levels are requested first, so the loaders work from the camera outwards.
-        let mut to_load = Vec::new();
         for i in 0..self.levels.len() {
             let slot = &self.levels[i];
             let d = cameras
@@ -630,25 +628,23 @@ impl World {
                 .map(|c| slot.bounds.distance_xz(c.position))
                 .fold(f32::INFINITY, f32::min);
             match slot.state {
-                LevelState::Unloaded if d <= load => to_load.push((d, i)),
+                LevelState::Unloaded if d <= load => {
+                    let source = slot.source.clone();
+                    let ticket = self.new_ticket();
+                    self.pool.submit(Job::Level {
+                        level: LevelId(i as u32),
+                        ticket,
+                        source,
+                    });
+                    self.in_flight += 1;
+                    self.levels[i].state = LevelState::Loading(ticket);
+                }
                 LevelState::Loading(_) | LevelState::Failed if d > unload => {
                     self.levels[i].state = LevelState::Unloaded;
                 }
                 LevelState::Loaded { .. } if d > unload => self.unload(LevelId(i as u32), ev),
                 _ => {}
             }
-        }
-        to_load.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        for (_, i) in to_load {
-            let source = self.levels[i].source.clone();
-            let ticket = self.new_ticket();
-            self.pool.submit(Job::Level {
-                level: LevelId(i as u32),
-                ticket,
-                source,
-            });
-            self.in_flight += 1;
-            self.levels[i].state = LevelState::Loading(ticket);
         }
     }
 
