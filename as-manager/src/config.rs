@@ -84,7 +84,9 @@ pub struct BuildBudget {
     /// Estimated GPU milliseconds of all acceleration-structure work per frame: the TLAS build
     /// and the refits (estimated from the previous frame) are set aside first, builds get what
     /// they leave, and compactions what builds leave (at most `max_compaction_ms`). One build
-    /// larger than the whole budget is admitted alone.
+    /// larger than the whole budget is admitted alone; each frame admits at least one build of
+    /// near detail and one far-field proxy, so neither starves when the TLAS and refits take
+    /// the whole budget.
     pub max_gpu_ms: f32,
     /// Priority gained per frame of waiting (world units of distance), so nothing starves.
     pub aging_per_frame: f32,

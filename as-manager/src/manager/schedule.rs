@@ -221,8 +221,9 @@ impl<B: AsBackend> AsManager<B> {
             let proxy = is_proxy(&self.t, slot);
             let oversized = !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
             if budgeted && proxy {
-                // Proxies: their share of the build budget, no item beyond it.
-                if proxy_ms + est > proxy_ms_max * build_ms {
+                // Proxies: their share of the build budget; the first one of a frame always
+                // goes, so the far field builds even when the TLAS and refits take it all.
+                if proxy_ms > 0.0 && proxy_ms + est > proxy_ms_max * build_ms {
                     continue;
                 }
             } else if budgeted {
