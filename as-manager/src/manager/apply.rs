@@ -149,6 +149,10 @@ impl<B: AsBackend> AsManager<B> {
         if self.t.instances.len() <= slot {
             self.t.instances.resize_with(slot + 1, || None);
         }
+        let group = desc
+            .group
+            .filter(|g| self.far.is_live(*g))
+            .map_or(NONE, |g| g.index);
         self.t.instances[slot] = Some(InstanceState {
             mesh: desc.mesh.index,
             mesh_pos,
@@ -156,10 +160,7 @@ impl<B: AsBackend> AsManager<B> {
             radius,
             pose: None,
             pose_version: 0,
-            group: desc
-                .group
-                .filter(|g| self.far.is_live(*g))
-                .map_or(NONE, |g| g.index),
+            group,
             seed_request: None,
             seed_keep: None,
             seed_has: false,
@@ -178,6 +179,7 @@ impl<B: AsBackend> AsManager<B> {
             shown: (NONE, 0),
             own: (NONE, 0),
             last_visit: u64::MAX,
+            group,
             lod_target: (MAX_LODS - 1) as u8,
             culled: true,
         };

@@ -78,13 +78,8 @@ impl<B: AsBackend> AsManager<B> {
             let center_dist = d2.sqrt();
             let surface_dist = (center_dist - ge.radius).max(0.0);
             let beyond_r2 = surface_dist > r2;
-            if beyond_r2 {
-                let group = t.instances[ge.slot as usize]
-                    .as_ref()
-                    .map_or(super::state::NONE, |i| i.group);
-                if !far.is_near_leaf(group) {
-                    return;
-                }
+            if beyond_r2 && !far.is_near_leaf(ge.data.group) {
+                return;
             }
             visits.push(Visit {
                 loc,
@@ -225,13 +220,7 @@ impl<B: AsBackend> AsManager<B> {
             let v = self.visits[vi];
             let ge = self.grid.at_mut(v.loc);
             let radius = ge.radius;
-            let group = if far {
-                self.t.instances[ge.slot as usize]
-                    .as_ref()
-                    .map_or(NONE, |i| i.group)
-            } else {
-                NONE
-            };
+            let group = if far { ge.data.group } else { NONE };
             let h = &mut ge.data;
             let t = &mut self.t;
             let mesh = t.meshes[h.mesh as usize].as_ref().expect("live mesh");

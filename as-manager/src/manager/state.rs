@@ -129,9 +129,14 @@ pub(crate) struct Hot {
     /// Skinned: own entry for the current LOD target (slot, generation).
     pub own: (u32, u32),
     pub last_visit: u64,
+    /// Far-field leaf group slot (NONE if none); here, in the struct's padding, so the
+    /// residency pass needs no cold lookup.
+    pub group: u32,
     pub lod_target: u8,
     pub culled: bool,
 }
+
+const _: () = assert!(std::mem::size_of::<Hot>() <= 104);
 
 /// Per-instance state touched only on changes (and by the baselines' full passes).
 #[derive(Debug)]
