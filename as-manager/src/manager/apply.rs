@@ -160,7 +160,6 @@ impl<B: AsBackend> AsManager<B> {
             radius,
             pose: None,
             pose_version: 0,
-            group,
             seed_request: None,
             seed_keep: None,
             seed_has: false,

@@ -148,8 +148,6 @@ pub(crate) struct InstanceState {
     pub radius: f32,
     pub pose: Option<Arc<Vec<[f32; 3]>>>,
     pub pose_version: u64,
-    /// Its far-field leaf group slot (NONE if none).
-    pub group: u32,
     /// Seed baseline marks.
     pub seed_request: Option<u64>,
     pub seed_keep: Option<u64>,
