@@ -204,11 +204,36 @@ impl<T: Copy> GridIndex<T> {
         &mut self,
         cameras: &[Vec3],
         range: f32,
+        visit: impl FnMut(GridLoc, &mut GridEntry<T>),
+    ) {
+        self.query_with_boxes(cameras, range, &[], visit);
+    }
+
+    /// Like [`GridIndex::query`], and also every entry of the cells overlapping one of
+    /// `boxes` (XZ rectangles `[min_x, min_z, max_x, max_z]`, widened by the largest small
+    /// radius); each entry is visited once.
+    pub fn query_with_boxes(
+        &mut self,
+        cameras: &[Vec3],
+        range: f32,
+        boxes: &[[f32; 4]],
         mut visit: impl FnMut(GridLoc, &mut GridEntry<T>),
     ) {
         let reach = range + self.max_small_radius;
         let mut cells = std::mem::take(&mut self.scratch);
         cells.clear();
+        let pad = self.max_small_radius;
+        for b in boxes {
+            let (x0, x1) = (self.coord(b[0] - pad), self.coord(b[2] + pad));
+            let (z0, z1) = (self.coord(b[1] - pad), self.coord(b[3] + pad));
+            for x in x0..=x1 {
+                for z in z0..=z1 {
+                    if let Some(&c) = self.cells.get(&key(x, z)) {
+                        cells.push(c);
+                    }
+                }
+            }
+        }
         for cam in cameras {
             let (x0, x1) = (self.coord(cam.x - reach), self.coord(cam.x + reach));
             let (z0, z1) = (self.coord(cam.z - reach), self.coord(cam.z + reach));
@@ -231,7 +256,7 @@ impl<T: Copy> GridIndex<T> {
                 }
             }
         }
-        if cameras.len() > 1 {
+        if cameras.len() > 1 || !boxes.is_empty() {
             cells.sort_unstable();
             cells.dedup();
         }

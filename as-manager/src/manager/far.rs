@@ -56,7 +56,6 @@ pub(crate) struct FarField {
     pub records: Vec<TlasInstance>,
     /// Leaves covered by a proxy this frame (slots), for the invariants.
     pub covered: Vec<u32>,
-    max_leaf_extent: f32,
 }
 
 impl FarField {
@@ -146,9 +145,25 @@ impl FarField {
         matches!(self.nodes.get(group as usize), Some(Some(n)) if n.children.is_empty() && n.near)
     }
 
-    /// The largest leaf diagonal (how far beyond r2 a near leaf's instances can lie).
-    pub fn max_leaf_extent(&self) -> f32 {
-        self.max_leaf_extent
+    /// XZ rectangles of the near leaves that reach beyond `r2` of every camera (their
+    /// instances there are near field too), into `out`.
+    pub fn near_leaf_boxes(&self, cameras: &[Vec3], r2: f32, out: &mut Vec<[f32; 4]>) {
+        out.clear();
+        for n in self.nodes.iter().flatten() {
+            if !n.children.is_empty() || !n.near {
+                continue;
+            }
+            let (lo, hi) = (n.desc.bounds_min, n.desc.bounds_max);
+            // Farthest corner (XZ) from the nearest camera: inside r2 means nothing beyond.
+            let reaches = cameras.iter().all(|c| {
+                let dx = (c.x - lo[0]).abs().max((c.x - hi[0]).abs());
+                let dz = (c.z - lo[2]).abs().max((c.z - hi[2]).abs());
+                dx * dx + dz * dz > r2 * r2
+            });
+            if reaches {
+                out.push([lo[0], lo[2], hi[0], hi[2]]);
+            }
+        }
     }
 
     /// Whether a leaf is covered by a proxy this frame.
@@ -196,14 +211,6 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
         }
-        self.far.max_leaf_extent = self
-            .far
-            .nodes
-            .iter()
-            .flatten()
-            .filter(|n| n.children.is_empty())
-            .map(|n| (Vec3::from(n.desc.bounds_max) - Vec3::from(n.desc.bounds_min)).length())
-            .fold(0.0, f32::max);
         let mut want = Vec::new();
         let mut stack = self.far.roots();
         while let Some(i) = stack.pop() {

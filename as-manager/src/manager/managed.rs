@@ -46,12 +46,13 @@ impl<B: AsBackend> AsManager<B> {
         let frame = self.frame;
         let need_data = self.backend.needs_geometry();
         // A far-field group within r2 is near as a whole: its instances beyond r2 are near
-        // field too (its proxy is not shown), so the query reaches a group's extent further.
-        let ext = if self.config.far_field.enabled {
-            self.far.max_leaf_extent()
+        // field too (its proxy is not shown), so the query also covers those groups' boxes.
+        let mut boxes = std::mem::take(&mut self.near_boxes);
+        if self.config.far_field.enabled {
+            self.far.near_leaf_boxes(&self.cam_pos, r2, &mut boxes);
         } else {
-            0.0
-        };
+            boxes.clear();
+        }
         let Self {
             grid,
             visits,
@@ -65,22 +66,20 @@ impl<B: AsBackend> AsManager<B> {
         visits.clear();
         let cams: &[Vec3] = cam_pos;
         let fwds: &[Vec3] = cam_fwd;
-        grid.query(cams, r2 + ext, |loc, ge| {
+        grid.query_with_boxes(cams, r2, &boxes, |loc, ge| {
             let c = Vec3::from(ge.center);
             let mut d2 = f32::INFINITY;
             for p in cams {
                 d2 = d2.min(p.distance_squared(c));
             }
-            let reach = r2 + ext + ge.radius;
-            if d2 > reach * reach {
-                return; // no square root for the rejected
-            }
-            let center_dist = d2.sqrt();
-            let surface_dist = (center_dist - ge.radius).max(0.0);
-            let beyond_r2 = surface_dist > r2;
+            let reach = r2 + ge.radius;
+            let beyond_r2 = d2 > reach * reach;
+            // Beyond r2 only for a near group (no square root for the rejected).
             if beyond_r2 && !far.is_near_leaf(ge.data.group) {
                 return;
             }
+            let center_dist = d2.sqrt();
+            let surface_dist = (center_dist - ge.radius).max(0.0);
             visits.push(Visit {
                 loc,
                 center_dist,
@@ -164,6 +163,7 @@ impl<B: AsBackend> AsManager<B> {
                 t.entries[h.shown.0 as usize].last_keep = frame;
             }
         });
+        self.near_boxes = boxes;
         self.stats.instances_visited = self.visits.len() as u32;
     }
 

@@ -192,6 +192,8 @@ pub struct AsManager<B: AsBackend> {
     far: far::FarField,
     /// Leaf group of each `tlas_list` entry (NONE: none), for the far field.
     tlas_groups: Vec<u32>,
+    /// Near far-field leaves reaching beyond r2 (XZ boxes), for the residency query.
+    near_boxes: Vec<[f32; 4]>,
     /// GPU ms set aside this frame for the TLAS and refits (see `schedule_builds`).
     gpu_reserved_ms: f64,
     /// Last frame's TLAS instances and refitted triangles.
@@ -229,6 +231,7 @@ impl<B: AsBackend> AsManager<B> {
             costs: config.cost_prior,
             far: far::FarField::default(),
             tlas_groups: Vec::new(),
+            near_boxes: Vec::new(),
             gpu_reserved_ms: 0.0,
             prev_tlas_instances: 0,
             prev_refit_prims: 0,
