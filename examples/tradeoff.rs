@@ -132,12 +132,7 @@ fn knob_name(k: Knob) -> &'static str {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    cli::init_tracing();
     let mut cli = Cli::parse();
     if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
         cli.run.out = PathBuf::from("out/tradeoff");

@@ -212,6 +212,16 @@ impl RunArgs {
     }
 }
 
+/// Logs to stderr, `RUST_LOG` or warnings.
+pub fn init_tracing() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+}
+
 /// A progress bar that shows each policy's memory and TLAS size and the last error.
 pub fn progress_bar(frames: u64, quiet: bool) -> (ProgressBar, impl FnMut(&Progress)) {
     let bar = if quiet {

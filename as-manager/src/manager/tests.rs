@@ -572,7 +572,6 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
         cfg.cost_prior.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
         cfg.cost_prior.batch_fixed_ms = 0.0;
         let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
-        let mut ids = Vec::new();
         for i in 0..40 {
             let mesh = m
                 .register_mesh(MeshDesc::new(
@@ -589,7 +588,7 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
                 ))
                 .unwrap();
             let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
-            ids.push(m.add_instance(InstanceDesc::new(mesh, t)).unwrap());
+            m.add_instance(InstanceDesc::new(mesh, t)).unwrap();
         }
         let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
         let mut frame = 0;
