@@ -24,6 +24,25 @@ fn register_font() {
     });
 }
 
+/// Draws with `$draw(&root, args...)` into `<stem>.png` and `<stem>.svg`; returns both paths.
+macro_rules! png_and_svg {
+    ($stem:expr, $draw:ident($($arg:expr),*)) => {{
+        register_font();
+        let (png, svg) = ($stem.with_extension("png"), $stem.with_extension("svg"));
+        {
+            let root = BitMapBackend::new(&png, SIZE).into_drawing_area();
+            $draw(&root, $($arg),*).with_context(|| format!("drawing {}", png.display()))?;
+            root.present()?;
+        }
+        {
+            let root = SVGBackend::new(&svg, SIZE).into_drawing_area();
+            $draw(&root, $($arg),*).with_context(|| format!("drawing {}", svg.display()))?;
+            root.present()?;
+        }
+        Ok(vec![png, svg])
+    }};
+}
+
 /// One point of a scatter series.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Point {
@@ -121,21 +140,7 @@ pub fn scatter(
     log_x: bool,
     series: &[Series],
 ) -> anyhow::Result<Vec<PathBuf>> {
-    register_font();
-    let (png, svg) = (stem.with_extension("png"), stem.with_extension("svg"));
-    {
-        let root = BitMapBackend::new(&png, SIZE).into_drawing_area();
-        draw_scatter(&root, title, x_label, y_label, log_x, series)
-            .with_context(|| format!("drawing {}", png.display()))?;
-        root.present()?;
-    }
-    {
-        let root = SVGBackend::new(&svg, SIZE).into_drawing_area();
-        draw_scatter(&root, title, x_label, y_label, log_x, series)
-            .with_context(|| format!("drawing {}", svg.display()))?;
-        root.present()?;
-    }
-    Ok(vec![png, svg])
+    png_and_svg!(stem, draw_scatter(title, x_label, y_label, log_x, series))
 }
 
 fn ok(p: &Point, log_x: bool) -> bool {
@@ -259,19 +264,7 @@ pub fn lines(
     y_label: &str,
     series: &[(String, Vec<(f64, f64)>)],
 ) -> anyhow::Result<Vec<PathBuf>> {
-    register_font();
-    let (png, svg) = (stem.with_extension("png"), stem.with_extension("svg"));
-    {
-        let root = BitMapBackend::new(&png, SIZE).into_drawing_area();
-        draw_lines(&root, title, x_label, y_label, series)?;
-        root.present()?;
-    }
-    {
-        let root = SVGBackend::new(&svg, SIZE).into_drawing_area();
-        draw_lines(&root, title, x_label, y_label, series)?;
-        root.present()?;
-    }
-    Ok(vec![png, svg])
+    png_and_svg!(stem, draw_lines(title, x_label, y_label, series))
 }
 
 fn draw_lines<DB: DrawingBackend>(
@@ -334,19 +327,7 @@ pub fn bars(
     groups: &[String],
     series: &[(String, Vec<f64>)],
 ) -> anyhow::Result<Vec<PathBuf>> {
-    register_font();
-    let (png, svg) = (stem.with_extension("png"), stem.with_extension("svg"));
-    {
-        let root = BitMapBackend::new(&png, SIZE).into_drawing_area();
-        draw_bars(&root, title, y_label, groups, series)?;
-        root.present()?;
-    }
-    {
-        let root = SVGBackend::new(&svg, SIZE).into_drawing_area();
-        draw_bars(&root, title, y_label, groups, series)?;
-        root.present()?;
-    }
-    Ok(vec![png, svg])
+    png_and_svg!(stem, draw_bars(title, y_label, groups, series))
 }
 
 fn draw_bars<DB: DrawingBackend>(
