@@ -38,6 +38,8 @@ enum Knob {
     Budget,
     /// Far-field cut: proxy error in pixels (6, 12, 24, 48) or off.
     Far,
+    /// Far keep angle: landmarks beyond r2 keep their coarsest LOD (off, 0.5, 1, 2, 4 degrees).
+    Keep,
 }
 
 /// Sweeps the managed policy's knobs over one path and charts error against cost.
@@ -117,6 +119,14 @@ fn points(knob: Knob) -> Vec<Point> {
             v.push(p("off".into(), |c| c.far_field.enabled = false));
             v
         }
+        Knob::Keep => [0.0f32, 0.5, 1.0, 2.0, 4.0]
+            .into_iter()
+            .map(|a| {
+                p(format!("{a}deg"), move |c| {
+                    c.far_field.keep_angle = a.to_radians()
+                })
+            })
+            .collect(),
     }
 }
 
@@ -128,6 +138,7 @@ fn knob_name(k: Knob) -> &'static str {
         Knob::Lod => "lod_px",
         Knob::Budget => "budget",
         Knob::Far => "far_field",
+        Knob::Keep => "far_keep_angle",
     }
 }
 
@@ -145,6 +156,7 @@ fn main() -> anyhow::Result<()> {
             Knob::Lod,
             Knob::Budget,
             Knob::Far,
+            Knob::Keep,
         ]
     } else {
         cli.only.clone()

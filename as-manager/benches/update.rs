@@ -57,11 +57,12 @@ struct Run {
 }
 
 impl Run {
-    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize, far: bool) -> Self {
-        let config = Config {
+    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize, far: bool, keep: f32) -> Self {
+        let mut config = Config {
             policy,
             ..Config::default()
         };
+        config.far_field.keep_angle = keep.to_radians();
         let manager = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
         if far {
             // The default world's level blocks: 2x2 levels of 71 m, four depths.
@@ -128,10 +129,11 @@ fn bench_update(c: &mut Criterion) {
         .warm_up_time(Duration::from_millis(500))
         .measurement_time(Duration::from_secs(3));
     for (wname, world) in [("default", default), ("million", million)] {
-        for (pname, policy, far) in [
-            ("managed", PolicyKind::Managed, false),
-            ("managed_far", PolicyKind::Managed, true),
-            ("seed_r1r2", PolicyKind::SeedR1R2, false),
+        for (pname, policy, far, keep) in [
+            ("managed", PolicyKind::Managed, false, 0.0),
+            ("managed_far", PolicyKind::Managed, true, 0.0),
+            ("managed_far_keep1deg", PolicyKind::Managed, true, 1.0),
+            ("seed_r1r2", PolicyKind::SeedR1R2, false, 0.0),
         ] {
             for cams in [1usize, 4, 5] {
                 if (wname == "million" && cams != 1)
@@ -150,7 +152,7 @@ fn bench_update(c: &mut Criterion) {
                 let id = BenchmarkId::new(format!("{wname}/{pname}"), &cam_label);
                 g.bench_function(id, |b| {
                     let run = run.get_or_insert_with(|| {
-                        let mut r = Run::new(world, policy, cams, far);
+                        let mut r = Run::new(world, policy, cams, far, keep);
                         let n = if policy == PolicyKind::Managed { 2000 } else if wname == "million" { 30 } else { 200 };
                         r.per_frame(&format!("{wname}/{pname}/{cam_label}"), n);
                         let s = r.manager.stats().clone();
@@ -172,7 +174,7 @@ fn bench_update(c: &mut Criterion) {
     }
     let mut naive: Option<Run> = None;
     g.bench_function(BenchmarkId::new("default/naive", "1cam"), |b| {
-        let run = naive.get_or_insert_with(|| Run::new(default, PolicyKind::Naive, 1, false));
+        let run = naive.get_or_insert_with(|| Run::new(default, PolicyKind::Naive, 1, false, 0.0));
         b.iter(|| black_box(run.step()))
     });
     g.finish();

@@ -66,6 +66,16 @@ pub struct GridIndex<T = ()> {
     len: usize,
     /// Largest radius among the in-cell entries (<= cell size): the query's slack.
     max_small_radius: f32,
+    /// Entries at least this large are also in `tall_cells` (see [`GridIndex::query_tall`]).
+    tall_radius: f32,
+    tall_cell: f32,
+    tall_inv_cell: f32,
+    /// Coarse cells of the tall entries: (radius, slot), largest first.
+    tall_cells: HashMap<u64, Vec<(f32, u32)>, BuildHasherDefault<CellHasher>>,
+    tall_len: usize,
+    /// Largest tall radius ever indexed (a bound on how far a landmark can be seen).
+    tall_max_radius: f32,
+    tall_scratch: Vec<u32>,
 }
 
 fn key(x: i32, z: i32) -> u64 {
@@ -87,7 +97,139 @@ impl<T: Copy> GridIndex<T> {
             scratch: Vec::new(),
             len: 0,
             max_small_radius: 0.0,
+            tall_radius: f32::INFINITY,
+            tall_cell: 1.0,
+            tall_inv_cell: 1.0,
+            tall_cells: HashMap::default(),
+            tall_len: 0,
+            tall_max_radius: 0.0,
+            tall_scratch: Vec::new(),
         }
+    }
+
+    /// Indexes the entries whose radius is at least `radius` a second time, in coarse cells of
+    /// `cell_size` sorted by radius, for [`GridIndex::query_tall`] (none with infinity, the
+    /// default). A pass over every entry: call it on configuration changes, not per frame.
+    pub fn set_tall_radius(&mut self, radius: f32, cell_size: f32) {
+        assert!(cell_size > 0.0 && cell_size.is_finite());
+        self.tall_radius = radius;
+        self.tall_inv_cell = 1.0 / cell_size;
+        self.tall_cell = cell_size;
+        self.tall_cells.clear();
+        self.tall_len = 0;
+        let all: Vec<([f32; 3], f32, u32)> = self
+            .cell_entries
+            .iter()
+            .flatten()
+            .chain(&self.large)
+            .map(|e| (e.center, e.radius, e.slot))
+            .collect();
+        for (c, r, slot) in all {
+            self.track_tall(c, r, slot);
+        }
+    }
+
+    fn tall_key(&self, c: [f32; 3]) -> u64 {
+        let k = |v: f32| (v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32;
+        key(k(c[0]), k(c[2]))
+    }
+
+    fn track_tall(&mut self, center: [f32; 3], radius: f32, slot: u32) {
+        if radius < self.tall_radius {
+            return;
+        }
+        self.tall_max_radius = self.tall_max_radius.max(radius);
+        let v = self.tall_cells.entry(self.tall_key(center)).or_default();
+        // Largest first, so a query stops at the first entry too small for its cell.
+        let at = v.partition_point(|&(r, _)| r >= radius);
+        v.insert(at, (radius, slot));
+        self.tall_len += 1;
+    }
+
+    fn untrack_tall(&mut self, center: [f32; 3], radius: f32, slot: u32) {
+        if radius < self.tall_radius {
+            return;
+        }
+        let k = self.tall_key(center);
+        if let Some(v) = self.tall_cells.get_mut(&k) {
+            if let Some(i) = v.iter().position(|&(_, s)| s == slot) {
+                v.remove(i);
+                self.tall_len -= 1;
+            }
+            if v.is_empty() {
+                self.tall_cells.remove(&k);
+            }
+        }
+    }
+
+    /// Number of tall entries (see [`GridIndex::set_tall_radius`]).
+    pub fn tall_len(&self) -> usize {
+        self.tall_len
+    }
+
+    /// Calls `visit` for the tall entries that may subtend more than `atan(tan)` from one of
+    /// `cameras` (radius > `tan` x distance, measured in XZ to the entry's coarse cell) within
+    /// `range` metres: far-away landmarks a radius query would not reach. Each entry is
+    /// visited at most once; the caller does the exact test. Costs the coarse cells within
+    /// `range` plus the entries that pass the cell's test, not the grid's size.
+    pub fn query_tall(
+        &mut self,
+        cameras: &[Vec3],
+        tan: f32,
+        range: f32,
+        mut visit: impl FnMut(GridLoc, &mut GridEntry<T>),
+    ) {
+        if self.tall_len == 0 || tan <= 0.0 {
+            return;
+        }
+        // Nothing beyond this distance is large enough.
+        let range = range.min(self.tall_max_radius / tan);
+        let mut slots = std::mem::take(&mut self.tall_scratch);
+        slots.clear();
+        let cs = self.tall_cell;
+        let k = |v: f32| (v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32;
+        for (ci, cam) in cameras.iter().enumerate() {
+            let (x0, x1) = (k(cam.x - range), k(cam.x + range));
+            let (z0, z1) = (k(cam.z - range), k(cam.z + range));
+            for x in x0..=x1 {
+                for z in z0..=z1 {
+                    let Some(v) = self.tall_cells.get(&key(x, z)) else {
+                        continue;
+                    };
+                    // Nearest camera to the cell (XZ): an entry's centre is no nearer.
+                    let d = cameras
+                        .iter()
+                        .map(|c| {
+                            let dx = (x as f32 * cs - c.x).max(c.x - (x as f32 + 1.0) * cs);
+                            let dz = (z as f32 * cs - c.z).max(c.z - (z as f32 + 1.0) * cs);
+                            (dx.max(0.0) * dx.max(0.0) + dz.max(0.0) * dz.max(0.0)).sqrt()
+                        })
+                        .fold(f32::INFINITY, f32::min);
+                    // Visit a cell from the first camera whose range reaches it only.
+                    let first = cameras[..ci].iter().any(|c| {
+                        (c.x - range) <= (x as f32 + 1.0) * cs
+                            && (c.x + range) >= x as f32 * cs
+                            && (c.z - range) <= (z as f32 + 1.0) * cs
+                            && (c.z + range) >= z as f32 * cs
+                    });
+                    if first || d > range {
+                        continue;
+                    }
+                    for &(r, slot) in v {
+                        if r <= tan * d {
+                            break;
+                        }
+                        slots.push(slot);
+                    }
+                }
+            }
+        }
+        for &slot in &slots {
+            let (cell, index) = self.locs[slot as usize];
+            let loc = GridLoc { cell, index };
+            visit(loc, self.at_mut(loc));
+        }
+        self.tall_scratch = slots;
     }
 
     /// Entries indexed.
@@ -134,6 +276,7 @@ impl<T: Copy> GridIndex<T> {
             self.locs[slot as usize] = (c, v.len() as u32);
             v.push(e);
         }
+        self.track_tall(center.to_array(), radius, slot);
         self.len += 1;
     }
 
@@ -188,11 +331,12 @@ impl<T: Copy> GridIndex<T> {
         } else {
             &mut self.cell_entries[c as usize]
         };
-        v.swap_remove(i as usize);
+        let gone = v.swap_remove(i as usize);
         if let Some(moved) = v.get(i as usize) {
             self.locs[moved.slot as usize] = (c, i);
         }
         self.locs[slot as usize] = (u32::MAX, u32::MAX);
+        self.untrack_tall(gone.center, gone.radius, slot);
         self.len -= 1;
     }
 
@@ -305,7 +449,7 @@ mod tests {
         for i in 0..2000u32 {
             let x = ((i * 7919) % 1000) as f32 - 500.0;
             let z = ((i * 104_729) % 997) as f32 - 498.0;
-            let r = if i % 100 == 0 { 25.0 } else { 1.0 };
+            let r = if i % 100 == 1 { 25.0 } else { 1.0 };
             pts.push((Vec3::new(x, 0.0, z), r));
             g.insert(i, Vec3::new(x, 0.0, z), r, ());
         }
@@ -324,6 +468,36 @@ mod tests {
         seen.sort_unstable();
         seen.dedup();
         assert_eq!(n, seen.len(), "visited once");
+        g.set_tall_radius(20.0, 64.0);
+        assert_eq!(g.tall_len(), 20);
+        // Everything tall within 1 km that may subtend more than tan = 0.05 (radius 25 m:
+        // within 500 m of the nearer camera).
+        let mut tall = Vec::new();
+        g.query_tall(&cams, 0.05, 1000.0, |_, e| tall.push(e.slot));
+        let n = tall.len();
+        tall.sort_unstable();
+        tall.dedup();
+        assert_eq!(n, tall.len(), "visited once");
+        for (i, (p, r)) in pts.iter().enumerate() {
+            let d = cams
+                .iter()
+                .map(|c| Vec3::new(c.x - p.x, 0.0, c.z - p.z).length())
+                .fold(f32::INFINITY, f32::min);
+            let listed = tall.binary_search(&(i as u32)).is_ok();
+            if i % 5 == 0 || *r < 20.0 {
+                assert!(!listed, "{i} is not tall or was removed");
+            } else if *r > 0.05 * d {
+                assert!(listed, "tall {i} at {d:.0} m missed");
+            }
+        }
+        assert!(!tall.is_empty());
+        g.remove(101);
+        g.insert(7, pts[7].0, 30.0, ());
+        assert_eq!(g.tall_len(), 20);
+        let mut tall2 = Vec::new();
+        g.query_tall(&cams, 1e-6, 1e4, |_, e| tall2.push(e.slot));
+        assert!(!tall2.contains(&101) && tall2.contains(&7));
+        assert_eq!(tall2.len(), 20);
         for (i, (p, r)) in pts.iter().enumerate() {
             let near = cams.iter().any(|c| (c.distance(*p) - r).max(0.0) <= 50.0);
             if near && i % 5 != 0 {

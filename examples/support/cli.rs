@@ -113,6 +113,10 @@ pub struct RunArgs {
     /// Far-field cut: a proxy is shown once its error projects under this many pixels.
     #[arg(long)]
     pub far_px: Option<f32>,
+    /// Far keep angle in degrees (0: off): a static instance beyond r2 that subtends more
+    /// keeps its coarsest LOD beside the proxies.
+    #[arg(long)]
+    pub far_keep_angle: Option<f32>,
     /// Skip the all-geometry reference (non-opaque as opaque).
     #[arg(long)]
     pub opaque_only: bool,
@@ -197,6 +201,9 @@ impl RunArgs {
         m.far_field.enabled = self.far_field;
         if let Some(px) = self.far_px {
             m.far_field.max_pixel_error = px;
+        }
+        if let Some(a) = self.far_keep_angle {
+            m.far_field.keep_angle = a.to_radians();
         }
         if let Some(ms) = self.max_build_ms {
             m.build.max_gpu_ms = ms;

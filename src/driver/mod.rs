@@ -91,6 +91,9 @@ pub struct RunConfig {
     pub frames_in_flight: u32,
     /// Validation-layer policy of the device.
     pub validation: Validation,
+    /// The stretch of the camera path the run covers, as fractions of it (`(0.0, 1.0)`: the
+    /// whole path). A short stretch over many frames is a slow walk.
+    pub path_span: (f32, f32),
 }
 
 impl Default for RunConfig {
@@ -118,6 +121,7 @@ impl Default for RunConfig {
             maps: 3,
             frames_in_flight: 2,
             validation: Validation::Auto,
+            path_span: (0.0, 1.0),
         }
     }
 }
@@ -319,7 +323,8 @@ pub fn run_cached(
     let mut files = Vec::new();
     let mut render_ms: Vec<(usize, f64)> = Vec::new();
     for frame in 0..config.frames {
-        let cam = path.at(frame, config.frames);
+        let (a, b) = config.path_span;
+        let cam = path.at_fraction(a + (b - a) * frame as f32 / config.frames.max(1) as f32);
         trail.push(cam.position);
         let cams = [rtstream_streaming::Camera::from(cam.position)];
         // Never waits on the loaders, except (deterministic mode) for the loads requested

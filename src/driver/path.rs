@@ -74,7 +74,12 @@ impl CameraPath {
 
     /// The camera at `frame` of `frames`. Call in frame order: the altitude is smoothed.
     pub fn at(&mut self, frame: u64, frames: u64) -> PathPoint {
-        let t = frame as f32 / frames.max(1) as f32;
+        self.at_fraction(frame as f32 / frames.max(1) as f32)
+    }
+
+    /// The camera at fraction `t` (0..1) of the path. Call with increasing `t`: the altitude
+    /// is smoothed.
+    pub fn at_fraction(&mut self, t: f32) -> PathPoint {
         let p = self.ground(t);
         let ahead = self.ground((t + 0.01).min(1.0)) - p;
         let forward = Vec3::new(ahead.x, 0.0, ahead.z).normalize_or(Vec3::Z);

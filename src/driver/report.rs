@@ -41,6 +41,8 @@ pub struct FrameRow {
     pub proxy_instances: u32,
     /// Bytes of those proxies' BLASes.
     pub proxy_blas_bytes: u64,
+    /// Far-field leaf groups whose detail a proxy stands for (a change marks a hand-over).
+    pub far_groups_covered: u32,
     /// Wall time of `update` (policy and Vulkan recording), ms.
     pub update_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
@@ -69,6 +71,7 @@ impl FrameRow {
             evictions: s.evictions,
             proxy_instances: s.proxy_instances,
             proxy_blas_bytes: s.proxy_blas_bytes,
+            far_groups_covered: s.far_groups_covered,
             update_ms,
             gpu_as_ms: s.measured_gpu_ms,
             score: None,
@@ -99,6 +102,7 @@ struct CsvRow {
     evictions: u32,
     proxy_instances: u32,
     proxy_blas_bytes: u64,
+    far_groups_covered: u32,
     update_ms: f64,
     gpu_as_ms: f64,
     hit_mismatch: Option<f64>,
@@ -434,6 +438,7 @@ impl RunReport {
                 evictions: r.evictions,
                 proxy_instances: r.proxy_instances,
                 proxy_blas_bytes: r.proxy_blas_bytes,
+                far_groups_covered: r.far_groups_covered,
                 update_ms: r.update_ms,
                 gpu_as_ms: r.gpu_as_ms,
                 hit_mismatch: s.map(|s| s.hit_mismatch),

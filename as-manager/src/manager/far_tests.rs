@@ -17,6 +17,8 @@ struct World {
     m: AsManager<ModelBackend>,
     /// Group slot -> the leaf numbers (x * LEAVES + z) under it.
     leaves_of: HashMap<u32, Vec<u32>>,
+    /// Leaf number -> its group.
+    leaf_ids: HashMap<u32, GroupId>,
 }
 
 fn world(config: Config) -> World {
@@ -31,6 +33,7 @@ fn world(config: Config) -> World {
         .unwrap()
     };
     let mut leaves_of = HashMap::new();
+    let mut leaf_ids = HashMap::new();
     let mut n = 0;
     // Parents: 2x2 blocks of leaves.
     for px in 0..LEAVES / 2 {
@@ -67,6 +70,7 @@ fn world(config: Config) -> World {
                 m.set_group_proxy(leaf, Some((proxy_mesh(&m, n), 1.0)))
                     .unwrap();
                 leaves_of.insert(leaf.index(), vec![leaf_no]);
+                leaf_ids.insert(leaf_no, leaf);
                 // A house mesh per leaf, so detail memory grows with what is near.
                 let mesh = m
                     .register_mesh(MeshDesc::new(
@@ -91,7 +95,11 @@ fn world(config: Config) -> World {
             leaves_of.insert(parent.index(), under);
         }
     }
-    World { m, leaves_of }
+    World {
+        m,
+        leaves_of,
+        leaf_ids,
+    }
 }
 
 fn config() -> Config {
@@ -274,4 +282,74 @@ fn group_registration_errors_are_typed() {
         m.set_group_proxy(g2, Some((skinned, 1.0))),
         Err(AsError::InvalidGroup(_))
     ));
+}
+
+#[test]
+fn landmarks_beyond_r2_keep_their_coarsest_lod_beside_the_proxies() {
+    const TOWER_CI: u32 = 50_000;
+    // (x, z, radius): two towers that subtend more than 1 degree from (20, 20) beyond r2, and
+    // one 5 m tower at 380 m (0.75 degrees, a candidate by size but too small there).
+    let towers = [
+        (700.0f32, 700.0f32, 30.0f32),
+        (20.0, 700.0, 30.0),
+        (400.0, 20.0, 5.0),
+    ];
+    let run = |keep_deg: f32| {
+        let mut c = config();
+        c.far_field.keep_angle = keep_deg.to_radians();
+        c.cull.min_angle = 0.0;
+        let mut w = world(c);
+        let mut ids = Vec::new();
+        for (k, &(x, z, r)) in towers.iter().enumerate() {
+            let mesh =
+                w.m.register_mesh(MeshDesc::new(
+                    format!("tower{k}"),
+                    MeshKind::Static,
+                    r,
+                    counts_chain(4000, 3, 0.05),
+                ))
+                .unwrap();
+            let leaf = (x / LEAF_M) as i32 * LEAVES + (z / LEAF_M) as i32;
+            let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(Vec3::new(x, r, z)));
+            d.custom_index = TOWER_CI + k as u32;
+            d.group = Some(w.leaf_ids[&(leaf as u32)]);
+            ids.push(w.m.add_instance(d).unwrap());
+        }
+        let cams = [Camera::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
+        let mut shown = HashSet::new();
+        for frame in 0..80u64 {
+            let out =
+                w.m.update(FrameInput {
+                    frame,
+                    cameras: &cams,
+                })
+                .unwrap();
+            shown = out
+                .instances
+                .iter()
+                .map(|r| r.custom_index_and_mask & 0xffffff)
+                .filter(|ci| (TOWER_CI..TOWER_CI + 3).contains(ci))
+                .collect();
+            assert!(frame < 20 || out.stats.proxy_instances > 0);
+            w.m.check_invariants().unwrap();
+        }
+        let lods: Vec<_> = ids.iter().map(|&id| w.m.instance_lod(id)).collect();
+        (shown, lods)
+    };
+    let (off, _) = run(0.0);
+    assert!(
+        off.is_empty(),
+        "without a keep angle the proxies stand for the towers"
+    );
+    let (on, lods) = run(1.0);
+    assert_eq!(
+        on,
+        HashSet::from([TOWER_CI, TOWER_CI + 1]),
+        "the two large far towers are kept, the small one is not"
+    );
+    assert_eq!(
+        &lods[..2],
+        &[Some(2), Some(2)],
+        "kept at their coarsest LOD"
+    );
 }

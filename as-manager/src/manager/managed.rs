@@ -3,11 +3,13 @@
 
 use glam::Vec3;
 
-use super::state::{EntryState, NONE};
+use super::state::{EntryState, Hot, Tables, NONE};
 use super::{AsManager, Visit};
 use crate::backend::AsBackend;
+use crate::lod::LodSelector;
 use crate::mesh::MeshKind;
 use crate::record::{assemble, TlasInstance};
+use crate::spatial::{GridEntry, GridLoc};
 
 use crate::Result;
 
@@ -38,21 +40,21 @@ impl<B: AsBackend> AsManager<B> {
         Ok(())
     }
 
-    /// Visits instances within r2 of any camera; picks LODs; marks request/keep. One pass
-    /// through the grid cells near the cameras (the per-instance state lives there).
+    /// Visits instances within r2 of any camera (and the far field's landmarks, see
+    /// `FarFieldConfig::keep_angle`); picks LODs; marks request/keep. One pass through the
+    /// grid cells near the cameras (the per-instance state lives there).
     fn residency_pass(&mut self) {
         let r2 = self.config.residency.r2;
-        let r1 = self.config.residency.r1;
-        let frame = self.frame;
-        let need_data = self.backend.needs_geometry();
+        let far_on = self.config.far_field.enabled;
         // A far-field group within r2 is near as a whole: its instances beyond r2 are near
         // field too (its proxy is not shown), so the query also covers those groups' boxes.
         let mut boxes = std::mem::take(&mut self.near_boxes);
-        if self.config.far_field.enabled {
+        if far_on {
             self.far.near_leaf_boxes(&self.cam_pos, r2, &mut boxes);
         } else {
             boxes.clear();
         }
+        let keep_tan = self.config.far_field.keep_angle.tan();
         let Self {
             grid,
             visits,
@@ -61,108 +63,49 @@ impl<B: AsBackend> AsManager<B> {
             t,
             lod,
             far,
+            config,
+            frame,
+            backend,
             ..
         } = self;
         visits.clear();
-        let cams: &[Vec3] = cam_pos;
-        let fwds: &[Vec3] = cam_fwd;
-        grid.query_with_boxes(cams, r2, &boxes, |loc, ge| {
-            let c = Vec3::from(ge.center);
-            let mut d2 = f32::INFINITY;
-            for p in cams {
-                d2 = d2.min(p.distance_squared(c));
-            }
-            let reach = r2 + ge.radius;
-            let beyond_r2 = d2 > reach * reach;
+        let mut pass = ResidencyPass {
+            cams: cam_pos,
+            fwds: cam_fwd,
+            r1: config.residency.r1,
+            r2,
+            frame: *frame,
+            need_data: backend.needs_geometry(),
+            t,
+            lod,
+            visits,
+        };
+        grid.query_with_boxes(pass.cams, r2, &boxes, |loc, ge| {
+            let (d2, beyond_r2) = pass.distance(ge);
             // Beyond r2 only for a near group (no square root for the rejected).
             if beyond_r2 && !far.is_near_leaf(ge.data.group) {
                 return;
             }
-            let center_dist = d2.sqrt();
-            let surface_dist = (center_dist - ge.radius).max(0.0);
-            visits.push(Visit {
-                loc,
-                center_dist,
-                beyond_r2,
-            });
-            let h = &mut ge.data;
-            let mesh = t.meshes[h.mesh as usize]
-                .as_ref()
-                .expect("instance of a live mesh");
-            let was_visited = h.last_visit == frame.wrapping_sub(1);
-            let current = if was_visited {
-                h.lod_target as usize
-            } else {
-                mesh.nlods as usize - 1
-            };
-            let lodi = lod.select(
-                mesh.errors(),
-                h.scale,
-                surface_dist,
-                current,
-                mesh.lod_floor as usize,
-            );
-            // A GPU builds only from resident data: the nearest LOD that has some.
-            let built = |l: usize| {
-                mesh.kind == MeshKind::Static
-                    && mesh.lod_entry[l] != NONE
-                    && t.entries[mesh.lod_entry[l] as usize].state == EntryState::Built
-            };
-            let Some(lodi) = mesh.with_data(lodi, need_data, built) else {
-                return;
-            };
-            h.lod_target = lodi as u8;
-            h.last_visit = frame;
-            if !was_visited {
-                h.culled = true;
-            }
-            let kind = mesh.kind;
-            let tris = mesh.lod_tris[lodi];
-            let mut slot = match kind {
-                MeshKind::Static => mesh.lod_entry[lodi],
-                MeshKind::Skinned
-                    if t.entry_valid(h.own) && t.entries[h.own.0 as usize].lod as usize == lodi =>
-                {
-                    h.own.0
-                }
-                MeshKind::Skinned => NONE,
-            };
-            if slot == NONE {
-                let owner = if kind == MeshKind::Skinned {
-                    ge.slot
-                } else {
-                    NONE
-                };
-                slot = t.new_entry(h.mesh, lodi as u8, owner, tris, frame);
-                match kind {
-                    MeshKind::Static => {
-                        t.meshes[h.mesh as usize].as_mut().expect("live").lod_entry[lodi] = slot
-                    }
-                    MeshKind::Skinned => h.own = t.key(slot),
-                }
-            }
-            let requested = surface_dist <= r1 || beyond_r2;
-            let in_view = requested && cams.iter().zip(fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
-            let e = &mut t.entries[slot as usize];
-            if requested {
-                if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
-                    e.streak_start = frame;
-                }
-                e.last_request = frame;
-            }
-            e.last_keep = frame;
-            if e.dist_frame != frame {
-                e.dist_frame = frame;
-                e.min_dist = surface_dist;
-                e.in_view = in_view;
-            } else {
-                e.min_dist = e.min_dist.min(surface_dist);
-                e.in_view |= in_view;
-            }
-            if t.entry_valid(h.shown) {
-                t.entries[h.shown.0 as usize].last_keep = frame;
-            }
+            pass.visit(loc, ge, d2.sqrt(), beyond_r2, false);
         });
+        if far_on && keep_tan > 0.0 {
+            // Landmarks: exactly the tall entries the query rejected or never reached.
+            let far_radius = config.far_field.far_radius;
+            grid.query_tall(pass.cams, keep_tan * 0.9, far_radius, |loc, ge| {
+                let (d2, beyond_r2) = pass.distance(ge);
+                if !beyond_r2 || far.is_near_leaf(ge.data.group) {
+                    return;
+                }
+                let d = d2.sqrt();
+                // 10 % hysteresis on the angle for a landmark shown last frame.
+                let was = ge.data.last_visit == pass.frame.wrapping_sub(1);
+                let tan = if was { keep_tan * 0.9 } else { keep_tan };
+                if d - ge.radius > far_radius || ge.radius <= tan * d {
+                    return;
+                }
+                pass.visit(loc, ge, d, true, true);
+            });
+        }
         self.near_boxes = boxes;
         self.stats.instances_visited = self.visits.len() as u32;
     }
@@ -220,7 +163,12 @@ impl<B: AsBackend> AsManager<B> {
             let v = self.visits[vi];
             let ge = self.grid.at_mut(v.loc);
             let radius = ge.radius;
-            let group = if far { ge.data.group } else { NONE };
+            // A landmark stands beside its group's proxy: never covered, never handing over.
+            let group = if far && !v.landmark {
+                ge.data.group
+            } else {
+                NONE
+            };
             let h = &mut ge.data;
             let t = &mut self.t;
             let mesh = t.meshes[h.mesh as usize].as_ref().expect("live mesh");
@@ -302,5 +250,143 @@ impl<B: AsBackend> AsManager<B> {
                 }
             },
         );
+    }
+}
+
+/// The residency pass's view of the manager while the grid is borrowed.
+struct ResidencyPass<'a> {
+    cams: &'a [Vec3],
+    fwds: &'a [Vec3],
+    r1: f32,
+    r2: f32,
+    frame: u64,
+    need_data: bool,
+    t: &'a mut Tables,
+    lod: &'a LodSelector,
+    visits: &'a mut Vec<Visit>,
+}
+
+impl ResidencyPass<'_> {
+    /// Squared distance from the nearest camera to the centre, and whether the sphere lies
+    /// wholly beyond r2.
+    fn distance(&self, ge: &GridEntry<Hot>) -> (f32, bool) {
+        let c = Vec3::from(ge.center);
+        let d2 = self
+            .cams
+            .iter()
+            .map(|p| p.distance_squared(c))
+            .fold(f32::INFINITY, f32::min);
+        let reach = self.r2 + ge.radius;
+        (d2, d2 > reach * reach)
+    }
+
+    /// Picks the instance's LOD (its coarsest for a `landmark`), creates its entry, and marks
+    /// the entry requested (within r1, beyond r2) and kept.
+    fn visit(
+        &mut self,
+        loc: GridLoc,
+        ge: &mut GridEntry<Hot>,
+        center_dist: f32,
+        beyond_r2: bool,
+        landmark: bool,
+    ) {
+        let (t, frame) = (&mut *self.t, self.frame);
+        let c = Vec3::from(ge.center);
+        let surface_dist = (center_dist - ge.radius).max(0.0);
+        let h = &mut ge.data;
+        let mesh = t.meshes[h.mesh as usize]
+            .as_ref()
+            .expect("instance of a live mesh");
+        if landmark && mesh.kind != MeshKind::Static {
+            return;
+        }
+        self.visits.push(Visit {
+            loc,
+            center_dist,
+            beyond_r2,
+            landmark,
+        });
+        let was_visited = h.last_visit == frame.wrapping_sub(1);
+        let current = if was_visited {
+            h.lod_target as usize
+        } else {
+            mesh.nlods as usize - 1
+        };
+        let lodi = if landmark {
+            mesh.nlods as usize - 1
+        } else {
+            self.lod.select(
+                mesh.errors(),
+                h.scale,
+                surface_dist,
+                current,
+                mesh.lod_floor as usize,
+            )
+        };
+        // A GPU builds only from resident data: the nearest LOD that has some.
+        let built = |l: usize| {
+            mesh.kind == MeshKind::Static
+                && mesh.lod_entry[l] != NONE
+                && t.entries[mesh.lod_entry[l] as usize].state == EntryState::Built
+        };
+        let Some(lodi) = mesh.with_data(lodi, self.need_data, built) else {
+            return;
+        };
+        h.lod_target = lodi as u8;
+        h.last_visit = frame;
+        if !was_visited {
+            h.culled = true;
+        }
+        let kind = mesh.kind;
+        let tris = mesh.lod_tris[lodi];
+        let mut slot = match kind {
+            MeshKind::Static => mesh.lod_entry[lodi],
+            MeshKind::Skinned
+                if t.entry_valid(h.own) && t.entries[h.own.0 as usize].lod as usize == lodi =>
+            {
+                h.own.0
+            }
+            MeshKind::Skinned => NONE,
+        };
+        if slot == NONE {
+            let owner = if kind == MeshKind::Skinned {
+                ge.slot
+            } else {
+                NONE
+            };
+            slot = t.new_entry(h.mesh, lodi as u8, owner, tris, frame);
+            match kind {
+                MeshKind::Static => {
+                    t.meshes[h.mesh as usize].as_mut().expect("live").lod_entry[lodi] = slot
+                }
+                MeshKind::Skinned => h.own = t.key(slot),
+            }
+        }
+        let requested = surface_dist <= self.r1 || beyond_r2;
+        let in_view = requested
+            && self
+                .cams
+                .iter()
+                .zip(self.fwds)
+                .any(|(p, f)| f.dot(c - *p) >= 0.0);
+        let e = &mut t.entries[slot as usize];
+        if requested {
+            if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
+                e.streak_start = frame;
+            }
+            e.last_request = frame;
+        }
+        e.last_keep = frame;
+        if e.dist_frame != frame {
+            e.dist_frame = frame;
+            e.min_dist = surface_dist;
+            e.in_view = in_view;
+        } else {
+            e.min_dist = e.min_dist.min(surface_dist);
+            e.in_view |= in_view;
+        }
+        if t.entry_valid(h.shown) {
+            t.entries[h.shown.0 as usize].last_keep = frame;
+        }
     }
 }

@@ -155,8 +155,24 @@ pub(crate) struct Visit {
     pub loc: GridLoc,
     /// Distance from the nearest camera to the centre.
     pub center_dist: f32,
-    /// Beyond r2, visited because its far-field group is near (angle culling only).
+    /// Beyond r2, visited because its far-field group is near or it is a landmark (angle
+    /// culling only).
     pub beyond_r2: bool,
+    /// A far-field landmark (see `FarFieldConfig::keep_angle`).
+    pub landmark: bool,
+}
+
+/// Side of the coarse cells that index landmark candidates (see `GridIndex::query_tall`).
+const LANDMARK_CELL_M: f32 = 128.0;
+
+/// Radius from which an instance may be a far-field landmark (infinite: none).
+fn landmark_radius(c: &Config) -> f32 {
+    let f = &c.far_field;
+    if c.policy == PolicyKind::Managed && f.enabled && f.keep_angle > 0.0 {
+        c.residency.r2 * f.keep_angle.tan()
+    } else {
+        f32::INFINITY
+    }
 }
 
 /// The BLAS/TLAS manager. See the crate docs for the frame pipeline.
@@ -224,8 +240,10 @@ impl<B: AsBackend> AsManager<B> {
     /// A manager with a validated `config` driving `backend`.
     pub fn new(config: Config, backend: B) -> Result<Self> {
         config.validate()?;
+        let mut grid = GridIndex::new(config.residency.cell_size);
+        grid.set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
         Ok(Self {
-            grid: GridIndex::new(config.residency.cell_size),
+            grid,
             lod: LodSelector::new(&config.lod),
             culler: InstanceCuller::new(&config.cull),
             costs: config.cost_prior,
@@ -350,12 +368,16 @@ impl<B: AsBackend> AsManager<B> {
         }
         if config.residency.cell_size != self.config.residency.cell_size {
             let mut grid = GridIndex::new(config.residency.cell_size);
+            grid.set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
             for (slot, inst) in self.t.instances.iter().enumerate() {
                 if let (Some(i), Some(e)) = (inst, self.grid.get(slot as u32)) {
                     grid.insert(slot as u32, i.center, i.radius, e.data);
                 }
             }
             self.grid = grid;
+        } else if landmark_radius(&config) != landmark_radius(&self.config) {
+            self.grid
+                .set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
         }
         self.lod = LodSelector::new(&config.lod);
         self.culler = InstanceCuller::new(&config.cull);
