@@ -24,8 +24,16 @@ layout(push_constant) uniform Push {
     vec4 forward;  // xyz unit forward, w = sun angular radius in radians (0: hard shadows)
     vec4 sun;      // xyz unit direction toward the sun
     uvec4 size;    // width, height, pass (0 primary, 1 shadow, 2 AO + shade), shadow samples
-    uvec4 extra;   // AO samples (0: no AO), seed, 0, 0
+    uvec4 extra;   // AO samples (0: no AO), seed, primitive-base table address (lo, hi)
 } pc;
+
+// The first primitive of the hit record's part: a mesh split into several BLASes (one TLAS
+// record per part) numbers each part's primitives from 0; the table (one uint per TLAS record,
+// 0 for unsplit meshes; address 0: no table) turns them back into the mesh's primitive ids.
+uint primitive_base(uint record) {
+    uint64_t a = (uint64_t(pc.extra.w) << 32) | uint64_t(pc.extra.z);
+    return a == 0ul ? 0u : Uints(a).v[record];
+}
 
 const uint PASS_PRIMARY = 0u;
 const uint PASS_SHADOW = 1u;

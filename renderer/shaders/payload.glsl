@@ -5,7 +5,8 @@ const uint MISS = 0xffffffffu;
 
 struct HitPayload {
     uint instance;   // customIndex, or MISS
-    uint primitive;
+    uint primitive;  // part-relative (see primitive_base in common.glsl)
+    uint record;     // index of the hit record in the TLAS
     float t;
     mat4x3 o2w;      // object-to-world of the hit instance
 };

@@ -23,7 +23,8 @@ bool trace_closest(vec3 o, vec3 d, float tmin, float tmax,
         return false;
     }
     inst = rayQueryGetIntersectionInstanceCustomIndexEXT(rq, true);
-    prim = rayQueryGetIntersectionPrimitiveIndexEXT(rq, true);
+    prim = rayQueryGetIntersectionPrimitiveIndexEXT(rq, true) +
+           primitive_base(uint(rayQueryGetIntersectionInstanceIdEXT(rq, true)));
     t = rayQueryGetIntersectionTEXT(rq, true);
     o2w = rayQueryGetIntersectionObjectToWorldEXT(rq, true);
     return true;

@@ -10,6 +10,7 @@ layout(location = 0) rayPayloadInEXT HitPayload payload;
 void main() {
     payload.instance = gl_InstanceCustomIndexEXT;
     payload.primitive = gl_PrimitiveID;
+    payload.record = gl_InstanceID;
     payload.t = gl_HitTEXT;
     payload.o2w = gl_ObjectToWorldEXT;
 }

@@ -63,6 +63,11 @@ pub struct RenderDesc {
     pub ao_radius: f32,
     /// Seed of the per-pixel sample rotation (vary it per frame to accumulate).
     pub seed: u32,
+    /// Device address of the TLAS's primitive-base table (one `u32` per record: the first
+    /// primitive of a split mesh's part), or 0 when no record is a part. From
+    /// `VulkanBackend::primitive_bases`; without it, hits on parts after the first report
+    /// part-relative primitives and shade the wrong triangles.
+    pub primitive_bases: u64,
 }
 
 impl RenderDesc {
@@ -79,6 +84,7 @@ impl RenderDesc {
             ao_samples: 1,
             ao_radius: 1.0,
             seed: 0,
+            primitive_bases: 0,
         }
     }
 }
@@ -257,7 +263,12 @@ impl Renderer {
                 forward: [f.x, f.y, f.z, desc.sun_radius],
                 sun: [s.x, s.y, s.z, 0.0],
                 size: [w, h, 0, desc.shadow_samples.max(1)],
-                extra: [desc.ao_samples, desc.seed, 0, 0],
+                extra: [
+                    desc.ao_samples,
+                    desc.seed,
+                    desc.primitive_bases as u32,
+                    (desc.primitive_bases >> 32) as u32,
+                ],
             };
             let bound = [
                 Bound::AccelRaw(tlas),

@@ -381,6 +381,10 @@ pub fn run_cached(
                 let shading = p
                     .bridge
                     .shading(&p.records, |addr| backend.shading_geometry(addr));
+                let desc = RenderDesc {
+                    primitive_bases: backend.primitive_bases(p.tlas),
+                    ..desc
+                };
                 let img = r.render(raw, &shading, &desc)?;
                 render_ms.push((pi, img.render_ms));
                 let row = rows.len() - n + pi;

@@ -183,6 +183,11 @@ pub trait AsBackend: Send {
     fn blas_address(&self, blas: BlasHandle) -> u64;
     /// Records the frame's TLAS build from its 64-byte instance records.
     fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle>;
+    /// Records in the last TLAS built, where the backend adds its own (a mesh split into
+    /// parts has one record per part); `None`: exactly the instances given.
+    fn tlas_records(&self) -> Option<usize> {
+        None
+    }
     /// Submits frame `frame`.
     fn end_frame(&mut self, frame: u64) -> BackendResult<()>;
     /// GPU timings measured since the last call (from completed frames).

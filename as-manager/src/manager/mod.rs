@@ -541,7 +541,9 @@ impl<B: AsBackend> AsManager<B> {
             tlas
         };
         self.stats.instances = self.live_instances;
-        self.stats.tlas_instances = self.records.len() as u32;
+        // The real TLAS: a backend may add records (split meshes' parts).
+        self.stats.tlas_instances =
+            self.backend.tlas_records().unwrap_or(self.records.len()) as u32;
         self.stats.as_estimated_ms = (self.stats.build_estimated_ms as f64
             + self
                 .costs

@@ -1,7 +1,7 @@
 //! [`VulkanBackend`]: the manager's [`AsBackend`] on a real Vulkan device.
 //!
 //! - **Frames in flight.** `frames_in_flight` slots (default 2), each with its own command
-//!   buffer, TLAS, instance buffer, scratch buffer, upload arena and query pools, so frame `n+1`
+//!   buffer, TLAS, instance buffer, scratch buffer and query pools, so frame `n+1`
 //!   records and builds while frame `n`'s TLAS is traced. One timeline semaphore: frame `n`
 //!   signals `n + 1`; `begin_frame(n)` waits for frame `n - frames_in_flight` before reusing
 //!   its slot.
@@ -10,9 +10,10 @@
 //!   `minAccelerationStructureScratchOffsetAlignment`; AS storage and buffers are sub-allocated
 //!   by gpu-allocator.
 //! - **Build inputs.** A static BLAS keeps the vertex and index buffers it was built from (the
-//!   engine-side geometry a shader reads through [`VulkanBackend::shading_geometry`]); skinned
-//!   positions go into the slot's host-visible upload arena each refit (bump-allocated, reset
-//!   when the slot is reused) and a skinned BLAS keeps its index buffer, which updates reuse.
+//!   engine-side geometry a shader reads through [`VulkanBackend::shading_geometry`]). A skinned
+//!   BLAS keeps its index buffer, which updates reuse, and a ring of `frames_in_flight + 1`
+//!   pose buffers: each build or refit writes the next one, so the shading reads the last pose
+//!   for as long as no refit replaces it, and no buffer is written while a frame may read it.
 //! - **Retirement.** A freed BLAS (and every buffer a slot outgrew) is queued against the last
 //!   frame that used it and destroyed once the timeline passes that frame.
 //! - **Compaction.** Static BLASes get a compacted-size query after their build; the size is
@@ -99,33 +100,46 @@ struct BlasEntry {
     parts: Vec<AccelStruct>,
     class: BlasClass,
     sizes: BlasSizes,
-    /// Skinned: the index buffer that updates reuse, the triangle and vertex counts.
-    skinned_indices: Option<(GpuBuffer, u32, u32)>,
+    /// Skinned: the index buffer that updates reuse, the poses the shading reads.
+    skinned: Option<SkinnedInputs>,
     /// Static: the vertex and index buffers it was built from (kept for shading lookups).
     static_inputs: Option<(GpuBuffer, GpuBuffer)>,
     /// Device addresses of the positions and indices a shader should read for this BLAS
-    /// (skinned: this frame's pose in the upload arena).
+    /// (skinned: the last pose written to its ring).
     shading: (u64, u64),
     compacted_size: Option<u64>,
+}
+
+/// A skinned BLAS's own inputs. The positions of each build or refit go to the next buffer of
+/// a ring of `frames_in_flight + 1`, owned by the BLAS (not the frame's upload arena): the
+/// shading keeps reading the last pose for as long as no refit replaces it, and a buffer is
+/// written again only after every frame that could read it has completed.
+#[derive(Debug)]
+struct SkinnedInputs {
+    indices: GpuBuffer,
+    triangles: u32,
+    vertices: u32,
+    poses: Vec<GpuBuffer>,
+    /// Ring position of the next write.
+    next: usize,
+}
+
+impl SkinnedInputs {
+    fn buffers(self) -> impl Iterator<Item = GpuBuffer> {
+        std::iter::once(self.indices).chain(self.poses)
+    }
 }
 
 #[derive(Debug)]
 enum Retired {
     /// Frame infrastructure (TLAS).
     Accel(AccelStruct),
-    /// Frame infrastructure (scratch, arenas, instance buffers).
+    /// Frame infrastructure (scratch, instance buffers).
     Buffer(GpuBuffer),
     /// A BLAS (counted against `memory_limit`).
     BlasAccel(AccelStruct),
     /// A BLAS input buffer (counted against `memory_limit`).
     BlasBuffer(GpuBuffer),
-}
-
-/// A host-visible bump arena for build inputs.
-#[derive(Debug, Default)]
-struct Arena {
-    buffer: Option<GpuBuffer>,
-    used: u64,
 }
 
 #[derive(Debug)]
@@ -138,9 +152,11 @@ struct Slot {
     tlas: Option<AccelStruct>,
     tlas_capacity: u32,
     instances: Option<GpuBuffer>,
+    /// Primitive bases of this frame's TLAS records (see `primitive_bases`).
+    bases: Option<GpuBuffer>,
+    bases_address: u64,
     scratch: Option<(GpuBuffer, vk::DeviceAddress, u64)>,
     scratch_used: u64,
-    arena: Arena,
     timestamps: QueryPool,
     /// (op, units, first query) of timestamp pairs recorded this frame.
     timed: Vec<(CostOp, u64, u32)>,
@@ -181,7 +197,8 @@ pub struct VulkanBackend {
     free_slots: Vec<u32>,
     next_gen: u32,
     /// First-part address -> other parts' addresses, for split meshes.
-    split_parts: HashMap<u64, Vec<u64>>,
+    /// (the parts' addresses and first primitives).
+    split_parts: HashMap<u64, Vec<(u64, u32)>>,
     /// First-part address -> blas slot (shading lookups by instance record).
     by_address: HashMap<u64, u32>,
     retiring: VecDeque<(u64, Retired)>,
@@ -194,6 +211,7 @@ pub struct VulkanBackend {
     lost: bool,
     counters: VulkanCounters,
     expanded: Vec<TlasInstance>,
+    bases: Vec<u32>,
 }
 
 fn backend_err(e: VulkanError) -> BackendError {
@@ -249,9 +267,10 @@ impl VulkanBackend {
                 tlas: None,
                 tlas_capacity: 0,
                 instances: None,
+                bases: None,
+                bases_address: 0,
                 scratch: None,
                 scratch_used: 0,
-                arena: Arena::default(),
                 timestamps: QueryPool::new(
                     &ctx,
                     QueryKind::Timestamp,
@@ -289,6 +308,7 @@ impl VulkanBackend {
             lost: false,
             counters: VulkanCounters::default(),
             expanded: Vec::new(),
+            bases: Vec::new(),
         })
     }
 
@@ -313,7 +333,7 @@ impl VulkanBackend {
         self.blases.iter().filter(|b| b.is_some()).count()
     }
 
-    /// Bytes of device memory the backend holds (AS storage, scratch, arenas, TLAS, instances).
+    /// Bytes of device memory the backend holds (AS storage, inputs, scratch, TLAS, instances).
     pub fn allocated_bytes(&self) -> u64 {
         self.allocated
     }
@@ -455,6 +475,96 @@ impl VulkanBackend {
         Some(e)
     }
 
+    /// Device address of the primitive-base table of `tlas` (one `u32` per TLAS record, in
+    /// record order: 0, or for the extra records of a split mesh's parts the part's first
+    /// primitive), or 0 when no record of it is a part. A shader adds the entry of the hit's
+    /// record (`gl_InstanceID`) to the hit's primitive id to get the mesh's primitive id, which
+    /// [`VulkanBackend::shading_geometry`]'s index buffer is indexed by. Valid while the frame
+    /// that built `tlas` is in flight.
+    pub fn primitive_bases(&self, tlas: TlasHandle) -> u64 {
+        self.slots
+            .get(tlas.0 as usize)
+            .map_or(0, |s| s.bases_address)
+    }
+
+    /// A new host-visible buffer holding `positions` (a skinned BLAS's pose).
+    fn pose_buffer(&mut self, positions: &[[f32; 3]]) -> BackendResult<GpuBuffer> {
+        let mut b = self.create_buffer(
+            BufferDesc {
+                name: "skinned pose",
+                size: (positions.len() * 12).max(4) as u64,
+                usage: BUILD_INPUT_USAGE,
+                memory: MemoryKind::Upload,
+            },
+            true,
+        )?;
+        b.write(0, bytemuck::cast_slice(positions));
+        Ok(b)
+    }
+
+    /// Writes a refit's pose into the next buffer of the BLAS's ring (allocating it while the
+    /// ring is short) and points the shading at it; returns its device address.
+    fn write_pose(&mut self, blas: BlasHandle, positions: &[[f32; 3]]) -> BackendResult<u64> {
+        let ring = self.desc.frames_in_flight as usize + 1;
+        let slot = (blas.0 & 0xffff_ffff) as usize;
+        let short = self.blases[slot]
+            .as_ref()
+            .and_then(|e| e.skinned.as_ref())
+            .is_some_and(|sk| sk.poses.len() < ring);
+        let fresh = if short {
+            Some(self.pose_buffer(positions)?)
+        } else {
+            None
+        };
+        let e = self.blases[slot]
+            .as_mut()
+            .ok_or_else(|| BackendError::Other(format!("refit of unknown {blas:?}")))?;
+        let sk = e
+            .skinned
+            .as_mut()
+            .ok_or_else(|| BackendError::Other("refit of a static BLAS".into()))?;
+        let address = match fresh {
+            Some(b) => {
+                let a = b.address;
+                sk.poses.push(b);
+                a
+            }
+            None => {
+                // Written `ring` refits ago: every frame that read it has completed.
+                let b = &mut sk.poses[sk.next % ring];
+                b.write(0, bytemuck::cast_slice(positions));
+                b.address
+            }
+        };
+        sk.next += 1;
+        e.shading.0 = address;
+        Ok(address)
+    }
+
+    /// The positions the shading of the BLAS at `blas_address` reads now, copied back from
+    /// its host-visible buffer (tests check them against the last pose or the mesh).
+    pub fn shading_positions(&self, blas_address: u64) -> Option<Vec<[f32; 3]>> {
+        let slot = *self.by_address.get(&blas_address)?;
+        let e = self.blases.get(slot as usize)?.as_ref()?;
+        let buffers = e
+            .skinned
+            .iter()
+            .flat_map(|sk| sk.poses.iter())
+            .chain(e.static_inputs.iter().map(|(vb, _)| vb));
+        let b = buffers.into_iter().find(|b| b.address == e.shading.0)?;
+        let bytes = b.mapped()?;
+        let n = bytes.len() / 12;
+        Some(
+            bytes[..n * 12]
+                .chunks_exact(12)
+                .map(|c| {
+                    let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().expect("4 bytes"));
+                    [f(0), f(4), f(8)]
+                })
+                .collect(),
+        )
+    }
+
     /// Device addresses of the positions (`[f32; 3]`) and `u32` indices a shader should read
     /// for the BLAS whose (first-part) device address is `blas_address` — the address in a TLAS
     /// instance record. For a skinned BLAS the positions are this frame's pose. Valid while the
@@ -462,36 +572,6 @@ impl VulkanBackend {
     pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
         let slot = *self.by_address.get(&blas_address)?;
         self.blases.get(slot as usize)?.as_ref().map(|e| e.shading)
-    }
-
-    /// Copies `bytes` into the current slot's upload arena; returns its device address.
-    fn upload(&mut self, bytes: &[u8]) -> BackendResult<vk::DeviceAddress> {
-        let need = align_up(bytes.len().max(4) as u64, 16);
-        let s = self.current;
-        let cap = self.slots[s].arena.buffer.as_ref().map_or(0, |b| b.size);
-        if self.slots[s].arena.used + need > cap {
-            let size = (cap * 2).max(need + self.slots[s].arena.used).max(1 << 20);
-            let new = self.create_buffer(
-                BufferDesc {
-                    name: "upload arena",
-                    size,
-                    usage: BUILD_INPUT_USAGE,
-                    memory: MemoryKind::Upload,
-                },
-                false,
-            )?;
-            // Earlier uploads of this frame stay valid in the old buffer, retired with the frame.
-            if let Some(old) = self.slots[s].arena.buffer.replace(new) {
-                self.retire_now(Retired::Buffer(old));
-            }
-            self.slots[s].arena.used = 0;
-        }
-        let arena = &mut self.slots[s].arena;
-        let off = arena.used;
-        let buf = arena.buffer.as_mut().expect("arena allocated above");
-        buf.write(off as usize, bytes);
-        arena.used += need;
-        Ok(buf.address + off)
     }
 
     /// Reserves `bytes` of the current slot's scratch; returns an aligned device address.
@@ -654,7 +734,6 @@ impl VulkanBackend {
         }
         let s = &mut self.slots[slot];
         s.frame = frame;
-        s.arena.used = 0;
         s.scratch_used = 0;
         s.timestamps.reset(&self.ctx);
         s.compact_pool.reset(&self.ctx);
@@ -721,7 +800,7 @@ impl AsBackend for VulkanBackend {
             geoms: Vec<TriangleGeometry>,
             accels: Vec<AccelStruct>,
             scratch: Vec<u64>,
-            indices: Option<(GpuBuffer, u32, u32)>,
+            skinned: Option<SkinnedInputs>,
             inputs: Option<(GpuBuffer, GpuBuffer)>,
             shading: (u64, u64),
         }
@@ -744,17 +823,23 @@ impl AsBackend for VulkanBackend {
                 )?;
                 ib.write(0, bytemuck::cast_slice(idx));
                 let iaddr = ib.address;
-                let (vaddr, indices, inputs) = if b.class == BlasClass::Skinned {
-                    let vaddr = match self.upload(bytemuck::cast_slice(pos)) {
-                        Ok(a) => a,
+                let (vaddr, skinned, inputs) = if b.class == BlasClass::Skinned {
+                    let pose = match self.pose_buffer(pos) {
+                        Ok(pb) => pb,
                         Err(e) => {
                             self.destroy(Retired::BlasBuffer(ib));
                             return Err(e);
                         }
                     };
                     (
-                        vaddr,
-                        Some((ib, b.geometry.triangle_count, b.geometry.vertex_count)),
+                        pose.address,
+                        Some(SkinnedInputs {
+                            indices: ib,
+                            triangles: b.geometry.triangle_count,
+                            vertices: b.geometry.vertex_count,
+                            poses: vec![pose],
+                            next: 1,
+                        }),
                         None,
                     )
                 } else {
@@ -782,7 +867,7 @@ impl AsBackend for VulkanBackend {
                     geoms: Vec::new(),
                     accels: Vec::new(),
                     scratch: Vec::new(),
-                    indices,
+                    skinned,
                     inputs,
                     shading: (vaddr, iaddr),
                 };
@@ -829,8 +914,8 @@ impl AsBackend for VulkanBackend {
                 for a in p.accels {
                     self.destroy(Retired::BlasAccel(a));
                 }
-                if let Some((ib, _, _)) = p.indices {
-                    self.destroy(Retired::BlasBuffer(ib));
+                for b in p.skinned.into_iter().flat_map(SkinnedInputs::buffers) {
+                    self.destroy(Retired::BlasBuffer(b));
                 }
                 if let Some((vb, ib)) = p.inputs {
                     self.destroy(Retired::BlasBuffer(vb));
@@ -874,8 +959,8 @@ impl AsBackend for VulkanBackend {
             CostOp::BuildStatic
         };
         let t = self.timestamp_begin(op, tris);
-        // SAFETY: cmd is recording; inputs live in the slot's arena (or the skinned index
-        // buffers) until the frame completes; scratch ranges are disjoint and aligned.
+        // SAFETY: cmd is recording; inputs are the BLASes' own buffers, retired with them after
+        // the frame completes; scratch ranges are disjoint and aligned.
         unsafe { self.ctx.cmd_build_blases(cmd, &raw_builds) };
         self.timestamp_end(t);
         drop(raw_builds);
@@ -889,8 +974,13 @@ impl AsBackend for VulkanBackend {
             if p.accels.len() > 1 {
                 self.counters.split_meshes += 1;
                 let first = p.accels[0].address;
-                self.split_parts
-                    .insert(first, p.accels[1..].iter().map(|a| a.address).collect());
+                let iaddr = p.shading.1;
+                let parts = p.accels[1..]
+                    .iter()
+                    .zip(&p.geoms[1..])
+                    .map(|(a, g)| (a.address, ((g.index_address - iaddr) / 12) as u32))
+                    .collect();
+                self.split_parts.insert(first, parts);
             }
             let gen = self.next_gen;
             self.next_gen = self.next_gen.wrapping_add(1).max(1);
@@ -900,7 +990,7 @@ impl AsBackend for VulkanBackend {
                 parts: p.accels,
                 class: b.class,
                 sizes: b.sizes,
-                skinned_indices: p.indices,
+                skinned: p.skinned,
                 static_inputs: p.inputs,
                 shading: p.shading,
                 compacted_size: None,
@@ -945,7 +1035,13 @@ impl AsBackend for VulkanBackend {
             let e = self
                 .entry(r.blas)
                 .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
-            let Some((ib, tris, verts)) = &e.skinned_indices else {
+            let Some(SkinnedInputs {
+                indices: ib,
+                triangles: tris,
+                vertices: verts,
+                ..
+            }) = &e.skinned
+            else {
                 return Err(BackendError::Other("refit of a static BLAS".into()));
             };
             let Some(pos) = r.geometry.positions else {
@@ -967,13 +1063,7 @@ impl AsBackend for VulkanBackend {
         self.ensure_scratch(total)?;
         let mut geoms = Vec::with_capacity(plan.len());
         for (r, iaddr, tris, verts, _, _) in &plan {
-            let vaddr = self.upload(bytemuck::cast_slice(
-                r.geometry.positions.expect("checked above"),
-            ))?;
-            let slot = (r.blas.0 & 0xffff_ffff) as usize;
-            if let Some(e) = self.blases[slot].as_mut() {
-                e.shading.0 = vaddr;
-            }
+            let vaddr = self.write_pose(r.blas, r.geometry.positions.expect("checked above"))?;
             geoms.push(TriangleGeometry {
                 vertex_address: vaddr,
                 vertex_stride: 12,
@@ -1050,7 +1140,7 @@ impl AsBackend for VulkanBackend {
                 as_bytes: size,
                 ..sizes
             },
-            skinned_indices: None,
+            skinned: None,
             static_inputs: inputs,
             shading,
             compacted_size: Some(size),
@@ -1069,9 +1159,9 @@ impl AsBackend for VulkanBackend {
             self.retiring
                 .push_back((last_used_frame, Retired::BlasAccel(a)));
         }
-        if let Some((ib, _, _)) = e.skinned_indices {
+        for b in e.skinned.into_iter().flat_map(SkinnedInputs::buffers) {
             self.retiring
-                .push_back((last_used_frame, Retired::BlasBuffer(ib)));
+                .push_back((last_used_frame, Retired::BlasBuffer(b)));
         }
         if let Some((vb, ib)) = e.static_inputs {
             self.retiring
@@ -1087,23 +1177,56 @@ impl AsBackend for VulkanBackend {
         self.entry(blas).map_or(0, |e| e.parts[0].address)
     }
 
+    fn tlas_records(&self) -> Option<usize> {
+        Some(self.expanded.len())
+    }
+
     fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
         let cmd = self.cmd()?;
         let mut records = std::mem::take(&mut self.expanded);
         records.clear();
         records.extend_from_slice(instances);
+        let mut bases = std::mem::take(&mut self.bases);
+        bases.clear();
         if !self.split_parts.is_empty() {
             for r in instances {
                 if let Some(parts) = self.split_parts.get(&r.blas_address) {
-                    records.extend(parts.iter().map(|&a| TlasInstance {
+                    if bases.is_empty() {
+                        bases.resize(instances.len(), 0);
+                    }
+                    records.extend(parts.iter().map(|&(a, _)| TlasInstance {
                         blas_address: a,
                         ..*r
                     }));
+                    bases.extend(parts.iter().map(|&(_, first)| first));
                 }
             }
         }
-        let n = records.len().max(1) as u32;
         let s = self.current;
+        self.slots[s].bases_address = 0;
+        if !bases.is_empty() {
+            let bytes = (bases.len() * 4) as u64;
+            if self.slots[s].bases.as_ref().is_none_or(|b| b.size < bytes) {
+                let buf = self.create_buffer(
+                    BufferDesc {
+                        name: "TLAS primitive bases",
+                        size: bytes.next_power_of_two().max(4096),
+                        usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                            | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+                        memory: MemoryKind::Upload,
+                    },
+                    false,
+                )?;
+                if let Some(old) = self.slots[s].bases.replace(buf) {
+                    self.retire_now(Retired::Buffer(old));
+                }
+            }
+            let b = self.slots[s].bases.as_mut().expect("allocated above");
+            b.write(0, bytemuck::cast_slice(&bases));
+            self.slots[s].bases_address = b.address;
+        }
+        self.bases = bases;
+        let n = records.len().max(1) as u32;
         let bytes = u64::from(n) * 64;
         if self.slots[s]
             .instances
@@ -1225,9 +1348,12 @@ impl Drop for VulkanBackend {
         let mut objects: Vec<Retired> = self.retiring.drain(..).map(|(_, r)| r).collect();
         for e in self.blases.drain(..).flatten() {
             objects.extend(e.parts.into_iter().map(Retired::BlasAccel));
-            if let Some((ib, _, _)) = e.skinned_indices {
-                objects.push(Retired::BlasBuffer(ib));
-            }
+            objects.extend(
+                e.skinned
+                    .into_iter()
+                    .flat_map(SkinnedInputs::buffers)
+                    .map(Retired::BlasBuffer),
+            );
             if let Some((vb, ib)) = e.static_inputs {
                 objects.push(Retired::BlasBuffer(vb));
                 objects.push(Retired::BlasBuffer(ib));
@@ -1236,8 +1362,8 @@ impl Drop for VulkanBackend {
         for s in std::mem::take(&mut self.slots) {
             objects.extend(s.tlas.map(Retired::Accel));
             objects.extend(s.instances.map(Retired::Buffer));
+            objects.extend(s.bases.map(Retired::Buffer));
             objects.extend(s.scratch.map(|(b, _, _)| Retired::Buffer(b)));
-            objects.extend(s.arena.buffer.map(Retired::Buffer));
             s.timestamps.destroy(&self.ctx);
             s.compact_pool.destroy(&self.ctx);
         }
