@@ -190,6 +190,10 @@ pub trait AsBackend: Send {
     }
     /// Submits frame `frame`.
     fn end_frame(&mut self, frame: u64) -> BackendResult<()>;
+    /// Discards the frame being recorded after a failure: nothing recorded since
+    /// `begin_frame` is ever submitted, its queries are forgotten, and the next `begin_frame`
+    /// (the same frame number included) starts clean. Objects created in it stay until freed.
+    fn abort_frame(&mut self) {}
     /// GPU timings measured since the last call (from completed frames).
     fn take_measurements(&mut self) -> Vec<Measurement>;
 }

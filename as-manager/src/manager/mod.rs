@@ -3,6 +3,7 @@
 mod apply;
 mod baseline;
 mod far;
+mod journal;
 mod managed;
 mod registrar;
 mod schedule;
@@ -234,6 +235,8 @@ pub struct AsManager<B: AsBackend> {
     last_frame: Option<u64>,
     frame: u64,
     stats: FrameStats,
+    /// What this frame changed that a failure must undo.
+    journal: journal::FrameJournal,
 }
 
 impl<B: AsBackend> AsManager<B> {
@@ -275,6 +278,7 @@ impl<B: AsBackend> AsManager<B> {
             last_frame: None,
             frame: 0,
             stats: FrameStats::default(),
+            journal: journal::FrameJournal::default(),
         })
     }
 
@@ -502,7 +506,6 @@ impl<B: AsBackend> AsManager<B> {
             return Err(AsError::InvalidTransform);
         }
         let _span = tracing::debug_span!("update", frame).entered();
-        self.last_frame = Some(frame);
         self.frame = frame;
         // Last frame's TLAS and refit amounts predict this frame's (the GPU budget sets them
         // aside before admitting builds).
@@ -516,30 +519,18 @@ impl<B: AsBackend> AsManager<B> {
         self.compaction_estimated_ms = 0.0;
         self.gpu_reserved_ms = 0.0;
         self.backend.begin_frame(frame)?;
-        self.drain_retiring();
-        self.refine_costs();
-        self.recover_oom_cap();
-        {
-            let _s = tracing::trace_span!("apply").entered();
-            self.apply_commands();
-        }
-        self.cam_pos.clear();
-        self.cam_fwd.clear();
-        for c in input.cameras {
-            self.cam_pos.push(c.position);
-            self.cam_fwd.push(c.forward);
-        }
-        match self.config.policy {
-            PolicyKind::Managed => self.managed_frame()?,
-            PolicyKind::Naive => self.naive_frame()?,
-            PolicyKind::SeedR1R2 => self.seed_frame()?,
-        }
-        let tlas = {
-            let _s = tracing::trace_span!("record").entered();
-            let tlas = self.backend.build_tlas(&self.records)?;
-            self.backend.end_frame(frame)?;
-            tlas
+        self.journal.clear();
+        let tlas = match self.frame_body(input) {
+            Ok(tlas) => tlas,
+            Err(e) => {
+                tracing::warn!(frame, error = %e, "frame failed; rolled back");
+                self.rollback_frame();
+                return Err(e);
+            }
         };
+        // Only a submitted frame counts: a failed frame's number may be retried.
+        self.last_frame = Some(frame);
+        self.commit_frame();
         self.stats.instances = self.live_instances;
         // The real TLAS: a backend may add records (split meshes' parts).
         self.stats.tlas_instances =
@@ -560,6 +551,34 @@ impl<B: AsBackend> AsManager<B> {
             instances: &self.records,
             stats: &self.stats,
         })
+    }
+
+    /// The frame between `begin_frame` and a successful `end_frame`. An error leaves the frame
+    /// to `rollback_frame` (see `journal.rs`).
+    fn frame_body(&mut self, input: FrameInput<'_>) -> Result<TlasHandle> {
+        let frame = input.frame;
+        self.drain_retiring();
+        self.refine_costs();
+        self.recover_oom_cap();
+        {
+            let _s = tracing::trace_span!("apply").entered();
+            self.apply_commands();
+        }
+        self.cam_pos.clear();
+        self.cam_fwd.clear();
+        for c in input.cameras {
+            self.cam_pos.push(c.position);
+            self.cam_fwd.push(c.forward);
+        }
+        match self.config.policy {
+            PolicyKind::Managed => self.managed_frame()?,
+            PolicyKind::Naive => self.naive_frame()?,
+            PolicyKind::SeedR1R2 => self.seed_frame()?,
+        }
+        let _s = tracing::trace_span!("record").entered();
+        let tlas = self.backend.build_tlas(&self.records)?;
+        self.backend.end_frame(frame)?;
+        Ok(tlas)
     }
 
     /// After an OOM the budget is capped; every 300 quiet frames the cap grows by 10% until

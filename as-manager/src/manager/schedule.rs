@@ -3,6 +3,7 @@
 
 use std::sync::Arc;
 
+use super::journal::{CompactUndo, RefitUndo};
 use super::state::{EntryState, NONE};
 use super::AsManager;
 use crate::backend::{
@@ -358,6 +359,7 @@ impl<B: AsBackend> AsManager<B> {
                     }
                     self.live_bytes += s.as_bytes;
                     self.built_count += 1;
+                    self.journal.built.push((a.slot, h));
                     tracing::trace!(slot = a.slot, bytes = s.as_bytes, "blas built");
                 }
                 self.stats.builds = admitted.len() as u32;
@@ -436,6 +438,14 @@ impl<B: AsBackend> AsManager<B> {
             }
             prims += tris;
             let e = &mut self.t.entries[s as usize];
+            self.journal.refitted.push(RefitUndo {
+                slot: s,
+                generation: e.generation,
+                pose_version: e.pose_version,
+                refit_frame: e.refit_frame,
+                quality: e.quality.clone(),
+                last_ratio: e.last_ratio,
+            });
             e.last_ratio = if rebuild { 1.0 } else { ratio };
             self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(e.last_ratio);
             jobs.push((s, geometry, pose, rebuild, mesh.desc.opaque));
@@ -495,9 +505,13 @@ impl<B: AsBackend> AsManager<B> {
             b.max_gpu_ms as f64 - self.stats.build_estimated_ms as f64 - self.gpu_reserved_ms;
         let (max_n, max_ms) = (b.max_compactions, (b.max_compaction_ms as f64).min(left));
         let mut pending = std::mem::take(&mut self.compact_pending);
+        let mut failure: Option<BackendError> = None;
         let mut done = 0u32;
         let mut ms = 0.0;
         pending.retain(|&key| {
+            if failure.is_some() {
+                return true;
+            }
             if !self.t.built(key) {
                 return false;
             }
@@ -522,7 +536,13 @@ impl<B: AsBackend> AsManager<B> {
                 Ok(new) => {
                     let frame = self.frame;
                     let e = &mut self.t.entries[key.0 as usize];
-                    self.backend.free_blas(h, frame);
+                    // The source is freed when the frame commits (a failed frame keeps it).
+                    self.journal.compacted.push(CompactUndo {
+                        slot: key.0,
+                        old: h,
+                        old_bytes: e.bytes,
+                        new,
+                    });
                     self.retiring.push_back((frame, e.bytes));
                     self.retiring_bytes += e.bytes;
                     self.live_bytes = self.live_bytes - e.bytes + size;
@@ -533,9 +553,17 @@ impl<B: AsBackend> AsManager<B> {
                     ms += est;
                     false
                 }
-                Err(_) => true,
+                Err(BackendError::OutOfDeviceMemory) => true,
+                Err(e) => {
+                    failure.get_or_insert(e);
+                    true
+                }
             }
         });
+        if let Some(e) = failure {
+            self.compact_pending = pending;
+            return Err(e.into());
+        }
         self.stats.compactions = done;
         self.compaction_estimated_ms = ms;
         self.compact_pending = pending;

@@ -212,6 +212,23 @@ pub struct VulkanBackend {
     counters: VulkanCounters,
     expanded: Vec<TlasInstance>,
     bases: Vec<u32>,
+    /// Faults armed by `inject_fault`, each striking once.
+    faults: Vec<(FaultPoint, BackendError)>,
+}
+
+/// Where a fault armed by [`VulkanBackend::inject_fault`] strikes: at the start of that call.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FaultPoint {
+    /// `build_blases`.
+    BuildBlases,
+    /// `refit_blases`.
+    RefitBlases,
+    /// `compact_blas`.
+    CompactBlas,
+    /// `build_tlas` (after the frame's builds were recorded).
+    BuildTlas,
+    /// `end_frame` (before the submission).
+    EndFrame,
 }
 
 fn backend_err(e: VulkanError) -> BackendError {
@@ -309,6 +326,7 @@ impl VulkanBackend {
             counters: VulkanCounters::default(),
             expanded: Vec::new(),
             bases: Vec::new(),
+            faults: Vec::new(),
         })
     }
 
@@ -485,6 +503,24 @@ impl VulkanBackend {
         self.slots
             .get(tlas.0 as usize)
             .map_or(0, |s| s.bases_address)
+    }
+
+    /// Arms a fault: the next call at `at` fails with `error` and does nothing else
+    /// (`DeviceLost` also marks the device lost, as a real loss would). For tests of the error
+    /// paths on a real device.
+    pub fn inject_fault(&mut self, at: FaultPoint, error: BackendError) {
+        self.faults.push((at, error));
+    }
+
+    fn fault(&mut self, at: FaultPoint) -> BackendResult<()> {
+        match self.faults.iter().position(|(p, _)| *p == at) {
+            Some(i) => {
+                let (_, e) = self.faults.remove(i);
+                self.lost |= e == BackendError::DeviceLost;
+                Err(e)
+            }
+            None => Ok(()),
+        }
     }
 
     /// A new host-visible buffer holding `positions` (a skinned BLAS's pose).
@@ -792,6 +828,7 @@ impl AsBackend for VulkanBackend {
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
+        self.fault(FaultPoint::BuildBlases)?;
         if builds.is_empty() {
             return Ok(Vec::new());
         }
@@ -1024,6 +1061,7 @@ impl AsBackend for VulkanBackend {
     }
 
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
+        self.fault(FaultPoint::RefitBlases)?;
         if refits.is_empty() {
             return Ok(());
         }
@@ -1108,6 +1146,7 @@ impl AsBackend for VulkanBackend {
     }
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
+        self.fault(FaultPoint::CompactBlas)?;
         let cmd = self.cmd()?;
         let e = self
             .entry(blas)
@@ -1182,6 +1221,7 @@ impl AsBackend for VulkanBackend {
     }
 
     fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+        self.fault(FaultPoint::BuildTlas)?;
         let cmd = self.cmd()?;
         let mut records = std::mem::take(&mut self.expanded);
         records.clear();
@@ -1295,6 +1335,7 @@ impl AsBackend for VulkanBackend {
     }
 
     fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
+        self.fault(FaultPoint::EndFrame)?;
         let cmd = self.cmd()?;
         let value = frame + 1;
         let r = (|| {
@@ -1329,6 +1370,15 @@ impl AsBackend for VulkanBackend {
                 Err(e)
             }
         }
+    }
+
+    fn abort_frame(&mut self) {
+        let s = &mut self.slots[self.current];
+        // The command buffer is reset by the next begin_frame of this slot; the queries
+        // recorded into it were never written, so nothing may wait on them.
+        s.recording = false;
+        s.timed.clear();
+        s.compact_queries.clear();
     }
 
     fn take_measurements(&mut self) -> Vec<Measurement> {

@@ -1,0 +1,117 @@
+//! The frame journal: what a frame changed that a failed frame must undo.
+//!
+//! A frame that fails after `begin_frame` (a backend error other than out-of-memory, which the
+//! scheduler absorbs) is never submitted. `rollback` returns the manager to a state a retry of
+//! the same frame number starts from:
+//! - BLASes built in the frame are freed and their entries go back to the queue;
+//! - compactions are undone (the source stays, the copy is freed; the source is only freed
+//!   when a frame commits);
+//! - refit bookkeeping (pose version, quality) goes back, so the retry refits again;
+//! - the backend discards what it recorded (`AsBackend::abort_frame`).
+//!
+//! Decisions that need no GPU work stand: registry commands applied, entries released by
+//! eviction (their BLASes retire after the frames that used them) and residency marks; a retry
+//! makes the same decisions again.
+
+use super::state::EntryState;
+use super::AsManager;
+use crate::backend::{AsBackend, BlasHandle};
+use crate::quality::RefitQuality;
+
+/// A refit's bookkeeping before the frame.
+#[derive(Debug)]
+pub(crate) struct RefitUndo {
+    pub slot: u32,
+    pub generation: u32,
+    pub pose_version: u64,
+    pub refit_frame: u64,
+    pub quality: Option<RefitQuality>,
+    pub last_ratio: f32,
+}
+
+/// A compaction: the source (freed at commit) and the copy (freed on rollback).
+#[derive(Debug)]
+pub(crate) struct CompactUndo {
+    pub slot: u32,
+    pub old: BlasHandle,
+    pub old_bytes: u64,
+    pub new: BlasHandle,
+}
+
+/// This frame's undoable changes.
+#[derive(Debug, Default)]
+pub(crate) struct FrameJournal {
+    /// (entry slot, handle) of the BLASes built.
+    pub built: Vec<(u32, BlasHandle)>,
+    pub refitted: Vec<RefitUndo>,
+    pub compacted: Vec<CompactUndo>,
+}
+
+impl FrameJournal {
+    pub fn clear(&mut self) {
+        self.built.clear();
+        self.refitted.clear();
+        self.compacted.clear();
+    }
+}
+
+impl<B: AsBackend> AsManager<B> {
+    /// The frame was submitted: free the compaction sources.
+    pub(crate) fn commit_frame(&mut self) {
+        let frame = self.frame;
+        for c in std::mem::take(&mut self.journal.compacted) {
+            self.backend.free_blas(c.old, frame);
+        }
+        self.journal.clear();
+    }
+
+    /// The frame failed: undo it (see the module docs), newest change first.
+    pub(crate) fn rollback_frame(&mut self) {
+        let frame = self.frame;
+        let mut j = std::mem::take(&mut self.journal);
+        for c in j.compacted.drain(..).rev() {
+            let e = &mut self.t.entries[c.slot as usize];
+            if e.live && e.handle == Some(c.new) {
+                self.live_bytes = self.live_bytes - e.bytes + c.old_bytes;
+                e.bytes = c.old_bytes;
+                e.handle = Some(c.old);
+                e.needs_compaction = true;
+                self.compact_pending.push((c.slot, e.generation));
+            }
+            // The manager counted the source as retiring: it is live again.
+            if let Some(i) = self
+                .retiring
+                .iter()
+                .rposition(|&(f, b)| f == frame && b == c.old_bytes)
+            {
+                self.retiring.remove(i);
+                self.retiring_bytes -= c.old_bytes;
+            }
+            self.backend.free_blas(c.new, frame);
+        }
+        for r in j.refitted.drain(..).rev() {
+            let e = &mut self.t.entries[r.slot as usize];
+            if e.live && e.generation == r.generation {
+                e.pose_version = r.pose_version;
+                e.refit_frame = r.refit_frame;
+                e.quality = r.quality;
+                e.last_ratio = r.last_ratio;
+            }
+        }
+        for (slot, h) in j.built.drain(..).rev() {
+            let e = &mut self.t.entries[slot as usize];
+            if e.live && e.handle == Some(h) {
+                e.handle = None;
+                e.state = EntryState::Queued;
+                e.needs_compaction = false;
+                self.live_bytes -= e.bytes;
+                self.built_count -= 1;
+                e.bytes = 0;
+            }
+            // Never submitted: no frame used it.
+            self.backend.free_blas(h, frame);
+        }
+        self.journal = j;
+        self.backend.abort_frame();
+    }
+}
