@@ -150,8 +150,10 @@ fn print_table(r: &RunReport) {
             p.over_budget_frames
         );
     }
-    println!("hit mismatch by distance band (share of all pixels):");
-    for p in &s.policies {
+    if s.evaluated_frames > 0 {
+        println!("hit mismatch by distance band (share of all pixels):");
+    }
+    for p in s.policies.iter().filter(|_| s.evaluated_frames > 0) {
         let bands: Vec<String> = p
             .mismatch_by_band
             .iter()

@@ -25,7 +25,7 @@ use glam::{Affine3A, Vec3};
 use rtstream_as_manager::backend::AsBackend;
 use rtstream_as_manager::record::TlasInstance;
 use rtstream_as_manager::{
-    AsManager, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshDesc, MeshKind,
+    AsManager, InstanceDesc, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind,
 };
 use rtstream_renderer::InstanceShading;
 use rtstream_streaming::{
@@ -63,6 +63,8 @@ pub struct BridgeStats {
     pub rejected: usize,
     /// LOD geometry swaps (data in or out).
     pub lod_swaps: usize,
+    /// Meshes unregistered because nothing of them was resident or placed any more.
+    pub meshes_released: usize,
 }
 
 #[derive(Debug)]
@@ -74,6 +76,8 @@ struct MeshSlot {
     /// Counts per LOD (for eviction back to counts).
     counts: Vec<(u32, u32)>,
     color: [f32; 4],
+    /// Instances of it placed in the manager.
+    placed: u32,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -126,11 +130,22 @@ pub fn mesh_color(mesh: MeshId, name: &str) -> [f32; 4] {
     [c[0], c[1], c[2], 1.0]
 }
 
-fn data_of(g: &rtstream_streaming::LodGeometry) -> LodGeometry {
-    LodGeometry::Data(Arc::new(GeometryData {
-        positions: g.positions.clone(),
-        indices: g.indices.clone(),
-    }))
+/// A resident streamed LOD as the manager's mesh data: the same `Arc`, no copy, so CPU
+/// geometry is counted once (in streaming's budget) and freed when both let go.
+#[derive(Debug)]
+struct StreamedLod(Arc<rtstream_streaming::LodGeometry>);
+
+impl MeshData for StreamedLod {
+    fn positions(&self) -> &[[f32; 3]] {
+        &self.0.positions
+    }
+    fn indices(&self) -> &[u32] {
+        &self.0.indices
+    }
+}
+
+fn data_of(g: &Arc<rtstream_streaming::LodGeometry>) -> LodGeometry {
+    LodGeometry::Data(Arc::new(StreamedLod(Arc::clone(g))))
 }
 
 impl WorldBridge {
@@ -189,7 +204,7 @@ impl WorldBridge {
         &mut self,
         m: &AsManager<B>,
         node: ProxyId,
-        g: &rtstream_streaming::LodGeometry,
+        g: &Arc<rtstream_streaming::LodGeometry>,
     ) {
         let Some(Some(group)) = self.groups.get(node.0 as usize).copied() else {
             return; // no proxy tree registered: ignore
@@ -239,7 +254,7 @@ impl WorldBridge {
         self
     }
 
-    fn geometry_of(&self, g: &rtstream_streaming::LodGeometry) -> LodGeometry {
+    fn geometry_of(&self, g: &Arc<rtstream_streaming::LodGeometry>) -> LodGeometry {
         if self.counts_only {
             LodGeometry::Counts {
                 vertices: g.positions.len() as u32,
@@ -333,12 +348,16 @@ impl WorldBridge {
                 return;
             }
             slot.resident[lod] = Some(g.clone());
+            // The LOD's real triangle count and error replace the guesses made before it
+            // was seen (a world without a manifest).
+            slot.counts[lod] = (g.positions.len() as u32, g.triangle_count() as u32);
             let id = slot.id;
             self.stats.lod_swaps += 1;
-            if self.counts_only {
-                return;
-            }
-            if let Err(e) = m.set_lod_geometry(id, lod, data_of(g)) {
+            let desc = LodDesc {
+                geometry: self.geometry_of(g),
+                geometric_error: error,
+            };
+            if let Err(e) = m.set_lod(id, lod, desc) {
                 self.reject("LOD geometry", e);
             }
             return;
@@ -416,6 +435,7 @@ impl WorldBridge {
                         resident,
                         counts,
                         color: mesh_color(mesh, &name),
+                        placed: 0,
                     },
                 );
             }
@@ -434,6 +454,9 @@ impl WorldBridge {
         let (vertices, triangles) = slot.counts[lod];
         let id = slot.id;
         self.stats.lod_swaps += 1;
+        if self.release_if_unused(m, mesh) {
+            return;
+        }
         if self.counts_only {
             return;
         }
@@ -478,6 +501,9 @@ impl WorldBridge {
         let (color, skinned) = (mesh.color, mesh.skinned);
         match m.add_instance(desc) {
             Ok(id) => {
+                if let Some(ms) = self.meshes.get_mut(&inst.mesh) {
+                    ms.placed += 1;
+                }
                 if self.slots.len() <= slot as usize {
                     self.slots.resize(slot as usize + 1, None);
                 }
@@ -516,6 +542,38 @@ impl WorldBridge {
         }
         self.slots[p.slot as usize] = None;
         self.free_slots.push(p.slot);
+        if let Some(ms) = self.meshes.get_mut(&p.mesh) {
+            ms.placed = ms.placed.saturating_sub(1);
+        }
+        self.release_if_unused(m, p.mesh);
+    }
+
+    /// Unregisters a mesh from the manager once no LOD of it is resident and no instance of
+    /// it is placed (its BLASes go with it); the next `MeshLodLoaded` registers it again.
+    fn release_if_unused<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId) -> bool {
+        let unused = self
+            .meshes
+            .get(&mesh)
+            .is_some_and(|s| s.placed == 0 && s.resident.iter().all(Option::is_none));
+        if !unused {
+            return false;
+        }
+        let slot = self.meshes.remove(&mesh).expect("checked above");
+        if let Err(e) = m.unregister_mesh(slot.id) {
+            self.reject("mesh removal", e);
+        }
+        self.stats.meshes_released += 1;
+        true
+    }
+
+    /// The manager's id of a streamed mesh, while registered.
+    pub fn manager_mesh(&self, mesh: MeshId) -> Option<rtstream_as_manager::MeshId> {
+        self.meshes.get(&mesh).map(|s| s.id)
+    }
+
+    /// Meshes registered in the manager now.
+    pub fn registered_meshes(&self) -> usize {
+        self.meshes.len()
     }
 
     /// Sends this frame's poses of skinned instances to the manager (see the module docs).

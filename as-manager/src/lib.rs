@@ -73,4 +73,4 @@ pub use manager::{
     AsManager, Camera, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc,
     Registrar,
 };
-pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind, MAX_LODS};
+pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind, MAX_LODS};

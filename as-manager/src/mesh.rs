@@ -13,11 +13,30 @@ pub struct GeometryData {
     pub indices: Vec<u32>,
 }
 
+/// Vertex and index data the manager reads (to build, refit and measure): [`GeometryData`],
+/// or the engine's own type, shared behind an `Arc` without a copy (the facade's bridge hands
+/// streaming's resident LODs over this way).
+pub trait MeshData: Send + Sync + std::fmt::Debug {
+    /// Vertex positions in mesh space.
+    fn positions(&self) -> &[[f32; 3]];
+    /// Triangle list, 3 indices per triangle.
+    fn indices(&self) -> &[u32];
+}
+
+impl MeshData for GeometryData {
+    fn positions(&self) -> &[[f32; 3]] {
+        &self.positions
+    }
+    fn indices(&self) -> &[u32] {
+        &self.indices
+    }
+}
+
 /// The geometry of one LOD: real data, or only its counts (the model backend needs no data).
 #[derive(Debug, Clone)]
 pub enum LodGeometry {
     /// Vertex and index data, shared (`Arc`) with the engine.
-    Data(Arc<GeometryData>),
+    Data(Arc<dyn MeshData>),
     /// Counts only: enough for sizes, costs and policy, not for a real GPU build.
     Counts {
         /// Vertex count.
@@ -31,7 +50,7 @@ impl LodGeometry {
     /// Number of triangles.
     pub fn triangles(&self) -> u32 {
         match self {
-            LodGeometry::Data(d) => (d.indices.len() / 3) as u32,
+            LodGeometry::Data(d) => (d.indices().len() / 3) as u32,
             LodGeometry::Counts { triangles, .. } => *triangles,
         }
     }
@@ -39,15 +58,15 @@ impl LodGeometry {
     /// Number of vertices.
     pub fn vertices(&self) -> u32 {
         match self {
-            LodGeometry::Data(d) => d.positions.len() as u32,
+            LodGeometry::Data(d) => d.positions().len() as u32,
             LodGeometry::Counts { vertices, .. } => *vertices,
         }
     }
 
     /// The data, if registered with data.
-    pub fn data(&self) -> Option<&Arc<GeometryData>> {
+    pub fn data(&self) -> Option<&dyn MeshData> {
         match self {
-            LodGeometry::Data(d) => Some(d),
+            LodGeometry::Data(d) => Some(&**d),
             LodGeometry::Counts { .. } => None,
         }
     }
@@ -145,14 +164,15 @@ impl MeshDesc {
                 return Err(bad(format!("LOD {i}: no triangles")));
             }
             if let LodGeometry::Data(d) = &lod.geometry {
-                if d.indices.len() % 3 != 0 {
+                let (positions, indices) = (d.positions(), d.indices());
+                if indices.len() % 3 != 0 {
                     return Err(bad(format!("LOD {i}: index count not a multiple of 3")));
                 }
-                let n = d.positions.len() as u32;
-                if d.indices.iter().any(|&ix| ix >= n) {
+                let n = positions.len() as u32;
+                if indices.iter().any(|&ix| ix >= n) {
                     return Err(bad(format!("LOD {i}: index out of range")));
                 }
-                if !d.positions.iter().flatten().all(|v| v.is_finite()) {
+                if !positions.iter().flatten().all(|v| v.is_finite()) {
                     return Err(bad(format!("LOD {i}: non-finite position")));
                 }
             }

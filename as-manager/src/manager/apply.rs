@@ -5,10 +5,10 @@ use std::sync::Arc;
 use glam::Affine3A;
 
 use super::registrar::{Command, InstanceDesc};
-use super::state::{Hot, InstanceState, MeshState, NONE};
+use super::state::{EntryState, Hot, InstanceState, MeshState, NONE};
 use super::AsManager;
 use crate::backend::AsBackend;
-use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
+use crate::mesh::{LodGeometry, MeshDesc, MeshKind, MAX_LODS};
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use crate::{InstanceId, MeshId};
 
@@ -43,12 +43,8 @@ impl<B: AsBackend> AsManager<B> {
                         dead_instances.push(id.index);
                     }
                 }
-                Command::SetLodGeometry(id, lod, geometry) => {
-                    if let Some(Some(m)) = self.t.meshes.get_mut(id.index as usize) {
-                        if let Some(l) = Arc::make_mut(&mut m.desc).lods.get_mut(lod) {
-                            l.geometry = geometry;
-                        }
-                    }
+                Command::SetLodGeometry(id, lod, geometry, error) => {
+                    self.set_lod_now(id.index, lod, geometry, error);
                 }
                 Command::RegisterGroup(id, desc) => self.far.register(id, desc),
                 Command::SetGroupProxy(id, proxy) => {
@@ -93,6 +89,9 @@ impl<B: AsBackend> AsManager<B> {
             errors[i] = l.geometric_error;
             lod_tris[i] = l.geometry.triangles();
         }
+        if self.t.meshes[slot].is_none() {
+            self.live_meshes += 1;
+        }
         self.t.meshes[slot] = Some(MeshState {
             kind: desc.kind,
             nlods: desc.lods.len() as u8,
@@ -105,6 +104,42 @@ impl<B: AsBackend> AsManager<B> {
             instances: Vec::new(),
             proxy: false,
         });
+    }
+
+    /// A LOD's new geometry (and error): the estimates follow it. An unbuilt entry of the LOD
+    /// takes the new triangle count; a built one keeps what it was built from.
+    fn set_lod_now(&mut self, mesh: u32, lod: usize, geometry: LodGeometry, error: Option<f32>) {
+        let Some(Some(m)) = self.t.meshes.get_mut(mesh as usize) else {
+            return;
+        };
+        if lod >= m.nlods as usize {
+            return;
+        }
+        let tris = geometry.triangles();
+        let d = Arc::make_mut(&mut m.desc);
+        d.lods[lod].geometry = geometry;
+        m.lod_tris[lod] = tris;
+        if let Some(e) = error {
+            d.lods[lod].geometric_error = e;
+            m.errors[lod] = e;
+            // Keep the chain non-decreasing around the new value.
+            let n = m.nlods as usize;
+            for l in (0..lod).rev() {
+                m.errors[l] = m.errors[l].min(m.errors[l + 1]);
+                d.lods[l].geometric_error = m.errors[l];
+            }
+            for l in lod + 1..n {
+                m.errors[l] = m.errors[l].max(m.errors[l - 1]);
+                d.lods[l].geometric_error = m.errors[l];
+            }
+        }
+        let slot = m.lod_entry[lod];
+        if slot != NONE {
+            let e = &mut self.t.entries[slot as usize];
+            if e.state != EntryState::Built {
+                e.triangles = tris;
+            }
+        }
     }
 
     /// Removes the mesh's instances and BLASes; returns the instance slots removed.
@@ -129,6 +164,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         self.floors.retain(|&m| m != id.index);
         self.t.meshes[id.index as usize] = None;
+        self.live_meshes -= 1;
         insts
     }
 

@@ -60,6 +60,8 @@ pub struct FrameStats {
     pub commands_applied: u32,
     /// Live instances.
     pub instances: u32,
+    /// Registered meshes (far-field proxies included).
+    pub meshes: u32,
     /// Instances examined this frame (near the cameras for `Managed`).
     pub instances_visited: u32,
     /// Instances in the TLAS.
@@ -232,6 +234,7 @@ pub struct AsManager<B: AsBackend> {
     oom_frame: u64,
     floors: Vec<u32>,
     live_instances: u32,
+    live_meshes: u32,
     last_frame: Option<u64>,
     frame: u64,
     stats: FrameStats,
@@ -275,6 +278,7 @@ impl<B: AsBackend> AsManager<B> {
             oom_frame: 0,
             floors: Vec::new(),
             live_instances: 0,
+            live_meshes: 0,
             last_frame: None,
             frame: 0,
             stats: FrameStats::default(),
@@ -300,6 +304,25 @@ impl<B: AsBackend> AsManager<B> {
         geometry: crate::LodGeometry,
     ) -> Result<()> {
         self.registrar.set_lod_geometry(mesh, lod, geometry)
+    }
+
+    /// See [`Registrar::set_lod`].
+    pub fn set_lod(&self, mesh: crate::MeshId, lod: usize, desc: crate::LodDesc) -> Result<()> {
+        self.registrar.set_lod(mesh, lod, desc)
+    }
+
+    /// Triangles and geometric error of each LOD of `mesh` as the policy uses them now (once
+    /// the registration was applied by an `update`).
+    pub fn mesh_lods(&self, mesh: crate::MeshId) -> Option<Vec<(u32, f32)>> {
+        let m = self.t.meshes.get(mesh.index as usize)?.as_ref()?;
+        let n = m.nlods as usize;
+        Some(
+            m.lod_tris[..n]
+                .iter()
+                .copied()
+                .zip(m.errors[..n].iter().copied())
+                .collect(),
+        )
     }
 
     /// See [`Registrar::unregister_mesh`].
@@ -532,6 +555,7 @@ impl<B: AsBackend> AsManager<B> {
         self.last_frame = Some(frame);
         self.commit_frame();
         self.stats.instances = self.live_instances;
+        self.stats.meshes = self.live_meshes;
         // The real TLAS: a backend may add records (split meshes' parts).
         self.stats.tlas_instances =
             self.backend.tlas_records().unwrap_or(self.records.len()) as u32;

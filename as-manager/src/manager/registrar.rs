@@ -69,7 +69,8 @@ pub(crate) enum Command {
     SetTransform(InstanceId, Affine3A),
     RemoveInstance(InstanceId),
     SetPose(InstanceId, Option<Arc<Vec<[f32; 3]>>>),
-    SetLodGeometry(MeshId, usize, LodGeometry),
+    /// (mesh, LOD, geometry, new geometric error if any)
+    SetLodGeometry(MeshId, usize, LodGeometry, Option<f32>),
     RegisterGroup(GroupId, GroupDesc),
     SetGroupProxy(GroupId, Option<(MeshId, f32)>),
     UnregisterGroup(GroupId),
@@ -122,7 +123,9 @@ impl Registrar {
     /// that [needs geometry](crate::backend::AsBackend::needs_geometry) only gets builds of LODs
     /// with data (others fall back to the nearest LOD with data); a BLAS already built from an
     /// evicted LOD stays until released normally (it holds no reference to the CPU data).
-    /// The geometric error stays as registered.
+    /// The geometric error stays as registered ([`Registrar::set_lod`] replaces it too). The
+    /// triangle count the policy estimates sizes and costs from follows the new geometry: a
+    /// chain registered with guessed counts becomes exact as its LODs arrive.
     ///
     /// ```
     /// use rtstream_as_manager::{synth::{counts_chain, grid_geometry}, *};
@@ -132,6 +135,39 @@ impl Registrar {
     /// assert!(r.set_lod_geometry(mesh, 3, LodGeometry::Data(grid_geometry(8, 1.0))).is_err());
     /// ```
     pub fn set_lod_geometry(&self, mesh: MeshId, lod: usize, geometry: LodGeometry) -> Result<()> {
+        self.set_lod_inner(mesh, lod, geometry, None)
+    }
+
+    /// Like [`Registrar::set_lod_geometry`], and replaces the LOD's geometric error (a guess
+    /// made before the LOD was seen): the chain's errors are kept non-decreasing around it.
+    ///
+    /// ```
+    /// use rtstream_as_manager::{synth::{counts_chain, grid_geometry}, *};
+    /// let r = Registrar::default();
+    /// let mesh = r.register_mesh(MeshDesc::new("m", MeshKind::Static, 1.0, counts_chain(512, 3, 0.01))).unwrap();
+    /// let lod = LodDesc { geometry: LodGeometry::Data(grid_geometry(8, 1.0)), geometric_error: 0.5 };
+    /// r.set_lod(mesh, 1, lod).unwrap();
+    /// let bad = LodDesc { geometry: LodGeometry::Counts { vertices: 3, triangles: 1 }, geometric_error: f32::NAN };
+    /// assert!(r.set_lod(mesh, 1, bad).is_err());
+    /// ```
+    pub fn set_lod(&self, mesh: MeshId, lod: usize, desc: crate::LodDesc) -> Result<()> {
+        let e = desc.geometric_error;
+        if !(e.is_finite() && e >= 0.0) {
+            return Err(AsError::InvalidMesh {
+                name: format!("{mesh:?}"),
+                reason: format!("LOD {lod}: geometric error {e} is not finite and >= 0"),
+            });
+        }
+        self.set_lod_inner(mesh, lod, desc.geometry, Some(e))
+    }
+
+    fn set_lod_inner(
+        &self,
+        mesh: MeshId,
+        lod: usize,
+        geometry: LodGeometry,
+        error: Option<f32>,
+    ) -> Result<()> {
         let probe = MeshDesc::new(
             "lod",
             MeshKind::Static,
@@ -160,7 +196,7 @@ impl Registrar {
             });
         }
         p.commands
-            .push(Command::SetLodGeometry(mesh, lod, geometry));
+            .push(Command::SetLodGeometry(mesh, lod, geometry, error));
         Ok(())
     }
 

@@ -32,15 +32,15 @@ fn geometry_ref<'a>(
 ) -> GeometryRef<'a> {
     let data = g.data();
     let positions = match (pose, data) {
-        (Some(p), Some(d)) if p.len() == d.positions.len() => Some(p.as_slice()),
-        (_, Some(d)) => Some(d.positions.as_slice()),
+        (Some(p), Some(d)) if p.len() == d.positions().len() => Some(p.as_slice()),
+        (_, Some(d)) => Some(d.positions()),
         _ => None,
     };
     GeometryRef {
         vertex_count: g.vertices(),
         triangle_count: g.triangles(),
         positions,
-        indices: data.map(|d| d.indices.as_slice()),
+        indices: data.map(|d| d.indices()),
         opaque,
     }
 }
@@ -336,8 +336,8 @@ impl<B: AsBackend> AsManager<B> {
                         (BlasClass::Skinned, Some(d)) => {
                             let g = geometry_ref(&a.geometry, a.pose.as_ref(), a.opaque);
                             Some(RefitQuality::at_build(
-                                g.positions.unwrap_or(&d.positions),
-                                &d.indices,
+                                g.positions.unwrap_or(d.positions()),
+                                d.indices(),
                             ))
                         }
                         _ => None,
@@ -431,8 +431,8 @@ impl<B: AsBackend> AsManager<B> {
             let mut rebuild = false;
             let mut ratio = e.last_ratio;
             if let (Some(q), Some(p), Some(d)) = (&e.quality, &pose, geometry.data()) {
-                if p.len() == d.positions.len() {
-                    ratio = q.ratio(p, &d.indices);
+                if p.len() == d.positions().len() {
+                    ratio = q.ratio(p, d.indices());
                     rebuild = ratio > bound;
                 }
             }
@@ -482,7 +482,7 @@ impl<B: AsBackend> AsManager<B> {
             if rebuild {
                 self.stats.rebuilds += 1;
                 if let (Some(p), Some(d)) = (&p, g.data()) {
-                    e.quality = Some(RefitQuality::at_build(p, &d.indices));
+                    e.quality = Some(RefitQuality::at_build(p, d.indices()));
                 }
             } else {
                 self.stats.refits += 1;
