@@ -29,6 +29,7 @@ pub fn context() -> Arc<VulkanContext> {
         app_name: "rtstream tests".into(),
         validation: Validation::Required,
         require_ray_query: true,
+        ..ContextDesc::default()
     };
     Arc::new(VulkanContext::new(&desc).unwrap_or_else(|e| panic!("Vulkan context: {e}")))
 }

@@ -247,13 +247,22 @@ impl VulkanBackend {
         let pool_info = vk::CommandPoolCreateInfo::default()
             .queue_family_index(ctx.queue_family())
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
-        // SAFETY: valid device and create-info; destroyed in Drop.
+        // Each object is owned by a guard that destroys it if a later step fails.
+        ctx.failpoint("backend.pool")?;
+        // SAFETY: valid device and create-info; destroyed in Drop (or by the guard).
         let pool =
             unsafe { dev.create_command_pool(&pool_info, None) }.op("vkCreateCommandPool")?;
-        ctx.set_name(pool, "VulkanBackend command pool");
+        super::context::handle_created();
+        let pool = scopeguard::guard(pool, |p| {
+            // SAFETY: nothing recorded into its command buffers was submitted.
+            unsafe { dev.destroy_command_pool(p, None) };
+            super::context::handle_destroyed();
+        });
+        ctx.set_name(*pool, "VulkanBackend command pool");
         let mut type_info = vk::SemaphoreTypeCreateInfo::default()
             .semaphore_type(vk::SemaphoreType::TIMELINE)
             .initial_value(0);
+        ctx.failpoint("backend.semaphore")?;
         // SAFETY: as above.
         let timeline = unsafe {
             dev.create_semaphore(
@@ -262,20 +271,51 @@ impl VulkanBackend {
             )
         }
         .op("vkCreateSemaphore")?;
-        ctx.set_name(timeline, "VulkanBackend frame timeline");
+        super::context::handle_created();
+        let timeline = scopeguard::guard(timeline, |t| {
+            // SAFETY: never signalled or waited on.
+            unsafe { dev.destroy_semaphore(t, None) };
+            super::context::handle_destroyed();
+        });
+        ctx.set_name(*timeline, "VulkanBackend frame timeline");
+        ctx.failpoint("backend.command_buffers")?;
         // SAFETY: the pool was just created.
         let cmds = unsafe {
             dev.allocate_command_buffers(
                 &vk::CommandBufferAllocateInfo::default()
-                    .command_pool(pool)
+                    .command_pool(*pool)
                     .level(vk::CommandBufferLevel::PRIMARY)
                     .command_buffer_count(frames),
             )
         }
         .op("vkAllocateCommandBuffers")?;
-        let mut slots = Vec::with_capacity(frames as usize);
+        let mut slots = scopeguard::guard(Vec::with_capacity(frames as usize), |slots| {
+            for s in slots {
+                let s: Slot = s;
+                s.timestamps.destroy(&ctx);
+                s.compact_pool.destroy(&ctx);
+            }
+        });
         for (i, cmd) in cmds.into_iter().enumerate() {
             ctx.set_name(cmd, &format!("frame slot {i}"));
+            let timestamps = QueryPool::new(
+                &ctx,
+                QueryKind::Timestamp,
+                QUERIES_PER_SLOT,
+                &format!("slot {i} timestamps"),
+            )?;
+            let compact_pool = match QueryPool::new(
+                &ctx,
+                QueryKind::CompactedSize,
+                COMPACT_QUERIES_PER_SLOT,
+                &format!("slot {i} compacted sizes"),
+            ) {
+                Ok(p) => p,
+                Err(e) => {
+                    timestamps.destroy(&ctx);
+                    return Err(e);
+                }
+            };
             slots.push(Slot {
                 cmd,
                 recording: false,
@@ -288,22 +328,15 @@ impl VulkanBackend {
                 bases_address: 0,
                 scratch: None,
                 scratch_used: 0,
-                timestamps: QueryPool::new(
-                    &ctx,
-                    QueryKind::Timestamp,
-                    QUERIES_PER_SLOT,
-                    &format!("slot {i} timestamps"),
-                )?,
+                timestamps,
                 timed: Vec::new(),
-                compact_pool: QueryPool::new(
-                    &ctx,
-                    QueryKind::CompactedSize,
-                    COMPACT_QUERIES_PER_SLOT,
-                    &format!("slot {i} compacted sizes"),
-                )?,
+                compact_pool,
                 compact_queries: Vec::new(),
             });
         }
+        let slots = scopeguard::ScopeGuard::into_inner(slots);
+        let timeline = scopeguard::ScopeGuard::into_inner(timeline);
+        let pool = scopeguard::ScopeGuard::into_inner(pool);
         Ok(Self {
             ctx,
             desc,
@@ -1425,5 +1458,7 @@ impl Drop for VulkanBackend {
             self.ctx.device.destroy_command_pool(self.pool, None);
             self.ctx.device.destroy_semaphore(self.timeline, None);
         }
+        super::context::handle_destroyed();
+        super::context::handle_destroyed();
     }
 }

@@ -38,6 +38,36 @@ pub struct ContextDesc {
     /// Refuse devices without VK_KHR_ray_query (otherwise a device with acceleration structures
     /// and ray-tracing pipelines, such as the NVIDIA H100 driver here, is accepted).
     pub require_ray_query: bool,
+    /// Test-only: fail creation at this step (`"messenger"`, `"device"`, `"command_pool"`,
+    /// `"allocator"`) with [`VulkanError::Injected`], to check that nothing leaks.
+    #[doc(hidden)]
+    pub fail_at: Option<&'static str>,
+}
+
+/// Vulkan handles rtstream created and has not destroyed yet, process-wide: instances, debug
+/// messengers, devices, command pools, semaphores and query pools (buffers are counted per
+/// context). Leak tests compare it before and after a failed creation.
+pub fn live_vulkan_handles() -> i64 {
+    LIVE_HANDLES.load(Ordering::SeqCst)
+}
+
+static LIVE_HANDLES: AtomicI64 = AtomicI64::new(0);
+
+/// One more live handle (see [`live_vulkan_handles`]).
+pub(crate) fn handle_created() {
+    LIVE_HANDLES.fetch_add(1, Ordering::SeqCst);
+}
+
+/// One handle fewer (see [`live_vulkan_handles`]).
+pub(crate) fn handle_destroyed() {
+    LIVE_HANDLES.fetch_sub(1, Ordering::SeqCst);
+}
+
+fn failpoint(armed: Option<&'static str>, at: &'static str) -> VkResult<()> {
+    match armed {
+        Some(a) if a == at => Err(VulkanError::Injected { at }),
+        _ => Ok(()),
+    }
 }
 
 impl Default for ContextDesc {
@@ -46,6 +76,7 @@ impl Default for ContextDesc {
             app_name: "rtstream".into(),
             validation: Validation::Auto,
             require_ray_query: false,
+            fail_at: None,
         }
     }
 }
@@ -136,6 +167,8 @@ pub struct VulkanContext {
     pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
     pub(crate) live_buffers: AtomicI64,
     info: DeviceInfo,
+    /// A failure armed by `inject_failure` (test-only).
+    failpoint: Mutex<Option<&'static str>>,
 }
 
 impl std::fmt::Debug for VulkanContext {
@@ -145,6 +178,17 @@ impl std::fmt::Debug for VulkanContext {
             .field("validation", &self.validation)
             .finish_non_exhaustive()
     }
+}
+
+/// What `create_device` made, for `new` to assemble.
+struct DeviceParts {
+    device: ash::Device,
+    queue: vk::Queue,
+    command_pool: vk::CommandPool,
+    allocator: Allocator,
+    accel: khr::acceleration_structure::Device,
+    rt_pipeline: Option<khr::ray_tracing_pipeline::Device>,
+    debug_device: Option<ext::debug_utils::Device>,
 }
 
 struct Candidate {
@@ -274,6 +318,15 @@ impl VulkanContext {
             }
             Err(e) => return Err(VulkanError::from_vk("vkCreateInstance", e)),
         };
+        handle_created();
+        // Every step below may fail: each object is owned by a guard that destroys it unless
+        // the context takes it over at the end.
+        let instance = scopeguard::guard(instance, |i| {
+            // SAFETY: creation failed later on; nothing else created from it is alive (each
+            // child has its own guard, dropped first).
+            unsafe { i.destroy_instance(None) };
+            handle_destroyed();
+        });
 
         let log = Box::<ValidationLog>::default();
         let debug_instance = if has_debug_utils {
@@ -291,28 +344,25 @@ impl VulkanContext {
                 )
                 .pfn_user_callback(Some(debug_callback))
                 .user_data(&*log as *const ValidationLog as *mut c_void);
+            failpoint(desc.fail_at, "messenger")?;
             // SAFETY: the callback's user data is the boxed log, which lives as long as the context
             // and is dropped only after the messenger is destroyed (see Drop).
             let messenger = unsafe { du.create_debug_utils_messenger(&info, None) }
                 .op("vkCreateDebugUtilsMessengerEXT")?;
+            handle_created();
             Some((du, messenger))
         } else {
             None
         };
-
-        let chosen = match Self::choose_device(&instance, desc) {
-            Ok(c) => c,
-            Err(e) => {
-                // SAFETY: nothing else was created from the instance but the messenger.
-                unsafe {
-                    if let Some((du, m)) = &debug_instance {
-                        du.destroy_debug_utils_messenger(*m, None);
-                    }
-                    instance.destroy_instance(None);
-                }
-                return Err(e);
+        let debug_instance = scopeguard::guard(debug_instance, |d| {
+            if let Some((du, m)) = d {
+                // SAFETY: created above; nothing reports through it any more.
+                unsafe { du.destroy_debug_utils_messenger(m, None) };
+                handle_destroyed();
             }
-        };
+        });
+
+        let chosen = Self::choose_device(&instance, desc)?;
         tracing::info!(
             device = %chosen.info.name,
             driver = %chosen.info.driver,
@@ -321,15 +371,52 @@ impl VulkanContext {
             "Vulkan device chosen: {}",
             chosen.info.reason
         );
-        Self::create_device(
-            entry,
-            instance,
-            debug_instance,
-            has_debug_utils,
+        let parts = Self::create_device(&instance, has_debug_utils, desc.fail_at, &chosen)?;
+        let ctx = Self {
+            _entry: entry,
+            instance: scopeguard::ScopeGuard::into_inner(instance),
+            debug_instance: scopeguard::ScopeGuard::into_inner(debug_instance),
+            debug_device: parts.debug_device,
             log,
             validation,
-            chosen,
-        )
+            physical_device: chosen.pd,
+            device: parts.device,
+            accel: parts.accel,
+            rt_pipeline: parts.rt_pipeline,
+            queue: Mutex::new(parts.queue),
+            queue_family: chosen.queue_family,
+            command_pool: Mutex::new(parts.command_pool),
+            allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
+            live_buffers: AtomicI64::new(0),
+            info: chosen.info,
+            failpoint: Mutex::new(None),
+        };
+        ctx.set_name(parts.queue, "rtstream queue");
+        ctx.set_name(parts.command_pool, "rtstream one-shot pool");
+        Ok(ctx)
+    }
+
+    /// Test-only: the next [`VulkanContext::failpoint`] check at `at` fails with
+    /// [`VulkanError::Injected`] (steps: `"backend.pool"`, `"backend.semaphore"`,
+    /// `"backend.command_buffers"`, `"query_pool"`, `"build_blas_now.scratch"`).
+    #[doc(hidden)]
+    pub fn inject_failure(&self, at: &'static str) {
+        *self.failpoint.lock() = Some(at);
+    }
+
+    /// GPU buffers created on this context and not destroyed yet.
+    pub fn live_buffers(&self) -> i64 {
+        self.live_buffers.load(Ordering::Relaxed)
+    }
+
+    /// Fails once with [`VulkanError::Injected`] if a test armed `at`.
+    pub(crate) fn failpoint(&self, at: &'static str) -> VkResult<()> {
+        let mut f = self.failpoint.lock();
+        let r = failpoint(*f, at);
+        if r.is_err() {
+            *f = None;
+        }
+        r
     }
 
     fn choose_device(instance: &ash::Instance, desc: &ContextDesc) -> VkResult<Candidate> {
@@ -523,15 +610,14 @@ impl VulkanContext {
     }
 
     #[allow(clippy::too_many_arguments)]
+    /// The device and what hangs off it, for `new` to assemble; on failure nothing created
+    /// here is left alive.
     fn create_device(
-        entry: ash::Entry,
-        instance: ash::Instance,
-        debug_instance: Option<(ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+        instance: &ash::Instance,
         has_debug_utils: bool,
-        log: Box<ValidationLog>,
-        validation: bool,
-        c: Candidate,
-    ) -> VkResult<Self> {
+        fail_at: Option<&'static str>,
+        c: &Candidate,
+    ) -> VkResult<DeviceParts> {
         let mut ext_names = vec![
             khr::acceleration_structure::NAME.as_ptr(),
             khr::deferred_host_operations::NAME.as_ptr(),
@@ -577,54 +663,58 @@ impl VulkanContext {
             .queue_create_infos(&queue_infos)
             .enabled_extension_names(&ext_names)
             .push_next(&mut feats2);
+        failpoint(fail_at, "device")?;
         // SAFETY: the physical device belongs to `instance`; every chained struct lives through the call.
         let device =
             unsafe { instance.create_device(c.pd, &device_info, None) }.op("vkCreateDevice")?;
+        handle_created();
+        let device = scopeguard::guard(device, |d| {
+            // SAFETY: nothing was submitted; its children have their own guards, dropped first.
+            unsafe { d.destroy_device(None) };
+            handle_destroyed();
+        });
         // SAFETY: queue family and index 0 were requested above.
         let queue = unsafe { device.get_device_queue(c.queue_family, 0) };
         let pool_info = vk::CommandPoolCreateInfo::default()
             .queue_family_index(c.queue_family)
             .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        failpoint(fail_at, "command_pool")?;
         // SAFETY: device is valid.
         let command_pool =
             unsafe { device.create_command_pool(&pool_info, None) }.op("vkCreateCommandPool")?;
+        handle_created();
+        let command_pool = scopeguard::guard(command_pool, |p| {
+            // SAFETY: no command buffer of it was ever allocated.
+            unsafe { device.destroy_command_pool(p, None) };
+            handle_destroyed();
+        });
+        failpoint(fail_at, "allocator")?;
         let allocator = Allocator::new(&AllocatorCreateDesc {
             instance: instance.clone(),
-            device: device.clone(),
+            device: (*device).clone(),
             physical_device: c.pd,
             debug_settings: Default::default(),
             buffer_device_address: true,
             allocation_sizes: Default::default(),
         })
         .map_err(|e| VulkanError::from_alloc("allocator creation", e))?;
-        let accel = khr::acceleration_structure::Device::new(&instance, &device);
+        let accel = khr::acceleration_structure::Device::new(instance, &device);
         let rt_pipeline = c
             .info
             .ray_tracing_pipeline
-            .then(|| khr::ray_tracing_pipeline::Device::new(&instance, &device));
+            .then(|| khr::ray_tracing_pipeline::Device::new(instance, &device));
         let debug_device =
-            has_debug_utils.then(|| ext::debug_utils::Device::new(&instance, &device));
-        let ctx = Self {
-            _entry: entry,
-            instance,
-            debug_instance,
-            debug_device,
-            log,
-            validation,
-            physical_device: c.pd,
-            device,
+            has_debug_utils.then(|| ext::debug_utils::Device::new(instance, &device));
+        let command_pool = scopeguard::ScopeGuard::into_inner(command_pool);
+        Ok(DeviceParts {
+            device: scopeguard::ScopeGuard::into_inner(device),
+            queue,
+            command_pool,
+            allocator,
             accel,
             rt_pipeline,
-            queue: Mutex::new(queue),
-            queue_family: c.queue_family,
-            command_pool: Mutex::new(command_pool),
-            allocator: ManuallyDrop::new(Mutex::new(allocator)),
-            live_buffers: AtomicI64::new(0),
-            info: c.info,
-        };
-        ctx.set_name(queue, "rtstream queue");
-        ctx.set_name(command_pool, "rtstream one-shot pool");
-        Ok(ctx)
+            debug_device,
+        })
     }
 
     /// The chosen device.
@@ -781,8 +871,13 @@ impl Drop for VulkanContext {
             self.device.destroy_device(None);
             if let Some((du, m)) = self.debug_instance.take() {
                 du.destroy_debug_utils_messenger(m, None);
+                handle_destroyed();
             }
             self.instance.destroy_instance(None);
+            // Instance, device and command pool.
+            for _ in 0..3 {
+                handle_destroyed();
+            }
         }
     }
 }

@@ -42,6 +42,9 @@ pub enum VulkanError {
     /// A request the device cannot satisfy (a size over a device limit, ...).
     #[error("{0}")]
     Unsupported(String),
+    /// A failure injected by a test at a named step (see `VulkanContext::inject_failure`).
+    #[error("injected failure at {at}")]
+    Injected { at: &'static str },
 }
 
 fn describe_devices(devices: &[(String, String)]) -> String {

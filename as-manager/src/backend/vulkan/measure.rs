@@ -47,6 +47,9 @@ pub fn build_blas_now(
         s.storage,
         name,
     )?;
+    // Freed unless the build succeeds.
+    let blas = scopeguard::guard(blas, |b| ctx.destroy_accel(b));
+    ctx.failpoint("build_blas_now.scratch")?;
     let (scratch, base) = ctx.create_scratch("build_blas_now scratch", s.build_scratch)?;
     let b = BlasBuild {
         geometries: std::slice::from_ref(&geom.geometry),
@@ -60,13 +63,8 @@ pub fn build_blas_now(
         unsafe { ctx.cmd_build_blases(cmd, std::slice::from_ref(&b)) }
     });
     ctx.destroy_buffer(scratch);
-    match r {
-        Ok(()) => Ok(blas),
-        Err(e) => {
-            ctx.destroy_accel(blas);
-            Err(e)
-        }
-    }
+    r?;
+    Ok(scopeguard::ScopeGuard::into_inner(blas))
 }
 
 /// Builds one BLAS per entry of `geoms` (entries may repeat the same geometry) with `flags` —

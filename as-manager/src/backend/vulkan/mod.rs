@@ -19,7 +19,10 @@ pub use accel::{align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUI
 pub use backend::{class_flags, FaultPoint, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use compute::{BindingKind, Bound, ComputePipeline};
-pub use context::{ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog, VulkanContext};
+pub use context::{
+    live_vulkan_handles, ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog,
+    VulkanContext,
+};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
 pub use geometry::{GpuGeometry, MeshDesc};
 pub use measure::{

@@ -35,8 +35,10 @@ impl QueryPool {
         let info = vk::QueryPoolCreateInfo::default()
             .query_type(ty)
             .query_count(count.max(1));
+        ctx.failpoint("query_pool")?;
         // SAFETY: the device is valid; info is well-formed.
         let raw = unsafe { ctx.device.create_query_pool(&info, None) }.op("vkCreateQueryPool")?;
+        super::context::handle_created();
         ctx.set_name(raw, name);
         let pool = Self {
             raw,
@@ -125,6 +127,7 @@ impl QueryPool {
     pub fn destroy(self, ctx: &VulkanContext) {
         // SAFETY: by contract the pool is not in use.
         unsafe { ctx.device.destroy_query_pool(self.raw, None) };
+        super::context::handle_destroyed();
     }
 }
 
