@@ -331,8 +331,9 @@ fn streamed_camera_path_on_vulkan() {
     for frame in 0..frames {
         let t = frame as f32 / frames as f32;
         let pos = Vec3::new(size * (0.05 + 0.9 * t), 2.0, size * (0.05 + 0.9 * t));
-        let events =
-            world.update_until_idle(frame, &[pos.into()], std::time::Duration::from_secs(10));
+        let events = world
+            .update_until_idle(frame, &[pos.into()], std::time::Duration::from_secs(10))
+            .expect("streaming settles");
         bridge.apply(&m, &events);
         bridge.pose_skinned(&m, &world, frame as f32 / 30.0, 1);
         let fwd = Vec3::new(1.0, 0.0, 1.0).normalize();

@@ -57,7 +57,9 @@ fn run(dir: &PathBuf, size: f32, policy: PolicyKind, gpu_like: bool) -> RunResul
     for frame in 0..frames {
         let pos = camera_at(size, frame, frames);
         // Let loads finish each frame so the test is deterministic in what it checks.
-        let events = world.update_until_idle(frame, &[pos.into()], Duration::from_secs(10));
+        let events = world
+            .update_until_idle(frame, &[pos.into()], Duration::from_secs(10))
+            .expect("streaming settles");
         unloaded += events
             .iter()
             .filter(|e| matches!(e, rtstream::streaming::WorldEvent::LevelUnloaded { .. }))

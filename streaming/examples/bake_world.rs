@@ -50,7 +50,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for f in 0..=frames {
         let k = f as f32 / frames as f32;
         let p = Vec3::new(lo.x + (hi.x - lo.x) * k, 2.0, lo.z + (hi.z - lo.z) * k);
-        for e in w.update_until_idle(f, &[Camera::from(p)], Duration::from_secs(10)) {
+        for e in w
+            .update_until_idle(f, &[Camera::from(p)], Duration::from_secs(10))
+            .unwrap_or_else(|t| t.events)
+        {
             match e {
                 WorldEvent::LevelLoaded { .. } => loads += 1,
                 WorldEvent::LevelUnloaded { .. } => unloads += 1,

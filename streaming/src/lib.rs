@@ -62,4 +62,6 @@ pub use model::{
     SkinWeights, Sphere,
 };
 pub use proxy::{ProxyId, ProxyNode, ProxyTree};
-pub use world::{Camera, SkinnedFrame, StreamConfig, StreamStats, World, WorldEvent};
+pub use world::{
+    Camera, SettleTimeout, SkinnedFrame, StreamConfig, StreamStats, World, WorldEvent,
+};

@@ -102,7 +102,9 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
         })
         .collect();
     let cam = [Camera::from(Vec3::ZERO)];
-    let events = w.update_until_idle(0, &cam, common::SETTLE);
+    let events = w
+        .update_until_idle(0, &cam, common::SETTLE)
+        .expect("streaming settles");
     for (level, path) in &broken_levels {
         let failure = events.iter().find_map(|e| match e {
             WorldEvent::LoadFailed {
@@ -136,8 +138,12 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
 
     // The failed levels retry after leaving and re-entering; still failing, still no thread lost.
     let away = [Camera::from(Vec3::new(500.0, 0.0, 0.0))];
-    let _ = w.update_until_idle(1, &away, common::SETTLE);
-    let again = w.update_until_idle(2, &cam, common::SETTLE);
+    let _ = w
+        .update_until_idle(1, &away, common::SETTLE)
+        .expect("streaming settles");
+    let again = w
+        .update_until_idle(2, &cam, common::SETTLE)
+        .expect("streaming settles");
     let fails = again
         .iter()
         .filter(|e| matches!(e, WorldEvent::LoadFailed { .. }))
@@ -178,7 +184,9 @@ fn corrupted_baked_files_fail_and_other_levels_keep_streaming() {
         ..StreamConfig::default()
     };
     let mut w = World::open(&dir, config).expect("open");
-    let events = w.update_until_idle(0, &[Camera::from(Vec3::ZERO)], common::SETTLE);
+    let events = w
+        .update_until_idle(0, &[Camera::from(Vec3::ZERO)], common::SETTLE)
+        .expect("streaming settles");
     for (i, reason) in &bad {
         let err = events
             .iter()
@@ -233,8 +241,13 @@ fn a_corrupt_mesh_chunk_fails_that_lod_only() {
     };
     let mut w = World::open(&dir, config).expect("open");
     let cam = [Camera::from(Vec3::ZERO)];
-    let mut events = w.update_until_idle(0, &cam, common::SETTLE);
-    events.extend(w.update_until_idle(1, &cam, common::SETTLE));
+    let mut events = w
+        .update_until_idle(0, &cam, common::SETTLE)
+        .expect("streaming settles");
+    events.extend(
+        w.update_until_idle(1, &cam, common::SETTLE)
+            .expect("streaming settles"),
+    );
     let failed: Vec<_> = events
         .iter()
         .filter_map(|e| match e {

@@ -33,6 +33,7 @@ impl World {
                 *e = e.min(d);
             }
         }
+        self.shed_finer(&eff, ev);
         let angle = self.config.lod_error_angle;
         let mut requests: Vec<(f32, MeshId, usize)> = Vec::new();
         let mut ids: Vec<(&MeshId, &f32)> = eff.iter().collect();
@@ -74,6 +75,45 @@ impl World {
                 lod,
                 ticket,
             });
+        }
+    }
+
+    /// Coarsest LODs arrive with their levels and are never refused; when they push resident
+    /// plus in-flight bytes over the budget (finer LODs admitted while those levels were still
+    /// loading), finer LODs go, farthest mesh first, until the total fits again (or nothing
+    /// finer is left: the budget is then below what the load radius holds).
+    fn shed_finer(&mut self, eff: &HashMap<MeshId, f32>, ev: &mut Vec<WorldEvent>) {
+        let budget = self.config.mesh_budget_bytes;
+        if self.mesh_bytes + self.in_flight_bytes <= budget {
+            return;
+        }
+        let mut victims: Vec<(f32, MeshId, usize)> = Vec::new();
+        for (i, s) in self.meshes.iter().enumerate() {
+            if !s.streamed {
+                continue;
+            }
+            let m = MeshId(i as u32);
+            let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
+            for k in 0..s.coarsest() {
+                if s.resident[k].is_some() {
+                    victims.push((md, m, k));
+                }
+            }
+        }
+        // Farthest first; at equal distance the finest (largest) LOD first, in id order.
+        victims.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.2.cmp(&b.2)).then(a.1.cmp(&b.1)));
+        for (_, m, k) in victims {
+            if self.mesh_bytes + self.in_flight_bytes <= budget {
+                break;
+            }
+            let s = &mut self.meshes[m.0 as usize];
+            if s.resident[k].take().is_some() {
+                self.mesh_bytes -= s.lods[k].0;
+                ev.push(WorldEvent::MeshLodEvicted {
+                    mesh: m,
+                    lod: k as u8,
+                });
+            }
         }
     }
 

@@ -15,6 +15,9 @@
 //! (hysteresis). Finer LODs are only requested while resident + in-flight bytes stay within
 //! `mesh_budget_bytes`, evicting the farthest meshes' finer LODs first; coarsest LODs arrive with
 //! their levels and are never refused (so the budget must exceed what the load radius holds).
+//! Finer LODs admitted while levels were still loading can be overtaken by those levels'
+//! coarsest LODs: each update then sheds finer LODs, farthest first, until the total fits, so
+//! the budget can be exceeded only while finer loads admitted earlier are still in flight.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -31,7 +34,7 @@ use crate::skin::{skin_parallel, SkinJob};
 mod lod_stream;
 mod types;
 
-pub use types::{Camera, SkinnedFrame, StreamConfig, StreamStats, WorldEvent};
+pub use types::{Camera, SettleTimeout, SkinnedFrame, StreamConfig, StreamStats, WorldEvent};
 
 #[derive(Debug)]
 enum LevelState {
@@ -414,33 +417,41 @@ impl World {
         ticket
     }
 
-    /// Calls [`World::update`] (same frame and cameras) until no load is in flight or `timeout`
-    /// passes, waiting on the loaders in between; returns every event. For tests and tools.
-    /// In deterministic mode ([`StreamConfig::apply_after_frames`]) this is [`World::update`]:
-    /// results arrive on their fixed frame, never earlier.
+    /// Calls [`World::update`] (same frame and cameras) until no load is in flight, waiting on
+    /// the loaders in between; returns every event. For tests and tools. Waiting longer than
+    /// `timeout` is a [`SettleTimeout`] carrying the events so far (a slow or overloaded
+    /// machine, or a stuck loader), never a silent partial result. In deterministic mode
+    /// ([`StreamConfig::apply_after_frames`]) this is [`World::update`]: results arrive on
+    /// their fixed frame, never earlier.
     pub fn update_until_idle(
         &mut self,
         frame: u64,
         cameras: &[Camera],
         timeout: Duration,
-    ) -> Vec<WorldEvent> {
+    ) -> Result<Vec<WorldEvent>, SettleTimeout> {
         if self.config.apply_after_frames.is_some() {
-            return self.update(frame, cameras);
+            return Ok(self.update(frame, cameras));
         }
-        let deadline = Instant::now() + timeout;
+        let start = Instant::now();
+        let deadline = start + timeout;
         let mut all = Vec::new();
         loop {
             all.extend(self.update(frame, cameras));
             if self.in_flight == 0 {
-                break;
+                return Ok(all);
             }
             let left = deadline.saturating_duration_since(Instant::now());
             match self.pool.results.recv_timeout(left) {
                 Ok(done) => self.finish(done, &mut all),
-                Err(_) => break,
+                Err(_) => {
+                    return Err(SettleTimeout {
+                        waited: start.elapsed(),
+                        in_flight: self.in_flight,
+                        events: all,
+                    })
+                }
             }
         }
-        all
     }
 
     fn finish(&mut self, done: Done, ev: &mut Vec<WorldEvent>) {

@@ -65,6 +65,20 @@ impl Default for StreamConfig {
     }
 }
 
+/// [`World::update_until_idle`](super::World::update_until_idle) ran out of time with loads
+/// still in flight. Nothing is lost: the events of the frames it did run are here, and the
+/// loads still in flight arrive on later updates.
+#[derive(Debug, thiserror::Error)]
+#[error("streaming did not settle within {waited:?}: {in_flight} loads still in flight")]
+pub struct SettleTimeout {
+    /// How long it waited.
+    pub waited: std::time::Duration,
+    /// Loads still in flight.
+    pub in_flight: usize,
+    /// Every event of the updates it ran.
+    pub events: Vec<WorldEvent>,
+}
+
 /// What the world tells its consumer (the facade feeds these to the BLAS manager).
 #[derive(Debug, Clone)]
 pub enum WorldEvent {
