@@ -1,5 +1,10 @@
-//! Property tests: random sequences of API calls, camera moves, teleports and budget changes
-//! hold the invariants of ARCHITECTURE.md.
+//! Property tests: random sequences of API calls, camera moves, teleports, budget changes,
+//! rejected inputs (NaN, infinite and huge transforms, dead meshes, repeated frame numbers),
+//! skipped frames and backend faults hold the invariants of ARCHITECTURE.md after every frame:
+//! the memory and build budgets, a TLAS of live built BLASes only, no BLAS freed or destroyed
+//! while a frame uses it (the model backend checks lifetimes), a failed frame rolled back and
+//! retried under the same number, a lost device reported by every later update, and a
+//! rejected input answered with a typed error that changes nothing.
 
 use std::sync::Arc;
 
@@ -49,7 +54,35 @@ enum Op {
     Frames {
         n: u64,
     },
+    /// A transform with NaN, infinite or huge values.
+    BadTransform {
+        k: usize,
+        v: f32,
+    },
+    /// An instance of an unregistered mesh.
+    DeadMesh {
+        mesh: usize,
+    },
+    /// The same frame number again.
+    RepeatFrame,
+    /// Frame numbers jump ahead.
+    SkipFrames {
+        n: u64,
+    },
+    /// The next backend call at `point` fails (device lost when `lost`).
+    Fault {
+        point: usize,
+        lost: bool,
+    },
 }
+
+const POINTS: [backend::FaultPoint; 5] = [
+    backend::FaultPoint::BuildBlases,
+    backend::FaultPoint::RefitBlases,
+    backend::FaultPoint::CompactBlas,
+    backend::FaultPoint::BuildTlas,
+    backend::FaultPoint::EndFrame,
+];
 
 fn op() -> impl Strategy<Value = Op> {
     prop_oneof![
@@ -63,6 +96,12 @@ fn op() -> impl Strategy<Value = Op> {
         1 => (0..1000usize).prop_map(|k| Op::Deform { k }),
         1 => (0..10usize).prop_map(|mesh| Op::Unregister { mesh }),
         2 => (1..10u64).prop_map(|n| Op::Frames { n }),
+        1 => (0..1000usize, prop_oneof![Just(f32::NAN), Just(f32::INFINITY), Just(f32::NEG_INFINITY), Just(1e30f32), Just(-3e38f32)])
+            .prop_map(|(k, v)| Op::BadTransform { k, v }),
+        1 => (0..10usize).prop_map(|mesh| Op::DeadMesh { mesh }),
+        1 => Just(Op::RepeatFrame),
+        1 => (1..1000u64).prop_map(|n| Op::SkipFrames { n }),
+        1 => (0..5usize, prop::bool::weighted(0.15)).prop_map(|(point, lost)| Op::Fault { point, lost }),
     ]
 }
 
@@ -94,11 +133,18 @@ fn config() -> impl Strategy<Value = Config> {
 struct Harness {
     m: AsManager<ModelBackend>,
     meshes: Vec<Option<MeshId>>,
+    /// Ids of unregistered meshes.
+    dead: Vec<MeshId>,
+    /// The device was lost: every later update must say so.
+    lost: bool,
+    /// Frames that failed by an injected fault and were retried.
+    retried: u32,
     skinned: Vec<bool>,
     instances: Vec<(InstanceId, usize)>,
     cam: Vec3,
     frame: u64,
-    budget_cut_at: Option<u64>,
+    /// Updates since the memory budget was last cut.
+    budget_cut_at: Option<u32>,
 }
 
 impl Harness {
@@ -131,6 +177,9 @@ impl Harness {
         Self {
             m,
             meshes,
+            dead: Vec::new(),
+            lost: false,
+            retried: 0,
             skinned,
             instances: Vec::new(),
             cam: Vec3::ZERO,
@@ -144,16 +193,50 @@ impl Harness {
         let f = self.frame;
         self.frame += 1;
         let cfg = self.m.config().clone();
-        let out = self
-            .m
-            .update(FrameInput {
+        if self.lost {
+            let e = self
+                .m
+                .update(FrameInput {
+                    frame: f,
+                    cameras: &cams,
+                })
+                .err();
+            prop_assert_eq!(e, Some(AsError::Backend(backend::BackendError::DeviceLost)));
+            return Ok(());
+        }
+        // (stats, TLAS record addresses) of a successful update.
+        let run = |m: &mut AsManager<ModelBackend>| {
+            m.update(FrameInput {
                 frame: f,
                 cameras: &cams,
             })
-            .map_err(|e| TestCaseError::fail(e.to_string()))?;
-        let s = out.stats.clone();
-        let addrs: Vec<u64> = out.instances.iter().map(|r| r.blas_address).collect();
+            .map(|o| {
+                let addrs: Vec<u64> = o.instances.iter().map(|r| r.blas_address).collect();
+                (o.stats.clone(), addrs)
+            })
+        };
+        let (s, addrs) = match run(&mut self.m) {
+            Ok(done) => done,
+            Err(AsError::Backend(backend::BackendError::DeviceLost)) => {
+                self.lost = true;
+                self.m.check_invariants().map_err(TestCaseError::fail)?;
+                return Ok(());
+            }
+            Err(AsError::Backend(backend::BackendError::Other(m))) if m == "injected" => {
+                // Rolled back: the invariants hold and the same frame number succeeds.
+                self.m.check_invariants().map_err(TestCaseError::fail)?;
+                self.retried += 1;
+                run(&mut self.m).map_err(|e| TestCaseError::fail(format!("retry of {f}: {e}")))?
+            }
+            Err(e) => return Err(TestCaseError::fail(format!("frame {f}: {e}"))),
+        };
         self.m.check_invariants().map_err(TestCaseError::fail)?;
+        prop_assert_eq!(
+            self.m.backend().counters().lifetime_violations,
+            0,
+            "frame {}: a BLAS freed or destroyed while a frame used it",
+            f
+        );
         // TLAS references only live, built BLASes.
         for a in addrs {
             prop_assert!(
@@ -171,7 +254,11 @@ impl Harness {
         );
         // Memory budget (after a budget cut, freed bytes still in flight drain within the
         // backend's frames in flight).
-        let settled = self.budget_cut_at.is_none_or(|c| f > c + 3);
+        // Counted in updates: skipped frame numbers do not give the cut time to drain.
+        if let Some(n) = self.budget_cut_at.as_mut() {
+            *n += 1;
+        }
+        let settled = self.budget_cut_at.is_none_or(|n| n > 3);
         if settled {
             prop_assert!(
                 s.memory_in_use() <= cfg.memory.blas_bytes,
@@ -223,7 +310,7 @@ impl Harness {
             Op::MemoryBudget { bytes } => {
                 let mut c = self.m.config().clone();
                 if bytes < c.memory.blas_bytes {
-                    self.budget_cut_at = Some(self.frame);
+                    self.budget_cut_at = Some(0);
                 }
                 c.memory.blas_bytes = bytes;
                 self.m.set_config(c).unwrap();
@@ -255,6 +342,7 @@ impl Harness {
             Op::Unregister { mesh } => {
                 if let Some(id) = self.meshes[mesh].take() {
                     self.m.unregister_mesh(id).unwrap();
+                    self.dead.push(id);
                     self.instances.retain(|(_, m)| *m != mesh);
                 }
             }
@@ -263,6 +351,56 @@ impl Harness {
                     self.frame()?;
                 }
             }
+            Op::BadTransform { k, v } if !self.instances.is_empty() => {
+                let (id, _) = self.instances[k % self.instances.len()];
+                // Apply what is pending first, so the next frame sees only this call.
+                self.frame()?;
+                let before = self.m.stats().instances;
+                let t = Affine3A::from_translation(Vec3::new(v, 0.0, 1.0));
+                let r = self.m.set_transform(id, t);
+                if v.is_finite() {
+                    prop_assert!(r.is_ok(), "a huge finite transform is accepted: {:?}", r);
+                } else {
+                    prop_assert_eq!(r, Err(AsError::InvalidTransform));
+                }
+                self.frame()?;
+                if !self.lost {
+                    prop_assert_eq!(
+                        self.m.stats().instances,
+                        before,
+                        "a rejected transform changes nothing"
+                    );
+                }
+            }
+            Op::DeadMesh { mesh } if !self.dead.is_empty() => {
+                let id = self.dead[mesh % self.dead.len()];
+                let r = self
+                    .m
+                    .add_instance(InstanceDesc::new(id, Affine3A::IDENTITY));
+                prop_assert_eq!(r.err(), Some(AsError::UnknownMesh(id)));
+            }
+            Op::RepeatFrame if self.frame > 0 && !self.lost => {
+                let before = self.m.stats().clone();
+                let cams = [Camera::new(self.cam, Vec3::Z)];
+                let r = self.m.update(FrameInput {
+                    frame: self.frame - 1,
+                    cameras: &cams,
+                });
+                prop_assert!(matches!(r, Err(AsError::InvalidConfig(_))));
+                prop_assert_eq!(self.m.stats(), &before, "a refused frame changes nothing");
+            }
+            Op::SkipFrames { n } => {
+                self.frame += n;
+                self.frame()?;
+            }
+            Op::Fault { point, lost } if !self.lost && self.m.backend().faults.is_empty() => {
+                let e = if lost {
+                    backend::BackendError::DeviceLost
+                } else {
+                    backend::BackendError::Other("injected".into())
+                };
+                self.m.backend_mut().inject_fault(POINTS[point], e);
+            }
             _ => {}
         }
         Ok(())
@@ -270,7 +408,11 @@ impl Harness {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+    // 10,000 sequences in the suite (PROPTEST_CASES overrides it, e.g. for longer runs).
+    #![proptest_config(ProptestConfig {
+        cases: std::env::var("PROPTEST_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(10_000),
+        ..ProptestConfig::default()
+    })]
 
     #[test]
     fn invariants_hold_over_random_sequences(cfg in config(), ops in prop::collection::vec(op(), 1..60)) {
@@ -278,13 +420,18 @@ proptest! {
         for o in ops {
             h.apply(o)?;
         }
+        // A fault armed but never reached must not strike the drain.
+        h.m.backend_mut().faults.clear();
         // drain: every registered thing can be unregistered and everything retires
         for i in 0..h.meshes.len() {
             h.apply(Op::Unregister { mesh: i })?;
         }
         h.apply(Op::Frames { n: 4 })?;
-        prop_assert_eq!(h.m.backend().live_blas_count(), 0);
-        prop_assert_eq!(h.m.memory_in_use(), 0);
+        if !h.lost {
+            prop_assert_eq!(h.m.backend().live_blas_count(), 0);
+            prop_assert_eq!(h.m.memory_in_use(), 0);
+        }
+        // A lost device: the manager drops cleanly (this scope's end).
     }
 
     /// A camera oscillating across r1 by less than (r2 - r1) / 2 builds once and never
@@ -316,4 +463,56 @@ proptest! {
         }
         prop_assert!(builds + releases <= 2 * (frames / (min_life + 1) + 1), "builds {builds} releases {releases}");
     }
+}
+
+/// The fault path of the harness runs: a fault at each point fails one frame, which is rolled
+/// back and retried; a lost device is reported by every later update.
+#[test]
+fn injected_faults_are_retried_and_a_lost_device_stays_lost() {
+    let mut c = Config::default();
+    c.residency.create_threshold = 0;
+    c.build.min_compaction_saving = 0.0;
+    let mut h = Harness::new(c);
+    h.apply(Op::Add {
+        mesh: 8,
+        n: 3,
+        x: 0.0,
+        z: 5.0,
+    })
+    .unwrap();
+    h.apply(Op::Add {
+        mesh: 2,
+        n: 20,
+        x: 0.0,
+        z: 10.0,
+    })
+    .unwrap();
+    h.apply(Op::Frames { n: 3 }).unwrap();
+    for (point, at) in POINTS.iter().enumerate() {
+        h.apply(Op::Fault { point, lost: false }).unwrap();
+        for k in 0..30 {
+            // New instances (builds) and a new pose (refits) every frame.
+            h.apply(Op::Add {
+                mesh: k % 8,
+                n: 1,
+                x: (point * 30 + k) as f32,
+                z: 8.0,
+            })
+            .unwrap();
+            h.apply(Op::Deform { k }).unwrap();
+            h.apply(Op::Frames { n: 1 }).unwrap();
+            if h.m.backend().faults.is_empty() {
+                break;
+            }
+        }
+        assert!(h.m.backend().faults.is_empty(), "{at:?} never struck");
+    }
+    assert_eq!(h.retried as usize, POINTS.len());
+    h.apply(Op::Fault {
+        point: 3,
+        lost: true,
+    })
+    .unwrap();
+    h.apply(Op::Frames { n: 3 }).unwrap();
+    assert!(h.lost);
 }

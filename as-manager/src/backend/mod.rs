@@ -149,6 +149,23 @@ pub enum BackendError {
     Other(String),
 }
 
+/// Where a fault injected into a backend (tests of the error paths:
+/// `VulkanBackend::inject_fault`, [`model::ModelBackend::inject_fault`]) strikes: at the start
+/// of that call, which then does nothing else.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FaultPoint {
+    /// `build_blases`.
+    BuildBlases,
+    /// `refit_blases`.
+    RefitBlases,
+    /// `compact_blas`.
+    CompactBlas,
+    /// `build_tlas` (after the frame's builds were recorded).
+    BuildTlas,
+    /// `end_frame` (before the submission).
+    EndFrame,
+}
+
 /// `Result` for backend calls.
 pub type BackendResult<T> = std::result::Result<T, BackendError>;
 

@@ -18,7 +18,7 @@ use std::collections::{HashMap, VecDeque};
 pub use super::calibration::{CostModel, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, GeometryRef, Measurement, TlasHandle,
+    CostOp, FaultPoint, GeometryRef, Measurement, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -28,11 +28,17 @@ struct ModelBlas {
     class: BlasClass,
     triangles: u32,
     built_frame: u64,
+    /// Last frame whose TLAS referenced it.
+    last_tlas: Option<u64>,
 }
 
 /// Counters the model backend keeps (for tests and examples).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ModelCounters {
+    /// Lifetime violations the model saw: a TLAS record of a BLAS that is not live, a free
+    /// whose `last_used_frame` is older than a TLAS that used the BLAS, or a BLAS destroyed
+    /// before every frame that used it completed. Always 0 for a correct manager.
+    pub lifetime_violations: u64,
     /// BLAS builds recorded.
     pub builds: u64,
     /// Refits recorded.
@@ -64,6 +70,8 @@ pub struct ModelBackend {
     pub device_bytes: Option<u64>,
     /// Report lost device on the next call.
     pub lose_device: bool,
+    /// Faults armed by [`ModelBackend::inject_fault`], each striking once.
+    pub faults: Vec<(FaultPoint, BackendError)>,
     /// Behave like a real GPU about data: [`AsBackend::needs_geometry`] returns this, and a
     /// build of counts-only geometry fails with [`BackendError::MissingGeometry`] (default
     /// `false`: counts are enough for a model).
@@ -78,6 +86,8 @@ pub struct ModelBackend {
     measurements: Vec<Measurement>,
     counters: ModelCounters,
     tlas_instances: usize,
+    /// This frame's TLAS marks (BLAS, its previous mark), undone by `abort_frame`.
+    tlas_marks: Vec<(BlasHandle, Option<u64>)>,
 }
 
 impl ModelBackend {
@@ -89,6 +99,7 @@ impl ModelBackend {
             frames_in_flight: 2,
             device_bytes: None,
             lose_device: false,
+            faults: Vec::new(),
             require_geometry: false,
             blases: HashMap::new(),
             retiring: VecDeque::new(),
@@ -100,6 +111,7 @@ impl ModelBackend {
             measurements: Vec::new(),
             counters: ModelCounters::default(),
             tlas_instances: 0,
+            tlas_marks: Vec::new(),
         }
     }
 
@@ -143,12 +155,29 @@ impl ModelBackend {
         self.tlas_instances
     }
 
+    /// Arms a fault: the next call at `at` fails with `error` (`DeviceLost` stays, as a
+    /// real loss would).
+    pub fn inject_fault(&mut self, at: FaultPoint, error: BackendError) {
+        self.faults.push((at, error));
+    }
+
     fn lost(&self) -> BackendResult<()> {
         if self.lose_device {
             Err(BackendError::DeviceLost)
         } else {
             Ok(())
         }
+    }
+
+    /// `lost`, then an armed fault at `at`.
+    fn check(&mut self, at: FaultPoint) -> BackendResult<()> {
+        self.lost()?;
+        if let Some(i) = self.faults.iter().position(|(p, _)| *p == at) {
+            let (_, e) = self.faults.remove(i);
+            self.lose_device |= e == BackendError::DeviceLost;
+            return Err(e);
+        }
+        Ok(())
     }
 
     fn fits(&self, extra: u64) -> bool {
@@ -170,6 +199,7 @@ impl AsBackend for ModelBackend {
     fn begin_frame(&mut self, frame: u64) -> BackendResult<()> {
         self.lost()?;
         self.frame = frame;
+        self.tlas_marks.clear();
         if frame >= self.frames_in_flight {
             let done = frame - self.frames_in_flight;
             self.completed = Some(self.completed.map_or(done, |c| c.max(done)));
@@ -180,6 +210,11 @@ impl AsBackend for ModelBackend {
                 if let Some(b) = self.blases.remove(&h) {
                     self.retiring_bytes -= b.bytes;
                     self.counters.destroyed += 1;
+                    if b.last_tlas
+                        .is_some_and(|t| self.completed.is_none_or(|c| c < t))
+                    {
+                        self.counters.lifetime_violations += 1;
+                    }
                 }
             } else {
                 break;
@@ -202,7 +237,7 @@ impl AsBackend for ModelBackend {
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
-        self.lost()?;
+        self.check(FaultPoint::BuildBlases)?;
         if self.require_geometry && builds.iter().any(|b| b.geometry.indices.is_none()) {
             return Err(BackendError::MissingGeometry);
         }
@@ -226,6 +261,7 @@ impl AsBackend for ModelBackend {
                 class: b.class,
                 triangles: t,
                 built_frame: frame,
+                last_tlas: None,
             }));
             self.counters.builds += 1;
         }
@@ -239,7 +275,7 @@ impl AsBackend for ModelBackend {
     }
 
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
-        self.lost()?;
+        self.check(FaultPoint::RefitBlases)?;
         let (mut rf, mut rb) = (0u64, 0u64);
         for r in refits {
             let b = self
@@ -277,7 +313,7 @@ impl AsBackend for ModelBackend {
     }
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
-        self.lost()?;
+        self.check(FaultPoint::CompactBlas)?;
         let size = self
             .compacted_size(blas)
             .ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
@@ -290,6 +326,7 @@ impl AsBackend for ModelBackend {
         let h = self.alloc(ModelBlas {
             bytes: size,
             built_frame: frame,
+            last_tlas: None,
             ..src
         });
         self.counters.compactions += 1;
@@ -304,6 +341,9 @@ impl AsBackend for ModelBackend {
 
     fn free_blas(&mut self, blas: BlasHandle, last_used_frame: u64) {
         if let Some(b) = self.blases.get(&blas) {
+            if b.last_tlas.is_some_and(|t| t > last_used_frame) {
+                self.counters.lifetime_violations += 1;
+            }
             self.live_bytes -= b.bytes;
             self.retiring_bytes += b.bytes;
             self.retiring.push_back((last_used_frame, blas));
@@ -316,8 +356,19 @@ impl AsBackend for ModelBackend {
     }
 
     fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
-        self.lost()?;
+        self.check(FaultPoint::BuildTlas)?;
         self.tlas_instances = instances.len();
+        let frame = self.frame;
+        for r in instances {
+            let h = BlasHandle(r.blas_address >> 8);
+            match self.blases.get_mut(&h) {
+                Some(b) => {
+                    self.tlas_marks.push((h, b.last_tlas));
+                    b.last_tlas = Some(frame);
+                }
+                None => self.counters.lifetime_violations += 1,
+            }
+        }
         let units = instances.len() as u64;
         let gpu_ms = self.costs.estimate(CostOp::Tlas, units);
         self.measurements.push(Measurement {
@@ -329,7 +380,16 @@ impl AsBackend for ModelBackend {
     }
 
     fn end_frame(&mut self, _frame: u64) -> BackendResult<()> {
-        self.lost()
+        self.check(FaultPoint::EndFrame)
+    }
+
+    fn abort_frame(&mut self) {
+        // The frame's TLAS was never submitted: it used nothing.
+        for (h, prev) in self.tlas_marks.drain(..).rev() {
+            if let Some(b) = self.blases.get_mut(&h) {
+                b.last_tlas = prev;
+            }
+        }
     }
 
     fn take_measurements(&mut self) -> Vec<Measurement> {

@@ -65,13 +65,28 @@ impl<B: AsBackend> AsManager<B> {
         self.journal.clear();
     }
 
+    /// Frees a BLAS the failed frame created: never submitted, so it retires against the
+    /// newest completed frame (gone at the next `begin_frame` once one completed), and its
+    /// bytes count as retiring until then (the retry's budget sees them).
+    fn free_unsubmitted(&mut self, h: BlasHandle, bytes: u64) {
+        let last = self.backend.completed_frame().unwrap_or(0);
+        self.backend.free_blas(h, last);
+        let i = self.retiring.partition_point(|&(f, _)| f <= last);
+        self.retiring.insert(i, (last, bytes));
+        self.retiring_bytes += bytes;
+    }
+
     /// The frame failed: undo it (see the module docs), newest change first.
     pub(crate) fn rollback_frame(&mut self) {
         let frame = self.frame;
+        // First: the backend forgets the frame's recorded work (its TLAS used nothing).
+        self.backend.abort_frame();
         let mut j = std::mem::take(&mut self.journal);
         for c in j.compacted.drain(..).rev() {
             let e = &mut self.t.entries[c.slot as usize];
+            let mut new_bytes = 0;
             if e.live && e.handle == Some(c.new) {
+                new_bytes = e.bytes;
                 self.live_bytes = self.live_bytes - e.bytes + c.old_bytes;
                 e.bytes = c.old_bytes;
                 e.handle = Some(c.old);
@@ -87,7 +102,7 @@ impl<B: AsBackend> AsManager<B> {
                 self.retiring.remove(i);
                 self.retiring_bytes -= c.old_bytes;
             }
-            self.backend.free_blas(c.new, frame);
+            self.free_unsubmitted(c.new, new_bytes);
         }
         for r in j.refitted.drain(..).rev() {
             let e = &mut self.t.entries[r.slot as usize];
@@ -100,7 +115,9 @@ impl<B: AsBackend> AsManager<B> {
         }
         for (slot, h) in j.built.drain(..).rev() {
             let e = &mut self.t.entries[slot as usize];
+            let mut bytes = 0;
             if e.live && e.handle == Some(h) {
+                bytes = e.bytes;
                 e.handle = None;
                 e.state = EntryState::Queued;
                 e.needs_compaction = false;
@@ -108,10 +125,8 @@ impl<B: AsBackend> AsManager<B> {
                 self.built_count -= 1;
                 e.bytes = 0;
             }
-            // Never submitted: no frame used it.
-            self.backend.free_blas(h, frame);
+            self.free_unsubmitted(h, bytes);
         }
         self.journal = j;
-        self.backend.abort_frame();
     }
 }

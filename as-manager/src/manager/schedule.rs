@@ -80,14 +80,20 @@ impl<B: AsBackend> AsManager<B> {
     /// Evicts built entries scoring worse than `than` (or any when `None`) until `need` more
     /// bytes fit under the budget, counting bytes already retiring as soon-free. Returns
     /// whether `need` fits now (not counting retiring bytes: those still occupy memory).
-    fn make_room(&mut self, need: u64, than: Option<f32>, budget: u64) -> bool {
+    /// Entries younger than `min_resident_frames` are spared for a build (no thrash), not for
+    /// a budget that is already exceeded (`hard`).
+    fn make_room(&mut self, need: u64, than: Option<f32>, budget: u64, hard: bool) -> bool {
         if self.memory_in_use() + need <= budget {
             return true;
         }
         if self.live_bytes + need <= budget {
             return false; // wait for in-flight frees
         }
-        let min_life = self.config.residency.min_resident_frames as u64;
+        let min_life = if hard {
+            0
+        } else {
+            self.config.residency.min_resident_frames as u64
+        };
         let mut cands: Vec<(bool, bool, f32, u64, u32)> = self
             .t
             .active
@@ -125,7 +131,7 @@ impl<B: AsBackend> AsManager<B> {
     /// After a budget cut or an OOM: evict until the built bytes fit.
     pub(crate) fn enforce_budget(&mut self) {
         if self.live_bytes > self.budget() {
-            self.make_room(0, None, self.budget());
+            self.make_room(0, None, self.budget(), true);
         }
     }
 
@@ -266,7 +272,7 @@ impl<B: AsBackend> AsManager<B> {
                         continue;
                     }
                     let dist = self.t.entries[slot as usize].min_dist;
-                    if !self.make_room(bytes + size.as_bytes, Some(dist), build_budget) {
+                    if !self.make_room(bytes + size.as_bytes, Some(dist), build_budget, false) {
                         continue;
                     }
                 }

@@ -29,6 +29,8 @@
 //!   test the manager's OOM handling on machines with plenty of memory.
 
 use std::collections::{HashMap, VecDeque};
+
+use crate::backend::FaultPoint;
 use std::sync::Arc;
 
 use ash::vk;
@@ -214,21 +216,6 @@ pub struct VulkanBackend {
     bases: Vec<u32>,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
-}
-
-/// Where a fault armed by [`VulkanBackend::inject_fault`] strikes: at the start of that call.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FaultPoint {
-    /// `build_blases`.
-    BuildBlases,
-    /// `refit_blases`.
-    RefitBlases,
-    /// `compact_blas`.
-    CompactBlas,
-    /// `build_tlas` (after the frame's builds were recorded).
-    BuildTlas,
-    /// `end_frame` (before the submission).
-    EndFrame,
 }
 
 fn backend_err(e: VulkanError) -> BackendError {

@@ -15,8 +15,9 @@ mod query;
 mod rt_pipeline;
 mod scene;
 
+pub use super::FaultPoint;
 pub use accel::{align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE};
-pub use backend::{class_flags, FaultPoint, VulkanBackend, VulkanBackendDesc, VulkanCounters};
+pub use backend::{class_flags, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use compute::{BindingKind, Bound, ComputePipeline};
 pub use context::{
