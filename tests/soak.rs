@@ -1,0 +1,150 @@
+//! Soak: a small baked world streamed along random teleports (one every 30 frames, seeded,
+//! cycling through ten places) into the manager on lavapipe, validation on, two frames in
+//! flight, a tiny render every 10th frame. `SOAK_FRAMES` frames (1,000 in the suite; 10,000 by
+//! hand, see docs/RELIABILITY.md). Required: no validation message; nothing Vulkan left alive
+//! at shutdown (no buffer, no handle); resident memory at the end within 5 % of what it was at
+//! the same place and frame phase after the first tenth of the run.
+
+mod common;
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use rtstream::as_manager::backend::vulkan::{
+    live_vulkan_handles, VulkanBackend, VulkanBackendDesc,
+};
+use rtstream::as_manager::{AsManager, Camera, Config, FrameInput};
+use rtstream::renderer::{Camera as ViewCamera, RenderDesc, Renderer};
+use rtstream::streaming::{bake, generate, StreamConfig, World, WorldPreset};
+use rtstream::WorldBridge;
+
+/// Resident set size of this process in KiB (Linux).
+fn rss_kib() -> u64 {
+    let s = std::fs::read_to_string("/proc/self/status").expect("procfs");
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+        .expect("VmRSS")
+}
+
+#[test]
+fn soak_teleports_and_streaming_leave_nothing_behind() {
+    let frames: u64 = std::env::var("SOAK_FRAMES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1_000);
+    assert!(frames >= 300, "SOAK_FRAMES >= 300");
+    let handles_before = live_vulkan_handles();
+    let ctx = common::context();
+    let dir = std::env::temp_dir().join(format!("rtstream-soak-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let gw = generate(&WorldPreset::small(8, 3)).expect("generate");
+    bake(&gw, &dir).expect("bake");
+    let size = gw.preset.size_m;
+    let stream = StreamConfig {
+        load_radius: 150.0,
+        unload_radius: 200.0,
+        // Deterministic: loads land two frames after their request, whatever the load.
+        apply_after_frames: Some(2),
+        mesh_budget_bytes: 64 << 20,
+        ..StreamConfig::default()
+    };
+    let mut world = World::open(&dir, stream).expect("open");
+    let mut bridge = WorldBridge::new(world.manifest());
+    let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()).unwrap();
+    let mut config = Config::default();
+    config.memory.blas_bytes = 24 << 20;
+    let mut m = AsManager::new(config, backend).unwrap();
+    let mut renderer = Renderer::new(ctx.clone()).unwrap();
+    // Ten places (seeded); the camera jumps every 30 frames and cycles every 300.
+    let mut h = 0x5EEDu64;
+    let mut unit = || {
+        h ^= h << 13;
+        h ^= h >> 7;
+        h ^= h << 17;
+        (h >> 11) as f32 / (1u64 << 53) as f32
+    };
+    let places: Vec<Vec3> = (0..10)
+        .map(|_| {
+            Vec3::new(
+                size * (0.1 + 0.8 * unit()),
+                3.0,
+                size * (0.1 + 0.8 * unit()),
+            )
+        })
+        .collect();
+    // Compare memory at the same place and phase (frame % 300 == 100): first after a tenth of
+    // the run and a whole cycle of places (allocators and caches have seen every place), then
+    // the last such frame.
+    let first = (frames / 10).max(300);
+    let probe_early = 100 + 300 * (first - 100).div_ceil(300);
+    let probe_late = frames - 1 - ((frames - 1) % 300) + 100;
+    let probe_late = if probe_late >= frames {
+        probe_late - 300
+    } else {
+        probe_late
+    };
+    let (mut rss_early, mut rss_late) = (0, 0);
+    let mut renders = 0;
+    for frame in 0..frames {
+        let place = places[((frame / 30) % 10) as usize];
+        let eye = place + Vec3::new((frame % 30) as f32 * 0.5, 0.0, 0.0);
+        let events = world.update(frame, &[eye.into()]);
+        bridge.apply(&m, &events);
+        let cams = [Camera::new(eye, Vec3::X)];
+        let out = m
+            .update(FrameInput {
+                frame,
+                cameras: &cams,
+            })
+            .expect("update");
+        let s = out.stats.clone();
+        assert!(
+            s.blas_bytes + s.retiring_bytes <= s.memory_budget,
+            "frame {frame}: over budget"
+        );
+        let (tlas, records) = (out.tlas, out.instances.to_vec());
+        if frame % 10 == 9 {
+            m.backend_mut().wait_idle().unwrap();
+            let backend = m.backend();
+            let table = bridge.shading(&records, |a| backend.shading_geometry(a));
+            let raw = backend.tlas(tlas).expect("this frame's TLAS");
+            let cam = ViewCamera::look_at(eye, eye + Vec3::X * 10.0, 1.0);
+            let desc = RenderDesc {
+                primitive_bases: backend.primitive_bases(tlas),
+                ..RenderDesc::new(32, 18, cam)
+            };
+            renderer.render(raw, &table, &desc).expect("render");
+            renders += 1;
+        }
+        if frame == probe_early {
+            rss_early = rss_kib();
+        }
+        if frame == probe_late {
+            rss_late = rss_kib();
+        }
+    }
+    assert!(renders >= frames / 10);
+    common::assert_no_validation_messages(&ctx);
+    drop(renderer);
+    drop(m);
+    drop(world);
+    assert_eq!(ctx.live_buffers(), 0, "every GPU buffer was destroyed");
+    let ctx = Arc::try_unwrap(ctx).expect("the test holds the last context");
+    drop(ctx);
+    assert_eq!(
+        live_vulkan_handles(),
+        handles_before,
+        "no Vulkan handle alive at shutdown"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+    eprintln!(
+        "soak: {frames} frames, {renders} renders, RSS {rss_early} KiB at frame {probe_early}, {rss_late} KiB at frame {probe_late}"
+    );
+    let growth = rss_late as f64 / rss_early.max(1) as f64;
+    assert!(
+        growth <= 1.05,
+        "resident memory grew {:.1} % from frame {probe_early} to {probe_late} at the same place",
+        (growth - 1.0) * 100.0
+    );
+}
