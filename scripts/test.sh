@@ -8,4 +8,6 @@ export RTSTREAM_VALIDATION=1
 start=$(date +%s)
 cargo test --workspace --all-targets "$@"
 cargo test --workspace --doc
+# The libFuzzer targets (streaming/fuzz) build on stable; running them needs nightly (docs/RELIABILITY.md).
+CARGO_TARGET_DIR=target/fuzz cargo build --locked --manifest-path streaming/fuzz/Cargo.toml
 echo "tests: wall time $(( $(date +%s) - start )) s"

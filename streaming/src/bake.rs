@@ -202,7 +202,7 @@ pub fn read_manifest(dir: impl AsRef<Path>) -> Result<Manifest> {
     decode_manifest(&bytes).map_err(|reason| StreamingError::Format { path, reason })
 }
 
-fn decode_manifest(bytes: &[u8]) -> std::result::Result<Manifest, FormatError> {
+pub(crate) fn decode_manifest(bytes: &[u8]) -> std::result::Result<Manifest, FormatError> {
     let mut r = Reader::new(format::unframe(MANIFEST_MAGIC, bytes)?);
     let bad = |s: String| FormatError::Inconsistent(s);
     let extent = r.aabb()?;

@@ -98,18 +98,54 @@ impl GltfScene {
 /// ```
 pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
     let path = path.as_ref();
-    check_extensions(path)?;
-    let (doc, buffers, _images) = gltf::import(path).map_err(|source| StreamingError::Gltf {
+    let bytes = std::fs::read(path).map_err(|e| gltf_error(path, gltf::Error::Io(e)))?;
+    let base = path.parent().unwrap_or_else(|| Path::new("./"));
+    import(path, &bytes, Some(base))
+}
+
+/// Loads a `.glb` or a `.gltf` whose buffers are embedded (data URIs) from memory; `name`
+/// stands for the path in errors. The same checks as [`load_gltf`]; a buffer that names an
+/// external file is an error.
+pub fn load_gltf_slice(bytes: &[u8], name: &str) -> Result<GltfScene> {
+    import(Path::new(name), bytes, None)
+}
+
+fn gltf_error(path: &Path, source: gltf::Error) -> StreamingError {
+    StreamingError::Gltf {
         path: path.to_owned(),
         source,
-    })?;
+    }
+}
 
+/// Parses the document and its buffers, never its images (rtstream uses none, and the gltf
+/// crate's image decoding panics on malformed images). The raw checks run first: the gltf
+/// crate panics on some inputs its own validation should refuse (found by fuzzing).
+fn import(path: &Path, bytes: &[u8], base: Option<&Path>) -> Result<GltfScene> {
+    if bytes.starts_with(b"glTF") {
+        check_glb_header(path, bytes)?;
+        let glb = gltf::binary::Glb::from_slice(bytes).map_err(|e| gltf_error(path, e))?;
+        check_json(path, &glb.json)?;
+    } else {
+        check_json(path, bytes)?;
+    }
+    let gltf::Gltf { document, blob } =
+        gltf::Gltf::from_slice(bytes).map_err(|e| gltf_error(path, e))?;
+    let buffers = gltf::import_buffers(&document, base, blob).map_err(|e| gltf_error(path, e))?;
+    scene_from(path, &document, &buffers)
+}
+
+/// Meshes, skins and instances of an imported document.
+fn scene_from(
+    path: &Path,
+    doc: &gltf::Document,
+    buffers: &[gltf::buffer::Data],
+) -> Result<GltfScene> {
     // glTF mesh index -> our mesh index (None: the mesh had no triangles).
     let mut remap = Vec::with_capacity(doc.meshes().len());
     let mut meshes = Vec::new();
     let mut raw_skins = Vec::new();
     for mesh in doc.meshes() {
-        match read_mesh(path, &mesh, &buffers)? {
+        match read_mesh(path, &mesh, buffers)? {
             Some((m, raw)) => {
                 remap.push(Some(meshes.len()));
                 meshes.push(m);
@@ -118,7 +154,7 @@ pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
             None => remap.push(None),
         }
     }
-    attach_skins(path, &doc, &buffers, &remap, &mut meshes, raw_skins)?;
+    attach_skins(path, doc, buffers, &remap, &mut meshes, raw_skins)?;
 
     let roots: Vec<gltf::Node> = match doc.default_scene().or_else(|| doc.scenes().next()) {
         Some(scene) => scene.nodes().collect(),
@@ -176,27 +212,109 @@ pub fn load_gltf(path: impl AsRef<Path>) -> Result<GltfScene> {
 /// Per-vertex joints and weights read from the primitives (None when some primitive lacks them).
 type RawSkin = Option<(Vec<[u16; 4]>, Vec<[f32; 4]>)>;
 
-/// The glTF schema requires every `extensions` value to be an object of objects; the parser
-/// ignores unknown extensions, so check the raw JSON ourselves (wrongTypes/badExtension.gltf).
-fn check_extensions(path: &Path) -> Result<()> {
-    let Ok(bytes) = std::fs::read(path) else {
-        return Ok(()); // gltf::import reports unreadable files with its own error.
-    };
-    let json: &[u8] = if bytes.starts_with(b"glTF") {
-        match gltf::binary::Glb::from_slice(&bytes) {
-            Ok(glb) => return check_extensions_json(path, &glb.json),
-            Err(_) => return Ok(()), // Reported by gltf::import.
-        }
-    } else {
-        &bytes
-    };
-    check_extensions_json(path, json)
+/// What the gltf crate's readers accept, checked before reading: on anything else they hit
+/// `unreachable!` or a debug assertion, or subtract past zero (fuzzed files with float indices,
+/// a VEC2 position, a stride shorter than the element and an empty accessor did). Sparse
+/// accessors are refused outright.
+fn check_accessor(
+    a: &gltf::Accessor<'_>,
+    what: &str,
+    types: &[gltf::accessor::DataType],
+    dims: &[gltf::accessor::Dimensions],
+) -> std::result::Result<(), String> {
+    let i = a.index();
+    if a.sparse().is_some() {
+        return Err(format!(
+            "accessor {i} ({what}): sparse accessors are not supported"
+        ));
+    }
+    if a.count() == 0 {
+        return Err(format!("accessor {i} ({what}): count is 0"));
+    }
+    let (t, d) = (a.data_type(), a.dimensions());
+    if !types.contains(&t) || !dims.contains(&d) {
+        return Err(format!("accessor {i} ({what}): {t:?} {d:?} is not allowed"));
+    }
+    match a.view().and_then(|v| v.stride()) {
+        Some(stride) if stride < a.size() => Err(format!(
+            "accessor {i} ({what}): stride {stride} is shorter than its {}-byte element",
+            a.size()
+        )),
+        _ => Ok(()),
+    }
 }
 
-fn check_extensions_json(path: &Path, json: &[u8]) -> Result<()> {
-    let Ok(value) = serde_json::from_slice::<serde_json::Value>(json) else {
-        return Ok(()); // Reported by gltf::import.
+/// [`check_accessor`] on every accessor of a primitive, by semantic.
+fn check_accessors(prim: &gltf::Primitive<'_>) -> std::result::Result<(), String> {
+    use gltf::accessor::DataType::{F32, U16, U32, U8};
+    use gltf::accessor::Dimensions::{Scalar, Vec2, Vec3, Vec4};
+    use gltf::Semantic;
+    if let Some(a) = prim.indices() {
+        check_accessor(&a, "indices", &[U8, U16, U32], &[Scalar])?;
+    }
+    for (sem, a) in prim.attributes() {
+        let (types, dims): (&[_], &[_]) = match sem {
+            Semantic::Positions | Semantic::Normals => (&[F32], &[Vec3]),
+            Semantic::Tangents => (&[F32], &[Vec4]),
+            Semantic::Joints(_) => (&[U8, U16], &[Vec4]),
+            Semantic::Weights(_) => (&[U8, U16, F32], &[Vec4]),
+            Semantic::TexCoords(_) => (&[U8, U16, F32], &[Vec2]),
+            Semantic::Colors(_) => (&[U8, U16, F32], &[Vec3, Vec4]),
+        };
+        check_accessor(&a, &format!("{sem:?}"), types, dims)?;
+    }
+    Ok(())
+}
+
+/// A GLB header whose total length is below the header's own 12 bytes makes the gltf crate
+/// subtract past zero.
+fn check_glb_header(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(len) = bytes.get(8..12) {
+        let len = u32::from_le_bytes(len.try_into().expect("four bytes"));
+        if len < 12 {
+            return Err(StreamingError::Schema {
+                path: path.to_owned(),
+                reason: format!("GLB header length {len} is below the header's 12 bytes"),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Checks on the raw JSON that the gltf crate skips or panics on:
+/// - the schema requires every `extensions` value to be an object of objects, and the parser
+///   ignores unknown extensions (wrongTypes/badExtension.gltf);
+/// - a primitive's `POSITION` must name an existing accessor: the crate's validation indexes
+///   the accessor list with it before checking (found by fuzzing).
+fn check_json(path: &Path, json: &[u8]) -> Result<()> {
+    // The crate skips unknown members without checking their UTF-8; read them lossily so these
+    // checks see the document it sees.
+    let text = String::from_utf8_lossy(json);
+    let Ok(value) = serde_json::from_str::<serde_json::Value>(&text) else {
+        return Ok(()); // Reported by gltf::Gltf::from_slice.
     };
+    let schema = |reason: String| StreamingError::Schema {
+        path: path.to_owned(),
+        reason,
+    };
+    let accessors = value
+        .get("accessors")
+        .and_then(|a| a.as_array())
+        .map_or(0, Vec::len);
+    let meshes = value.get("meshes").and_then(|m| m.as_array());
+    for (m, mesh) in meshes.into_iter().flatten().enumerate() {
+        let prims = mesh.get("primitives").and_then(|p| p.as_array());
+        for (p, prim) in prims.into_iter().flatten().enumerate() {
+            let attrs = prim.get("attributes").and_then(|a| a.as_object());
+            for (name, idx) in attrs.into_iter().flatten() {
+                if idx.as_u64().is_some_and(|i| i >= accessors as u64) {
+                    return Err(schema(format!(
+                        "meshes[{m}].primitives[{p}].attributes.{name} = {idx}: only {accessors} accessors"
+                    )));
+                }
+            }
+        }
+    }
     let mut stack = vec![(String::from("$"), &value)];
     while let Some((at, v)) = stack.pop() {
         match v {
@@ -205,16 +323,10 @@ fn check_extensions_json(path: &Path, json: &[u8]) -> Result<()> {
                     let here = format!("{at}.{k}");
                     if k == "extensions" {
                         let serde_json::Value::Object(exts) = child else {
-                            return Err(StreamingError::Schema {
-                                path: path.to_owned(),
-                                reason: format!("{here} is not an object"),
-                            });
+                            return Err(schema(format!("{here} is not an object")));
                         };
                         if let Some((name, _)) = exts.iter().find(|(_, e)| !e.is_object()) {
-                            return Err(StreamingError::Schema {
-                                path: path.to_owned(),
-                                reason: format!("{here}.{name} is not an object"),
-                            });
+                            return Err(schema(format!("{here}.{name} is not an object")));
                         }
                     }
                     stack.push((here, child));
@@ -264,6 +376,7 @@ fn read_mesh(
             tracing::warn!(file = %path.display(), mesh = %name, mode = ?prim.mode(), "skipping non-triangle primitive");
             continue;
         }
+        check_accessors(&prim).map_err(invalid)?;
         let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
         let positions: Vec<[f32; 3]> = reader
             .read_positions()
@@ -440,6 +553,11 @@ fn read_skeleton(
     for (new, &old) in sorted.iter().enumerate() {
         order[old] = new as u16;
     }
+    use gltf::accessor::DataType::{F32, I16, I8, U16, U8};
+    use gltf::accessor::Dimensions as D;
+    if let Some(a) = skin.inverse_bind_matrices() {
+        check_accessor(&a, "inverse bind matrices", &[F32], &[D::Mat4])?;
+    }
     let reader = skin.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let ibm: Vec<Mat4> = match reader.read_inverse_bind_matrices() {
         Some(it) => it.map(|m| Mat4::from_cols_array_2d(&m)).collect(),
@@ -498,6 +616,16 @@ fn read_skeleton(
             let Some(j) = joint_of(ch.target().node().index()) else {
                 continue;
             };
+            let sampler = ch.sampler();
+            check_accessor(&sampler.input(), "animation input", &[F32], &[D::Scalar])?;
+            let (types, dims): (&[_], &[_]) = match ch.target().property() {
+                gltf::animation::Property::Rotation => (&[F32, I8, U8, I16, U16], &[D::Vec4]),
+                gltf::animation::Property::MorphTargetWeights => {
+                    (&[F32, I8, U8, I16, U16], &[D::Scalar])
+                }
+                _ => (&[F32], &[D::Vec3]),
+            };
+            check_accessor(&sampler.output(), "animation output", types, dims)?;
             let r = ch.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
             let Some(times) = r.read_inputs().map(|i| i.collect::<Vec<f32>>()) else {
                 return Err(format!("animation channel {} has no input", ch.index()));

@@ -40,6 +40,8 @@
 pub mod bake;
 mod error;
 pub mod format;
+#[doc(hidden)]
+pub mod fuzz;
 mod generate;
 mod gltf_import;
 mod loader;
@@ -55,7 +57,8 @@ pub use error::{FormatError, Result, StreamingError};
 pub use generate::{
     generate, GeneratedWorld, WorldPreset, WorldStats, ASSIMP_GLTF2_DIR, REAL_PROPS, REAL_SKINNED,
 };
-pub use gltf_import::{load_gltf, GltfScene, MeshInstance, TriMesh};
+pub use gltf_import::{load_gltf, load_gltf_slice, GltfScene, MeshInstance, TriMesh};
+pub use loader::LoadFault;
 pub use lod::{build_lod_chain, MAX_RATIO as LOD_MAX_RATIO};
 pub use model::{
     Aabb, Instance, InstanceId, Level, LevelId, LodGeometry, MaterialClass, Mesh, MeshId, Motion,

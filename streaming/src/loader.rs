@@ -105,6 +105,19 @@ pub(crate) struct LoaderShared {
     pub dir: PathBuf,
     pub manifest: Manifest,
     pub mesh_bounds: Vec<Aabb>,
+    /// Test-only faults: the next loads of these levels fail (see `World::inject_load_fault`).
+    pub faults: parking_lot::Mutex<Vec<(LevelId, LoadFault, u32)>>,
+}
+
+/// A fault for the next loads of a level (tests of the retry path; see
+/// [`World::inject_load_fault`](crate::World::inject_load_fault)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LoadFault {
+    /// Reading the level file fails with an I/O error.
+    ReadError,
+    /// The decoder panics (caught on the loader thread and reported as
+    /// [`StreamingError::LoaderPanic`]).
+    Panic,
 }
 
 impl LoaderShared {
@@ -232,6 +245,26 @@ fn guarded<T>(path: PathBuf, f: impl FnOnce() -> Result<T>) -> Result<T> {
 }
 
 fn load_level(shared: &LoaderShared, level: LevelId, source: &LevelSource) -> Result<LoadedLevel> {
+    let fault = {
+        let mut faults = shared.faults.lock();
+        faults
+            .iter_mut()
+            .find(|f| f.0 == level && f.2 > 0)
+            .map(|f| {
+                f.2 -= 1;
+                f.1
+            })
+    };
+    match fault {
+        Some(LoadFault::ReadError) => {
+            return Err(StreamingError::Io {
+                path: source_path(shared, source),
+                source: std::io::Error::other("injected read fault"),
+            })
+        }
+        Some(LoadFault::Panic) => panic!("injected loader panic (level {})", level.0),
+        None => {}
+    }
     match source {
         LevelSource::Baked(rel) => {
             let path = shared.dir.join(rel);
@@ -376,6 +409,7 @@ mod tests {
                 meshes: Vec::new(),
             },
             mesh_bounds: Vec::new(),
+            faults: parking_lot::Mutex::new(Vec::new()),
         });
         let pool = LoaderPool::new(shared, 2).expect("pool");
         for k in 0..20 {

@@ -346,7 +346,13 @@ impl AsBackend for ModelBackend {
             }
             self.live_bytes -= b.bytes;
             self.retiring_bytes += b.bytes;
-            self.retiring.push_back((last_used_frame, blas));
+            // Ordered by frame, as the Vulkan backend keeps it: a failed frame's BLASes retire
+            // against an older frame than frees already queued (the property test found the
+            // FIFO holding them behind a newer entry while the manager counted them gone).
+            let i = self
+                .retiring
+                .partition_point(|&(f, _)| f <= last_used_frame);
+            self.retiring.insert(i, (last_used_frame, blas));
         }
     }
 

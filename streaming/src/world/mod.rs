@@ -44,7 +44,11 @@ enum LevelState {
         instances: Arc<[Instance]>,
         meshes: Vec<MeshId>,
     },
-    Failed,
+    /// The last load failed; after `attempts` loads it may be tried again at frame `retry_at`.
+    Failed {
+        attempts: u32,
+        retry_at: u64,
+    },
 }
 
 #[derive(Debug)]
@@ -52,6 +56,8 @@ struct LevelSlot {
     bounds: Aabb,
     source: LevelSource,
     state: LevelState,
+    /// Loads that failed in a row (reset by a success or by leaving the unload radius).
+    failures: u32,
 }
 
 #[derive(Debug)]
@@ -113,6 +119,8 @@ pub struct World {
     in_flight_bytes: usize,
     mesh_bytes: usize,
     frame: u64,
+    /// Level loads retried after a failure.
+    load_retries: u64,
     /// Deterministic mode: (ticket, request frame) of every job in flight, in request order.
     requests: std::collections::VecDeque<(u64, u64)>,
     /// Deterministic mode: results that arrived before their turn, by ticket.
@@ -160,6 +168,7 @@ impl World {
                 bounds: l.bounds,
                 source: LevelSource::Baked(PathBuf::from(&l.file)),
                 state: LevelState::Unloaded,
+                failures: 0,
             })
             .collect();
         let meshes = m
@@ -178,6 +187,7 @@ impl World {
             dir: dir.clone(),
             mesh_bounds: m.meshes.iter().map(|e| e.bounds).collect(),
             manifest: m,
+            faults: parking_lot::Mutex::new(Vec::new()),
         });
         let pool = LoaderPool::new(Arc::clone(&shared), config.loader_threads)?;
         // Proxies are small and read whole here; a bad file is reported by the first update
@@ -203,6 +213,7 @@ impl World {
             in_flight_bytes: 0,
             mesh_bytes: 0,
             frame: 0,
+            load_retries: 0,
             requests: std::collections::VecDeque::new(),
             early: std::collections::BTreeMap::new(),
             proxy_state: vec![
@@ -228,8 +239,20 @@ impl World {
                 transform,
             },
             state: LevelState::Unloaded,
+            failures: 0,
         });
         id
+    }
+
+    /// Test-only fault injection: the next `times` loads of `level` fail with `fault`, on the
+    /// loader thread, as a real failure would. The level is reported failed
+    /// ([`WorldEvent::LoadFailed`]) and retried with backoff
+    /// ([`StreamConfig::retry_after_frames`]); the rest of the world carries on.
+    #[doc(hidden)]
+    pub fn inject_load_fault(&self, level: LevelId, fault: crate::loader::LoadFault, times: u32) {
+        if let Some(shared) = &self.manifest {
+            shared.faults.lock().push((level, fault, times));
+        }
     }
 
     /// The baked world's directory (empty for [`World::empty`]).
@@ -278,6 +301,7 @@ impl World {
             mesh_bytes: self.mesh_bytes,
             in_flight_bytes: self.in_flight_bytes,
             in_flight_jobs: self.in_flight,
+            load_retries: self.load_retries,
             loader_threads_alive: self.pool.alive(),
         };
         for l in &self.levels {
@@ -287,7 +311,7 @@ impl World {
                     st.loaded_instances += instances.len();
                 }
                 LevelState::Loading(_) => st.loading_levels += 1,
-                LevelState::Failed => st.failed_levels += 1,
+                LevelState::Failed { .. } => st.failed_levels += 1,
                 LevelState::Unloaded => {}
             }
         }
@@ -470,8 +494,15 @@ impl World {
                 }
                 match result {
                     Err(e) => {
-                        tracing::warn!(level = level.0, error = %e, "level load failed");
-                        self.levels[level.0 as usize].state = LevelState::Failed;
+                        let slot = &mut self.levels[level.0 as usize];
+                        slot.failures += 1;
+                        let backoff = u64::from(self.config.retry_after_frames)
+                            << (slot.failures - 1).min(16);
+                        tracing::warn!(level = level.0, error = %e, attempts = slot.failures, "level load failed");
+                        slot.state = LevelState::Failed {
+                            attempts: slot.failures,
+                            retry_at: self.frame + backoff,
+                        };
                         ev.push(WorldEvent::LoadFailed {
                             level: Some(level),
                             mesh: None,
@@ -479,7 +510,10 @@ impl World {
                             error: Arc::new(e),
                         });
                     }
-                    Ok(loaded) => self.level_arrived(level, loaded, ev),
+                    Ok(loaded) => {
+                        self.levels[level.0 as usize].failures = 0;
+                        self.level_arrived(level, loaded, ev);
+                    }
                 }
             }
             Done::Lod {
@@ -638,8 +672,16 @@ impl World {
                 .iter()
                 .map(|c| slot.bounds.distance_xz(c.position))
                 .fold(f32::INFINITY, f32::min);
+            let retry = match slot.state {
+                LevelState::Failed { attempts, retry_at } => {
+                    attempts < self.config.max_load_attempts && self.frame >= retry_at
+                }
+                _ => false,
+            };
             match slot.state {
-                LevelState::Unloaded if d <= load => {
+                LevelState::Unloaded | LevelState::Failed { .. }
+                    if d <= load && (retry || matches!(slot.state, LevelState::Unloaded)) =>
+                {
                     let source = slot.source.clone();
                     let ticket = self.new_ticket();
                     self.pool.submit(Job::Level {
@@ -648,10 +690,12 @@ impl World {
                         source,
                     });
                     self.in_flight += 1;
+                    self.load_retries += u64::from(retry);
                     self.levels[i].state = LevelState::Loading(ticket);
                 }
-                LevelState::Loading(_) | LevelState::Failed if d > unload => {
+                LevelState::Loading(_) | LevelState::Failed { .. } if d > unload => {
                     self.levels[i].state = LevelState::Unloaded;
+                    self.levels[i].failures = 0;
                 }
                 LevelState::Loaded { .. } if d > unload => self.unload(LevelId(i as u32), ev),
                 _ => {}

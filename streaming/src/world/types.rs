@@ -47,6 +47,12 @@ pub struct StreamConfig {
     /// under any machine load. `None` (the default, for interactive runs) applies whatever has
     /// arrived and never waits.
     pub apply_after_frames: Option<u32>,
+    /// A level whose load failed (I/O error, bad file, a panicking decoder) is retried this
+    /// many frames later, doubling after each further failure, while a camera stays within
+    /// `load_radius`.
+    pub retry_after_frames: u32,
+    /// Loads of a level before it stays failed (until every camera leaves `unload_radius`).
+    pub max_load_attempts: u32,
 }
 
 impl Default for StreamConfig {
@@ -61,6 +67,8 @@ impl Default for StreamConfig {
             max_in_flight: 64,
             apply_after_frames: None,
             far_radius: f32::INFINITY,
+            retry_after_frames: 8,
+            max_load_attempts: 4,
         }
     }
 }
@@ -153,8 +161,11 @@ pub struct StreamStats {
     pub loaded_levels: usize,
     /// Levels being loaded.
     pub loading_levels: usize,
-    /// Levels whose last load failed (retried after leaving the unload radius).
+    /// Levels whose last load failed (retried with backoff, see
+    /// [`StreamConfig::retry_after_frames`]).
     pub failed_levels: usize,
+    /// Level loads retried after a failure, since the world opened.
+    pub load_retries: u64,
     /// Instances in loaded levels.
     pub loaded_instances: usize,
     /// Mesh LODs resident.

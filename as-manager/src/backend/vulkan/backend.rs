@@ -376,6 +376,17 @@ impl VulkanBackend {
         self.allocated
     }
 
+    /// Whether a device address from [`AsBackend::blas_address`] names a live BLAS (one not
+    /// yet handed to `free_blas`).
+    pub fn is_live_blas_address(&self, address: u64) -> bool {
+        address != 0
+            && self
+                .blases
+                .iter()
+                .flatten()
+                .any(|e| e.parts.first().is_some_and(|p| p.address == address))
+    }
+
     /// Bytes of BLAS storage and BLAS input buffers (what `memory_limit` caps).
     pub fn blas_allocated_bytes(&self) -> u64 {
         self.blas_allocated
@@ -523,6 +534,18 @@ impl VulkanBackend {
         self.slots
             .get(tlas.0 as usize)
             .map_or(0, |s| s.bases_address)
+    }
+
+    /// Injected faults that have not struck yet.
+    #[doc(hidden)]
+    pub fn pending_faults(&self) -> usize {
+        self.faults.len()
+    }
+
+    /// Disarms every injected fault.
+    #[doc(hidden)]
+    pub fn clear_faults(&mut self) {
+        self.faults.clear();
     }
 
     /// Arms a fault: the next call at `at` fails with `error` and does nothing else
