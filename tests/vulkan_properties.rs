@@ -1,6 +1,7 @@
 //! The property tests' state machine on the Vulkan backend (lavapipe, validation with
 //! synchronization checks on, frames in flight): random registrations, removals, moves,
 //! teleports, budget changes, rejected inputs, skipped frames and injected backend faults
+//! (failed calls, out of device memory, device lost)
 //! keep every invariant after every frame, and the validation layer stays silent. A smaller
 //! run than the model backend's 10,000 (`VK_PROPTEST_CASES`, default 200): each case creates
 //! real BLASes and TLASes.
@@ -32,6 +33,7 @@ fn invariants_hold_on_the_vulkan_backend() {
     let frames = std::cell::Cell::new(0u64);
     let faults = std::cell::Cell::new(0u32);
     let work = std::cell::Cell::new((0u64, 0u64));
+    let ooms = std::cell::Cell::new(0u64);
     runner
         .run(&strategy, |(cfg, ops)| {
             let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default())
@@ -53,13 +55,15 @@ fn invariants_hold_on_the_vulkan_backend() {
             faults.set(faults.get() + h.retried);
             let (b, t) = work.get();
             work.set((b + h.builds, t + h.tlas_instances));
+            ooms.set(ooms.get() + h.ooms_seen);
             let log = ctx.validation_log();
             prop_assert_eq!(log.failure_count(), 0, "{}", log.messages().join("\n"));
             Ok(())
         })
         .unwrap_or_else(|e| panic!("{e}"));
     let (frames, faults, (builds, instances)) = (frames.get(), faults.get(), work.get());
-    eprintln!("{cases} cases, {frames} frames, {builds} BLAS builds, {instances} TLAS instances, {faults} failed frames retried");
+    let ooms = ooms.get();
+    eprintln!("{cases} cases, {frames} frame numbers, {builds} BLAS builds, {instances} TLAS instances, {faults} failed frames retried, {ooms} out-of-memory events");
     assert!(builds > u64::from(cases), "{builds} builds");
     assert!(frames > u64::from(cases), "{frames} frames");
     common::assert_no_validation_messages(&ctx);

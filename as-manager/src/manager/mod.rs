@@ -605,13 +605,16 @@ impl<B: AsBackend> AsManager<B> {
         Ok(tlas)
     }
 
-    /// After an OOM the budget is capped; every 300 quiet frames the cap grows by 10% until
-    /// the configured budget is back (the device may have freed memory elsewhere).
+    /// After an OOM the budget is capped; every 300 quiet frames the cap grows by a quarter of
+    /// the way back to the configured budget (at least 10%), until it is back (the device may
+    /// have freed memory elsewhere). Growing by 10% of the cap alone left a cap set low by a
+    /// transient OOM far below the budget for thousands of frames (found by the OOM test).
     fn recover_oom_cap(&mut self) {
         if let Some(cap) = self.oom_cap {
             if self.frame.saturating_sub(self.oom_frame) >= 300 {
                 self.oom_frame = self.frame;
-                let grown = (cap as f64 * 1.1) as u64 + 1;
+                let budget = self.config.memory.blas_bytes;
+                let grown = cap + (budget.saturating_sub(cap) / 4).max(cap / 10) + 1;
                 self.oom_cap = (grown < self.config.memory.blas_bytes).then_some(grown);
             }
         }

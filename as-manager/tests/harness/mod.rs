@@ -139,6 +139,12 @@ pub enum Op {
     SkipFrames {
         n: u64,
     },
+    /// The next allocation of a build, refit or compaction (`point` 0, 1, 2) runs out of
+    /// device memory: the manager caps its budget, evicts, and retries later; the frame itself
+    /// succeeds.
+    Oom {
+        point: usize,
+    },
     /// The next backend call at `point` fails (device lost when `lost`).
     Fault {
         point: usize,
@@ -172,6 +178,7 @@ pub fn op() -> impl Strategy<Value = Op> {
         1 => Just(Op::RepeatFrame),
         1 => (1..1000u64).prop_map(|n| Op::SkipFrames { n }),
         1 => (0..5usize, prop::bool::weighted(0.15)).prop_map(|(point, lost)| Op::Fault { point, lost }),
+        1 => (0..3usize).prop_map(|point| Op::Oom { point }),
     ]
 }
 
@@ -215,6 +222,9 @@ pub struct Harness<B: Probe> {
     pub frame: u64,
     /// Updates since the memory budget was last cut.
     pub budget_cut_at: Option<u32>,
+    /// Injected out-of-memory faults, and the frames that reported one (`oom_events`).
+    pub ooms_armed: u32,
+    pub ooms_seen: u64,
     /// BLAS builds and TLAS instances over all successful frames.
     pub builds: u64,
     pub tlas_instances: u64,
@@ -260,6 +270,8 @@ impl<B: Probe> Harness<B> {
             budget_cut_at: None,
             builds: 0,
             tlas_instances: 0,
+            ooms_armed: 0,
+            ooms_seen: 0,
         }
     }
 
@@ -306,6 +318,7 @@ impl<B: Probe> Harness<B> {
             Err(e) => return Err(TestCaseError::fail(format!("frame {f}: {e}"))),
         };
         self.builds += s.builds as u64;
+        self.ooms_seen += u64::from(s.oom_events);
         self.tlas_instances += s.tlas_instances as u64;
         self.m.check_invariants().map_err(TestCaseError::fail)?;
         prop_assert_eq!(
@@ -469,6 +482,12 @@ impl<B: Probe> Harness<B> {
             Op::SkipFrames { n } => {
                 self.frame += n;
                 self.frame()?;
+            }
+            Op::Oom { point } if !self.lost && !self.m.backend().armed() => {
+                self.m
+                    .backend_mut()
+                    .arm(POINTS[point], backend::BackendError::OutOfDeviceMemory);
+                self.ooms_armed += 1;
             }
             Op::Fault { point, lost } if !self.lost && !self.m.backend().armed() => {
                 let e = if lost {
