@@ -59,6 +59,10 @@ fn r1_equals_r2_zero_thresholds_thrashes_seed_not_managed() {
     seed.residency.create_threshold = 0;
     seed.residency.release_threshold = 0;
     let (b, r) = oscillate(seed.clone(), frames);
+    eprintln!(
+        "oscillation across r1 +-0.5 m, {frames} frames: seed (r1 == r2, thresholds 0) {:.0} creates + destroys per 100 frames",
+        (b + r) as f64 * 100.0 / frames as f64
+    );
     // a create and a destroy every two frames once oscillating
     assert!(
         b >= (frames - 10) / 2 && r >= (frames - 10) / 2 - 1,
@@ -68,6 +72,7 @@ fn r1_equals_r2_zero_thresholds_thrashes_seed_not_managed() {
     let mut managed = Config::default();
     managed.residency.r1 = 100.0;
     let (b, r) = oscillate(managed, frames);
+    eprintln!("  managed defaults: {b} creates, {r} destroys in {frames} frames");
     assert_eq!((b, r), (1, 0), "managed defaults");
 
     // Even with the seed's degenerate parameters the managed policy's minimum life bounds it.
@@ -77,6 +82,10 @@ fn r1_equals_r2_zero_thresholds_thrashes_seed_not_managed() {
     };
     let (b, r) = oscillate(degenerate.clone(), frames);
     let bound = frames / (degenerate.residency.min_resident_frames as u64 + 1) + 1;
+    eprintln!(
+        "  managed with the seed's radii and thresholds: {:.1} creates + destroys per 100 frames (bound {bound} each per {frames})",
+        (b + r) as f64 * 100.0 / frames as f64
+    );
     assert!(
         b <= bound && r <= bound,
         "managed degenerate: {b} builds, {r} releases, bound {bound}"
@@ -138,10 +147,11 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
         rebuilds += s.rebuilds;
         assert!(s.worst_refit_quality <= bound);
     }
+    eprintln!("skinned, mild wave, 60 frames: {refits} refits, {rebuilds} rebuilds");
     assert_eq!((refits, rebuilds), (60, 0));
     // Extreme: vertices progressively swirl around the centre by an angle growing with
     // distance (triangles stretch across the mesh).
-    let (mut refits, mut rebuilds) = (0, 0);
+    let (mut refits, mut rebuilds, mut worst) = (0, 0, 1.0f32);
     for k in 0..60 {
         let twist = k as f32 * 0.15;
         let p: Vec<[f32; 3]> = geo
@@ -162,12 +172,16 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
         let s = step(&mut m);
         refits += s.refits;
         rebuilds += s.rebuilds;
+        worst = worst.max(s.worst_refit_quality);
         assert!(
             s.worst_refit_quality <= bound,
             "quality {} over bound {bound}",
             s.worst_refit_quality
         );
     }
+    eprintln!(
+        "skinned, extreme swirl, 60 frames: {refits} refits, {rebuilds} rebuilds, worst refit quality {worst:.2} (bound {bound})"
+    );
     assert!(
         rebuilds >= 3,
         "extreme deformation must trigger rebuilds: {rebuilds}"

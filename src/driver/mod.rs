@@ -94,6 +94,9 @@ pub struct RunConfig {
     /// The stretch of the camera path the run covers, as fractions of it (`(0.0, 1.0)`: the
     /// whole path). A short stretch over many frames is a slow walk.
     pub path_span: (f32, f32),
+    /// Teleports instead of a walk: every this many frames the camera jumps to a random
+    /// point of the path (seeded by the world's seed) and stays there (None: walk the path).
+    pub teleport_every: Option<u64>,
 }
 
 impl Default for RunConfig {
@@ -122,8 +125,24 @@ impl Default for RunConfig {
             frames_in_flight: 2,
             validation: Validation::Auto,
             path_span: (0.0, 1.0),
+            teleport_every: None,
         }
     }
+}
+
+/// Where on the path (a fraction) the camera stands after teleport `k` (seeded; teleport 0 is
+/// the path's start).
+pub fn teleport_fraction(seed: u64, k: u64) -> f32 {
+    use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+    if k == 0 {
+        return 0.0;
+    }
+    let mut rng = rand_xoshiro::SplitMix64::seed_from_u64(seed);
+    let mut z = 0;
+    for _ in 0..k {
+        z = rng.next_u64();
+    }
+    (z >> 40) as f32 / (1u64 << 24) as f32
 }
 
 /// The short name of a policy, as printed and in JSON.
@@ -324,7 +343,11 @@ pub fn run_cached(
     let mut render_ms: Vec<(usize, f64)> = Vec::new();
     for frame in 0..config.frames {
         let (a, b) = config.path_span;
-        let cam = path.at_fraction(a + (b - a) * frame as f32 / config.frames.max(1) as f32);
+        let t = match config.teleport_every {
+            Some(n) => teleport_fraction(config.preset.seed, frame / n.max(1)),
+            None => frame as f32 / config.frames.max(1) as f32,
+        };
+        let cam = path.at_fraction(a + (b - a) * t);
         trail.push(cam.position);
         let cams = [rtstream_streaming::Camera::from(cam.position)];
         // Never waits on the loaders, except (deterministic mode) for the loads requested
@@ -336,6 +359,7 @@ pub fn run_cached(
         let time = frame as f32 / 30.0;
         let mcams = [Camera::new(cam.position, cam.forward)];
         for p in policies.iter_mut() {
+            let max_prims = p.manager.config().build.max_primitives;
             p.bridge.apply(&p.manager, &events);
             p.bridge.pose_skinned(&p.manager, &world, time, 2);
             let t = Instant::now();
@@ -344,7 +368,10 @@ pub fn run_cached(
                 cameras: &mcams,
             })?;
             let update_ms = t.elapsed().as_secs_f64() * 1e3;
-            rows.push(FrameRow::new(frame, p.name, out.stats, update_ms));
+            rows.push(
+                FrameRow::new(frame, p.name, out.stats, update_ms)
+                    .with_build_budget(max_prims, out.stats),
+            );
             p.tlas = out.tlas;
             p.records.clear();
             p.records.extend_from_slice(out.instances);

@@ -43,6 +43,16 @@ pub struct FrameRow {
     pub proxy_blas_bytes: u64,
     /// Far-field leaf groups whose detail a proxy stands for (a change marks a hand-over).
     pub far_groups_covered: u32,
+    /// Builds refused for memory (see `FrameStats::memory_refused`).
+    pub memory_refused: u32,
+    /// Unculled instances within r1 (managed policy).
+    pub within_r1: u32,
+    /// Of those, instances short of their target LOD (0: full coverage).
+    pub short_of_target: u32,
+    /// The build budget in triangles, and whether this frame's admitted builds exceeded it
+    /// (allowed only for one oversized item alone).
+    pub build_budget: u64,
+    pub over_build_budget: bool,
     /// Wall time of `update` (policy and Vulkan recording), ms.
     pub update_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
@@ -72,11 +82,25 @@ impl FrameRow {
             proxy_instances: s.proxy_instances,
             proxy_blas_bytes: s.proxy_blas_bytes,
             far_groups_covered: s.far_groups_covered,
+            memory_refused: s.memory_refused,
+            within_r1: s.within_r1,
+            short_of_target: s.short_of_target,
+            build_budget: u64::MAX,
+            over_build_budget: false,
             update_ms,
             gpu_as_ms: s.measured_gpu_ms,
             score: None,
             score_all_geometry: None,
         }
+    }
+
+    /// Sets the build budget the frame ran under and whether its builds exceeded it (one
+    /// oversized item admitted alone does not).
+    pub fn with_build_budget(mut self, max_primitives: u64, s: &FrameStats) -> Self {
+        self.build_budget = max_primitives;
+        self.over_build_budget =
+            s.build_primitives > max_primitives && !(s.oversized_admitted && s.builds == 1);
+        self
     }
 
     /// Whether the policy's BLAS memory (retiring included) exceeded its budget.
@@ -103,6 +127,10 @@ struct CsvRow {
     proxy_instances: u32,
     proxy_blas_bytes: u64,
     far_groups_covered: u32,
+    memory_refused: u32,
+    within_r1: u32,
+    short_of_target: u32,
+    over_build_budget: bool,
     update_ms: f64,
     gpu_as_ms: f64,
     hit_mismatch: Option<f64>,
@@ -439,6 +467,10 @@ impl RunReport {
                 proxy_instances: r.proxy_instances,
                 proxy_blas_bytes: r.proxy_blas_bytes,
                 far_groups_covered: r.far_groups_covered,
+                memory_refused: r.memory_refused,
+                within_r1: r.within_r1,
+                short_of_target: r.short_of_target,
+                over_build_budget: r.over_build_budget,
                 update_ms: r.update_ms,
                 gpu_as_ms: r.gpu_as_ms,
                 hit_mismatch: s.map(|s| s.hit_mismatch),

@@ -158,7 +158,9 @@ impl<B: AsBackend> AsManager<B> {
         self.tlas_list.clear();
         self.tlas_groups.clear();
         let far = self.config.far_field.enabled;
+        let r1 = self.config.residency.r1;
         let mut culled_count = 0;
+        let (mut within_r1, mut short) = (0u32, 0u32);
         for vi in 0..self.visits.len() {
             let v = self.visits[vi];
             let ge = self.grid.at_mut(v.loc);
@@ -210,6 +212,15 @@ impl<B: AsBackend> AsManager<B> {
             };
             h.shown = chosen;
             h.culled = culled;
+            if !culled && !v.beyond_r2 && v.center_dist - radius <= r1 {
+                // Covered: its target LOD or a finer one is shown.
+                within_r1 += 1;
+                let covered = chosen.0 != NONE
+                    && (chosen == target
+                        || (mesh.kind == MeshKind::Static
+                            && t.entries[chosen.0 as usize].lod <= h.lod_target));
+                short += u32::from(!covered);
+            }
             if chosen.0 == NONE && !culled && group != NONE {
                 if let Some(u) = self.far.leaf_unready(group) {
                     *u += 1;
@@ -230,6 +241,8 @@ impl<B: AsBackend> AsManager<B> {
             }
         }
         self.stats.culled = culled_count;
+        self.stats.within_r1 = within_r1;
+        self.stats.short_of_target = short;
     }
 
     /// Writes the records for `tlas_list` (parallel when large).

@@ -95,6 +95,15 @@ pub struct FrameStats {
     pub evictions: u32,
     /// LOD fallbacks (memory) this frame.
     pub lod_fallbacks: u32,
+    /// Builds refused this frame for memory: the coarsest LOD did not fit and nothing less
+    /// important was left to evict. Non-zero on every frame when the budget is below the
+    /// smallest coarsest-LOD BLAS near the camera: nothing is shown there, nothing fails.
+    pub memory_refused: u32,
+    /// Unculled instances within r1 of a camera (managed policy).
+    pub within_r1: u32,
+    /// Of those, instances that show a coarser LOD than their target, or nothing, while
+    /// their target builds (0: full coverage; see the teleport stability test).
+    pub short_of_target: u32,
     /// Compactions recorded this frame.
     pub compactions: u32,
     /// Skinned refits this frame.

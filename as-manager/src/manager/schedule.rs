@@ -273,6 +273,7 @@ impl<B: AsBackend> AsManager<B> {
                     }
                     let dist = self.t.entries[slot as usize].min_dist;
                     if !self.make_room(bytes + size.as_bytes, Some(dist), build_budget, false) {
+                        self.stats.memory_refused += 1;
                         continue;
                     }
                 }
