@@ -13,6 +13,8 @@
 mod charts;
 #[path = "support/cli.rs"]
 mod cli;
+#[path = "support/sweep.rs"]
+mod sweep;
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -21,7 +23,7 @@ use anyhow::Context;
 use clap::{Parser, ValueEnum};
 use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
 use rtstream::as_manager::{Config, PolicyKind};
-use rtstream::driver::{self, PolicySummary, ReferenceCache, RunConfig};
+use rtstream::driver::{PolicySummary, RunConfig};
 use serde::Serialize;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -168,7 +170,6 @@ fn main() -> anyhow::Result<()> {
     let out = cli.run.out.clone();
     base.out_dir = None;
     let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
-    let mut cache = ReferenceCache::default();
     let default_config = base.managed.clone();
 
     // The defaults and the baselines, in one run.
@@ -189,14 +190,10 @@ fn main() -> anyhow::Result<()> {
             meta.push((knob_name(k), value, false));
         }
     }
+    let reports = sweep::run_points(&ctx, &runs, cli.quiet)?;
     let mut sweep = Vec::new();
     let mut baselines = Vec::new();
-    for (i, ((title, config), (knob, value, is_default))) in runs.iter().zip(meta).enumerate() {
-        eprintln!("[{}/{}] {title}", i + 1, runs.len());
-        let (bar, mut progress) = cli::progress_bar(config.frames, cli.quiet);
-        let report = driver::run_cached(ctx.clone(), config, &mut cache, &mut progress)
-            .with_context(|| format!("sweep point {title}"))?;
-        bar.finish_and_clear();
+    for (report, (knob, value, is_default)) in reports.into_iter().zip(meta) {
         for p in report.summary.policies {
             if p.policy == "managed" {
                 sweep.push(SweepPoint {

@@ -60,32 +60,22 @@ fn teleport_every_30_frames_holds_the_budgets_and_recovers_coverage() {
         );
         assert!(!r.over_budget(), "frame {}", r.frame);
     }
-    let mut to_coverage = Vec::new();
-    let mut empty_frames = Vec::new();
-    for k in 0..10u64 {
-        let seg = &rows[(k * 30) as usize..((k + 1) * 30) as usize];
-        // Frames until full coverage that lasts: streaming brings the place's levels and
-        // finer LODs in over the first frames, and each may set a finer target.
-        let covered = seg
-            .iter()
-            .rposition(|r| r.short_of_target > 0)
-            .map_or(0, |i| i + 1);
-        assert!(
-            covered < seg.len() && seg[covered].within_r1 > 0,
-            "teleport {k}: no full coverage within 30 frames: {:?}",
+    let coverage = driver::frames_to_coverage(&report.rows, "managed", 30);
+    assert_eq!(coverage.len(), 10);
+    let to_coverage: Vec<u64> = coverage
+        .iter()
+        .enumerate()
+        .map(|(k, c)| c.unwrap_or_else(|| panic!("teleport {k}: not covered within 30 frames")))
+        .collect();
+    // Frames with instances in view within r1 and an empty TLAS, per teleport.
+    let empty_frames: Vec<usize> = rows
+        .chunks(30)
+        .map(|seg| {
             seg.iter()
-                .map(|r| (r.within_r1, r.short_of_target))
-                .collect::<Vec<_>>()
-        );
-        to_coverage.push(covered);
-        // Frames with instances in view within r1 and an empty TLAS.
-        let empty = seg
-            .iter()
-            .filter(|r| r.within_r1 > 0 && r.tlas_instances == 0)
-            .count();
-        empty_frames.push(empty);
-        // After coverage, it stays (the camera does not move).
-    }
+                .filter(|r| r.within_r1 > 0 && r.tlas_instances == 0)
+                .count()
+        })
+        .collect();
     let worst = *to_coverage.iter().max().unwrap();
     eprintln!(
         "teleport storm: frames to full coverage per teleport {to_coverage:?} (worst {worst}); \

@@ -44,7 +44,7 @@ use rtstream_streaming::{
 use crate::bridge::WorldBridge;
 use crate::error::{Error, Result};
 pub use path::{CameraPath, PathPoint};
-pub use report::{FrameRow, PolicySummary, RunReport, RunSummary};
+pub use report::{frames_to_coverage, FrameRow, PolicySummary, RunReport, RunSummary};
 pub use score::{BandEdges, FrameScore};
 use truth::{GroundTruth, TruthKind};
 

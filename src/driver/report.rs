@@ -43,6 +43,8 @@ pub struct FrameRow {
     pub proxy_blas_bytes: u64,
     /// Far-field leaf groups whose detail a proxy stands for (a change marks a hand-over).
     pub far_groups_covered: u32,
+    /// LOD fallbacks for memory this frame.
+    pub lod_fallbacks: u32,
     /// Builds refused for memory (see `FrameStats::memory_refused`).
     pub memory_refused: u32,
     /// Unculled instances within r1 (managed policy).
@@ -82,6 +84,7 @@ impl FrameRow {
             proxy_instances: s.proxy_instances,
             proxy_blas_bytes: s.proxy_blas_bytes,
             far_groups_covered: s.far_groups_covered,
+            lod_fallbacks: s.lod_fallbacks,
             memory_refused: s.memory_refused,
             within_r1: s.within_r1,
             short_of_target: s.short_of_target,
@@ -127,6 +130,7 @@ struct CsvRow {
     proxy_instances: u32,
     proxy_blas_bytes: u64,
     far_groups_covered: u32,
+    lod_fallbacks: u32,
     memory_refused: u32,
     within_r1: u32,
     short_of_target: u32,
@@ -467,6 +471,7 @@ impl RunReport {
                 proxy_instances: r.proxy_instances,
                 proxy_blas_bytes: r.proxy_blas_bytes,
                 far_groups_covered: r.far_groups_covered,
+                lod_fallbacks: r.lod_fallbacks,
                 memory_refused: r.memory_refused,
                 within_r1: r.within_r1,
                 short_of_target: r.short_of_target,
@@ -493,4 +498,27 @@ impl RunReport {
         std::fs::write(&json_path, json).map_err(|e| out(&json_path, &e))?;
         Ok(vec![csv_path, json_path])
     }
+}
+
+/// Frames to full coverage after each teleport of a run with
+/// [`RunConfig::teleport_every`]` = every`, for one policy: the number of frames after the
+/// teleport until every unculled instance within r1 shows its target LOD or finer and keeps
+/// doing so until the next teleport (streaming brings levels and finer LODs in over the first
+/// frames, and each may set a finer target). `None`: not covered when the next teleport came
+/// (or nothing was within r1 at the end).
+pub fn frames_to_coverage(rows: &[FrameRow], policy: &str, every: u64) -> Vec<Option<u64>> {
+    let rows: Vec<&FrameRow> = rows.iter().filter(|r| r.policy == policy).collect();
+    rows.chunks(every.max(1) as usize)
+        .map(|seg| {
+            let last = seg.last()?;
+            if last.short_of_target > 0 || last.within_r1 == 0 {
+                return None;
+            }
+            Some(
+                seg.iter()
+                    .rposition(|r| r.short_of_target > 0)
+                    .map_or(0, |i| i as u64 + 1),
+            )
+        })
+        .collect()
 }

@@ -1,0 +1,217 @@
+//! Memory budget sweep: the managed policy over the same path with BLAS budgets from well below
+//! to above what r1 asks for (default 1, 2, 4, 8, 16, 32, 64 MB, and no budget to show the
+//! need). The budget is never exceeded; LOD fallbacks, evictions and refused builds show in the
+//! table; the image degrades gracefully, scored against the full-world ground truth. Runs on
+//! the real backend through the shared frame driver and sweep code (as `tradeoff` does).
+//!
+//! ```text
+//! cargo run --release --example memory_budget -- --help
+//! cargo run --release --example memory_budget -- --deterministic --json
+//! ```
+
+#[path = "support/charts.rs"]
+mod charts;
+#[path = "support/cli.rs"]
+mod cli;
+#[path = "support/sweep.rs"]
+mod sweep;
+
+use std::sync::Arc;
+
+use clap::Parser;
+use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
+use rtstream::as_manager::PolicyKind;
+use rtstream::driver::RunConfig;
+use serde::Serialize;
+
+/// The managed policy under BLAS budgets below and above what r1 asks for.
+#[derive(Debug, Parser)]
+#[command(version)]
+struct Cli {
+    #[command(flatten)]
+    run: cli::RunArgs,
+    /// Budgets to sweep, MB (comma-separated).
+    #[arg(long, value_delimiter = ',', default_values_t = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])]
+    budgets_mb: Vec<f64>,
+    /// Print the summary as one JSON object on the last line of stdout.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// One budget's figures.
+#[derive(Debug, Serialize)]
+struct Point {
+    /// None: no budget (what the policy asks for).
+    budget_mb: Option<f64>,
+    peak_blas_mb: f64,
+    over_budget_frames: u64,
+    evictions: u64,
+    lod_fallback_frames: usize,
+    memory_refused_frames: usize,
+    short_of_target_mean: f64,
+    tlas_instances_mean: f64,
+    hit_mismatch_mean: f64,
+    shadow_mismatch_mean: f64,
+    validation_messages: u64,
+}
+
+#[derive(Debug, Serialize)]
+struct Summary {
+    device: String,
+    frames: u64,
+    points: Vec<Point>,
+    over_budget_frames: u64,
+    validation_messages: u64,
+}
+
+fn main() -> anyhow::Result<()> {
+    cli::init_tracing();
+    let mut cli = Cli::parse();
+    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
+        cli.run.out = "out/memory_budget".into();
+    }
+    anyhow::ensure!(
+        cli.budgets_mb.iter().all(|b| b.is_finite() && *b > 0.0),
+        "every budget must be a positive number of MB"
+    );
+    let mut base = cli.run.run_config()?;
+    base.policies = vec![PolicyKind::Managed];
+    base.maps = 0;
+    base.all_geometry_reference = false;
+    base.out_dir = None;
+    let mut budgets: Vec<Option<f64>> = vec![None];
+    budgets.extend(cli.budgets_mb.iter().map(|&b| Some(b)));
+    let points: Vec<(String, RunConfig)> = budgets
+        .iter()
+        .map(|b| {
+            let mut c = base.clone();
+            c.managed.memory.blas_bytes = b.map_or(1 << 50, |mb| (mb * 1024.0 * 1024.0) as u64);
+            (b.map_or("no budget".into(), |mb| format!("{mb} MB")), c)
+        })
+        .collect();
+    let ctx = Arc::new(VulkanContext::new(&ContextDesc {
+        validation: base.validation,
+        ..ContextDesc::default()
+    })?);
+    let reports = sweep::run_points(&ctx, &points, cli.quiet)?;
+    let mut out = Vec::new();
+    for (b, r) in budgets.iter().zip(&reports) {
+        let p = &r.summary.policies[0];
+        let rows: Vec<_> = r.rows.iter().filter(|x| x.policy == "managed").collect();
+        let n = rows.len().max(1) as f64;
+        out.push(Point {
+            budget_mb: *b,
+            peak_blas_mb: p.peak_blas_bytes as f64 / (1 << 20) as f64,
+            over_budget_frames: p.over_budget_frames,
+            evictions: rows.iter().map(|x| u64::from(x.evictions)).sum(),
+            lod_fallback_frames: rows.iter().filter(|x| x.lod_fallbacks > 0).count(),
+            memory_refused_frames: rows.iter().filter(|x| x.memory_refused > 0).count(),
+            short_of_target_mean: rows
+                .iter()
+                .map(|x| f64::from(x.short_of_target))
+                .sum::<f64>()
+                / n,
+            tlas_instances_mean: rows
+                .iter()
+                .map(|x| f64::from(x.tlas_instances))
+                .sum::<f64>()
+                / n,
+            hit_mismatch_mean: p.hit_mismatch_mean,
+            shadow_mismatch_mean: p.shadow_mismatch_mean,
+            validation_messages: p.validation_messages,
+        });
+    }
+    let summary = Summary {
+        device: reports[0].summary.policies[0].backend.clone(),
+        frames: base.frames,
+        over_budget_frames: out.iter().map(|p| p.over_budget_frames).sum(),
+        validation_messages: ctx.validation_log().failure_count(),
+        points: out,
+    };
+    print_table(&summary);
+    std::fs::create_dir_all(&cli.run.out)?;
+    let budgeted: Vec<&Point> = summary
+        .points
+        .iter()
+        .filter(|p| p.budget_mb.is_some())
+        .collect();
+    let series = |f: fn(&Point) -> f64| -> Vec<(f64, f64)> {
+        budgeted
+            .iter()
+            .map(|p| (p.budget_mb.unwrap_or(0.0).log2(), f(p)))
+            .collect()
+    };
+    let mut files = charts::lines(
+        &cli.run.out.join("error_vs_budget"),
+        "BLAS budget against image error (full-world ground truth)",
+        "log2(budget / MB)",
+        "mismatched pixels, %",
+        &[
+            (
+                "hit mismatch".into(),
+                series(|p| p.hit_mismatch_mean * 100.0),
+            ),
+            (
+                "shadow mismatch".into(),
+                series(|p| p.shadow_mismatch_mean * 100.0),
+            ),
+        ],
+    )?;
+    files.extend(charts::lines(
+        &cli.run.out.join("memory_vs_budget"),
+        "BLAS budget against peak BLAS memory",
+        "log2(budget / MB)",
+        "MB",
+        &[
+            ("peak BLAS MB".into(), series(|p| p.peak_blas_mb)),
+            ("budget".into(), series(|p| p.budget_mb.unwrap_or(0.0))),
+        ],
+    )?);
+    let json = serde_json::to_string(&summary)?;
+    std::fs::write(cli.run.out.join("memory_budget.json"), &json)?;
+    for f in &files {
+        eprintln!("wrote {}", f.display());
+    }
+    if cli.json {
+        println!("{json}");
+    }
+    Ok(())
+}
+
+fn print_table(s: &Summary) {
+    println!(
+        "{:>9} {:>9} {:>5} {:>9} {:>9} {:>8} {:>8} {:>9} {:>8} {:>8}",
+        "budget",
+        "peak MB",
+        "over",
+        "evictions",
+        "fallback",
+        "refused",
+        "short",
+        "TLAS inst",
+        "hit %",
+        "shadow %"
+    );
+    for p in &s.points {
+        println!(
+            "{:>9} {:>9.2} {:>5} {:>9} {:>9} {:>8} {:>8.1} {:>9.0} {:>8.2} {:>8.2}",
+            p.budget_mb.map_or("none".into(), |b| format!("{b} MB")),
+            p.peak_blas_mb,
+            p.over_budget_frames,
+            p.evictions,
+            p.lod_fallback_frames,
+            p.memory_refused_frames,
+            p.short_of_target_mean,
+            p.tlas_instances_mean,
+            p.hit_mismatch_mean * 100.0,
+            p.shadow_mismatch_mean * 100.0
+        );
+    }
+    println!(
+        "frames over budget {} (all points); validation messages {}",
+        s.over_budget_frames, s.validation_messages
+    );
+}

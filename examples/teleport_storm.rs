@@ -1,0 +1,211 @@
+//! Teleport storm: the camera jumps to a random place of the world (seeded) every `--every`
+//! frames and stays there; the managed policy streams, builds within its per-frame budget and
+//! recovers. Prints, per teleport, the frames until full coverage (every unculled instance
+//! within r1 shows its target LOD or finer, for good) and the build work; charts the build
+//! work per frame and the instances short of their target. Runs on the real backend through
+//! the shared frame driver (`rtstream::driver`), scored against the full-world ground truth.
+//!
+//! ```text
+//! cargo run --release --example teleport_storm -- --help
+//! cargo run --release --example teleport_storm -- --deterministic --json
+//! ```
+
+#[path = "support/charts.rs"]
+mod charts;
+#[path = "support/cli.rs"]
+mod cli;
+
+use anyhow::Context;
+use clap::Parser;
+use rtstream::as_manager::PolicyKind;
+use rtstream::driver::{self, FrameRow};
+use serde::Serialize;
+
+/// A teleport every N frames to a random place; frames to coverage and build work.
+#[derive(Debug, Parser)]
+#[command(version)]
+struct Cli {
+    #[command(flatten)]
+    run: cli::RunArgs,
+    /// Frames between teleports.
+    #[arg(long, default_value_t = 30)]
+    every: u64,
+    /// Print the summary as one JSON object on the last line of stdout.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// One teleport's figures.
+#[derive(Debug, Serialize)]
+struct Teleport {
+    teleport: u64,
+    first_frame: u64,
+    /// None: not covered when the next teleport came.
+    frames_to_coverage: Option<u64>,
+    builds: u64,
+    build_triangles: u64,
+    peak_frame_triangles: u64,
+    peak_short_of_target: u32,
+}
+
+#[derive(Debug, Serialize)]
+struct Summary {
+    device: String,
+    frames: u64,
+    every: u64,
+    build_budget_triangles: u64,
+    teleports: Vec<Teleport>,
+    covered_teleports: usize,
+    frames_to_coverage_max: Option<u64>,
+    frames_to_coverage_mean: Option<f64>,
+    over_build_budget_frames: usize,
+    over_budget_frames: u64,
+    hit_mismatch_mean: f64,
+    shadow_mismatch_mean: f64,
+    validation_messages: u64,
+}
+
+fn main() -> anyhow::Result<()> {
+    cli::init_tracing();
+    let mut cli = Cli::parse();
+    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
+        cli.run.out = "out/teleport_storm".into();
+    }
+    anyhow::ensure!(cli.every > 0, "--every must be at least 1");
+    let mut config = cli.run.run_config()?;
+    config.policies = vec![PolicyKind::Managed];
+    config.teleport_every = Some(cli.every);
+    config.maps = 0;
+    eprintln!(
+        "teleport storm: {} frames, a teleport every {} frames, world {} (seed {:#x})",
+        config.frames, cli.every, config.preset.name, config.preset.seed
+    );
+    let (bar, mut progress) = cli::progress_bar(config.frames, cli.quiet);
+    let report = driver::run(&config, &mut progress).context("teleport storm run")?;
+    bar.finish_and_clear();
+
+    let rows: Vec<&FrameRow> = report
+        .rows
+        .iter()
+        .filter(|r| r.policy == "managed")
+        .collect();
+    let coverage = driver::frames_to_coverage(&report.rows, "managed", cli.every);
+    let teleports: Vec<Teleport> = rows
+        .chunks(cli.every as usize)
+        .zip(&coverage)
+        .enumerate()
+        .map(|(k, (seg, &c))| Teleport {
+            teleport: k as u64,
+            first_frame: seg[0].frame,
+            frames_to_coverage: c,
+            builds: seg.iter().map(|r| u64::from(r.builds)).sum(),
+            build_triangles: seg.iter().map(|r| r.build_primitives).sum(),
+            peak_frame_triangles: seg.iter().map(|r| r.build_primitives).max().unwrap_or(0),
+            peak_short_of_target: seg.iter().map(|r| r.short_of_target).max().unwrap_or(0),
+        })
+        .collect();
+    let covered: Vec<u64> = coverage.iter().flatten().copied().collect();
+    let p = &report.summary.policies[0];
+    let summary = Summary {
+        device: p.backend.clone(),
+        frames: config.frames,
+        every: cli.every,
+        build_budget_triangles: config.managed.build.max_primitives,
+        covered_teleports: covered.len(),
+        frames_to_coverage_max: covered.iter().max().copied(),
+        frames_to_coverage_mean: (!covered.is_empty())
+            .then(|| covered.iter().sum::<u64>() as f64 / covered.len() as f64),
+        over_build_budget_frames: rows.iter().filter(|r| r.over_build_budget).count(),
+        over_budget_frames: p.over_budget_frames,
+        hit_mismatch_mean: p.hit_mismatch_mean,
+        shadow_mismatch_mean: p.shadow_mismatch_mean,
+        validation_messages: p.validation_messages,
+        teleports,
+    };
+    print_table(&summary);
+    std::fs::create_dir_all(&cli.run.out)?;
+    let per_frame = |f: fn(&FrameRow) -> f64| -> Vec<(f64, f64)> {
+        rows.iter().map(|r| (r.frame as f64, f(r))).collect()
+    };
+    let mut files = charts::lines(
+        &cli.run.out.join("build_work"),
+        &format!("Teleport every {} frames: build work per frame", cli.every),
+        "frame",
+        "triangles built",
+        &[
+            (
+                "triangles built".into(),
+                per_frame(|r| r.build_primitives as f64),
+            ),
+            (
+                "build budget".into(),
+                per_frame(|r| r.build_budget.min(u64::from(u32::MAX)) as f64),
+            ),
+        ],
+    )?;
+    files.extend(charts::lines(
+        &cli.run.out.join("coverage"),
+        &format!(
+            "Teleport every {} frames: instances within r1 short of target",
+            cli.every
+        ),
+        "frame",
+        "instances",
+        &[
+            ("within r1".into(), per_frame(|r| f64::from(r.within_r1))),
+            (
+                "short of target".into(),
+                per_frame(|r| f64::from(r.short_of_target)),
+            ),
+        ],
+    )?);
+    let json = serde_json::to_string(&summary)?;
+    std::fs::write(cli.run.out.join("teleport_storm.json"), &json)?;
+    for f in files.iter().chain(&report.files) {
+        eprintln!("wrote {}", f.display());
+    }
+    if cli.json {
+        println!("{json}");
+    }
+    Ok(())
+}
+
+fn print_table(s: &Summary) {
+    println!(
+        "{:>8} {:>7} {:>10} {:>7} {:>12} {:>12} {:>7}",
+        "teleport", "frame", "coverage", "builds", "triangles", "peak/frame", "short"
+    );
+    for t in &s.teleports {
+        println!(
+            "{:>8} {:>7} {:>10} {:>7} {:>12} {:>12} {:>7}",
+            t.teleport,
+            t.first_frame,
+            t.frames_to_coverage
+                .map_or("not yet".to_string(), |f| format!("{f} fr")),
+            t.builds,
+            t.build_triangles,
+            t.peak_frame_triangles,
+            t.peak_short_of_target
+        );
+    }
+    println!(
+        "covered {}/{} teleports; frames to coverage max {} mean {}; build budget {} triangles, \
+         frames over it {}; frames over the memory budget {}; hit mismatch {:.2}%, shadow {:.2}%; \
+         validation messages {}",
+        s.covered_teleports,
+        s.teleports.len(),
+        s.frames_to_coverage_max
+            .map_or("-".into(), |v| v.to_string()),
+        s.frames_to_coverage_mean
+            .map_or("-".into(), |v| format!("{v:.1}")),
+        s.build_budget_triangles,
+        s.over_build_budget_frames,
+        s.over_budget_frames,
+        s.hit_mismatch_mean * 100.0,
+        s.shadow_mismatch_mean * 100.0,
+        s.validation_messages
+    );
+}
