@@ -365,3 +365,56 @@ fn streamed_camera_path_on_vulkan() {
     let _ = std::fs::remove_dir_all(&dir);
     common::assert_no_validation_messages(&ctx);
 }
+
+/// A TLAS handle names its slot and its frame: once the slot is reused for a later frame the
+/// old handle resolves to nothing (it used to return the newer TLAS), and so do its primitive
+/// bases.
+#[test]
+fn a_stale_tlas_handle_resolves_to_nothing() {
+    let ctx = common::context();
+    let backend = VulkanBackend::new(
+        ctx.clone(),
+        VulkanBackendDesc {
+            frames_in_flight: 2,
+            ..VulkanBackendDesc::default()
+        },
+    )
+    .unwrap();
+    let mut m = AsManager::new(config(), backend).unwrap();
+    let mesh = m
+        .register_mesh(MeshDesc::new("grid", MeshKind::Static, 4.0, chain(8, 4.0)))
+        .unwrap();
+    m.add_instance(InstanceDesc::new(
+        mesh,
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)),
+    ))
+    .unwrap();
+    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let mut handles = Vec::new();
+    for frame in 0..6 {
+        let tlas = m
+            .update(FrameInput {
+                frame,
+                cameras: &cams,
+            })
+            .unwrap()
+            .tlas;
+        handles.push(tlas);
+        // The current frame's handle resolves; every handle of a frame whose slot was reused
+        // does not.
+        assert!(m.backend().tlas(tlas).is_some(), "frame {frame}");
+        for (f, h) in handles.iter().enumerate() {
+            let reused = (f as u64) + 2 <= frame;
+            assert_eq!(
+                m.backend().tlas(*h).is_none(),
+                reused,
+                "frame {frame}: handle of frame {f}"
+            );
+            if reused {
+                assert_eq!(m.backend().primitive_bases(*h), 0);
+            }
+        }
+    }
+    drop(m);
+    common::assert_no_validation_messages(&ctx);
+}

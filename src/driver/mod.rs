@@ -322,7 +322,7 @@ pub fn run_cached(
             name,
             manager,
             bridge,
-            tlas: TlasHandle(0),
+            tlas: TlasHandle::default(),
             records: Vec::new(),
             worst: None,
         });

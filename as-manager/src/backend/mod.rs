@@ -42,9 +42,31 @@ pub mod vulkan;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct BlasHandle(pub u64);
 
-/// The frame's TLAS as the backend built it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct TlasHandle(pub u64);
+/// The frame's TLAS as the backend built it: the backend's slot and the frame it was built
+/// for. A handle kept past its frame's reuse of the slot resolves to nothing, never to a newer
+/// TLAS (`VulkanBackend::tlas` checks the frame).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct TlasHandle {
+    slot: u32,
+    frame: u64,
+}
+
+impl TlasHandle {
+    /// The handle of slot `slot`'s TLAS built for `frame`.
+    pub fn new(slot: u32, frame: u64) -> Self {
+        Self { slot, frame }
+    }
+
+    /// The backend's slot.
+    pub fn slot(self) -> u32 {
+        self.slot
+    }
+
+    /// The frame the TLAS was built for.
+    pub fn frame(self) -> u64 {
+        self.frame
+    }
+}
 
 /// Build flags per class.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

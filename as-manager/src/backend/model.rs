@@ -382,7 +382,7 @@ impl AsBackend for ModelBackend {
             units,
             gpu_ms,
         });
-        Ok(TlasHandle(self.frame))
+        Ok(TlasHandle::new(0, self.frame))
     }
 
     fn end_frame(&mut self, _frame: u64) -> BackendResult<()> {

@@ -307,19 +307,33 @@ impl VulkanContext {
         };
     }
 
-    /// Records a barrier making AS writes (builds) visible to later AS builds and shader reads.
+    /// The shader stages that may read an acceleration structure on this device: compute
+    /// (ray queries) and, when the extension is enabled, ray-tracing shaders.
+    pub(crate) fn as_reader_stages(&self) -> vk::PipelineStageFlags2 {
+        let mut s = vk::PipelineStageFlags2::COMPUTE_SHADER;
+        if self.info().ray_tracing_pipeline {
+            s |= vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR;
+        }
+        if self.info().ray_query {
+            s |= vk::PipelineStageFlags2::FRAGMENT_SHADER;
+        }
+        s
+    }
+
+    /// Records a barrier between acceleration-structure work and everything around it on the
+    /// queue: AS writes (builds, refits, compaction copies) are visible to later AS builds and
+    /// shader reads, and a later in-place write (a refit, the in-place TLAS rebuild) waits for
+    /// earlier shader reads of the same structure (a trace of a frame still in flight on this
+    /// queue: its source scope covers the ray-query and ray-tracing stages, not only builds).
     ///
     /// # Safety
     /// `cmd` is recording.
     pub unsafe fn cmd_accel_barrier(&self, cmd: vk::CommandBuffer) {
+        let readers = self.as_reader_stages();
         let barrier = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR)
+            .src_stage_mask(vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR | readers)
             .src_access_mask(vk::AccessFlags2::ACCELERATION_STRUCTURE_WRITE_KHR)
-            .dst_stage_mask(
-                vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR
-                    | vk::PipelineStageFlags2::COMPUTE_SHADER
-                    | vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR,
-            )
+            .dst_stage_mask(vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR | readers)
             .dst_access_mask(
                 vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR
                     | vk::AccessFlags2::ACCELERATION_STRUCTURE_WRITE_KHR,

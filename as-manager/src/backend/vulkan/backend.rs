@@ -392,14 +392,17 @@ impl VulkanBackend {
         self.blas_allocated
     }
 
-    /// The raw TLAS of a handle returned by `build_tlas` (valid until that slot is reused,
-    /// `frames_in_flight` frames later).
+    /// The raw TLAS of a handle returned by `build_tlas`; None once its slot was reused for a
+    /// later frame (`frames_in_flight` frames later): a stale handle never resolves to a newer
+    /// TLAS.
     pub fn tlas(&self, handle: TlasHandle) -> Option<vk::AccelerationStructureKHR> {
+        self.slot_of(handle)?.tlas.as_ref().map(|t| t.raw)
+    }
+
+    fn slot_of(&self, handle: TlasHandle) -> Option<&Slot> {
         self.slots
-            .get(handle.0 as usize)?
-            .tlas
-            .as_ref()
-            .map(|t| t.raw)
+            .get(handle.slot() as usize)
+            .filter(|s| s.frame == handle.frame())
     }
 
     /// Waits until every submitted frame finished (e.g. before reading a TLAS on another queue
@@ -531,9 +534,7 @@ impl VulkanBackend {
     /// [`VulkanBackend::shading_geometry`]'s index buffer is indexed by. Valid while the frame
     /// that built `tlas` is in flight.
     pub fn primitive_bases(&self, tlas: TlasHandle) -> u64 {
-        self.slots
-            .get(tlas.0 as usize)
-            .map_or(0, |s| s.bases_address)
+        self.slot_of(tlas).map_or(0, |s| s.bases_address)
     }
 
     /// Injected faults that have not struck yet.
@@ -1374,7 +1375,7 @@ impl AsBackend for VulkanBackend {
                 .cmd_build_tlas(cmd, tlas, None, self.desc.tlas_flags, iaddr, count, scratch);
         }
         self.timestamp_end(t);
-        Ok(TlasHandle(s as u64))
+        Ok(TlasHandle::new(s as u32, self.slots[s].frame))
     }
 
     fn end_frame(&mut self, frame: u64) -> BackendResult<()> {

@@ -16,6 +16,12 @@ use super::error::{VkResult, VkResultExt, VulkanError};
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
 
+/// Whether the validation layer also runs synchronization validation: on unless
+/// `RTSTREAM_SYNC_VALIDATION=0`.
+fn sync_validation() -> bool {
+    std::env::var("RTSTREAM_SYNC_VALIDATION").as_deref() != Ok("0")
+}
+
 /// Whether to load the Khronos validation layer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Validation {
@@ -305,10 +311,19 @@ impl VulkanContext {
         } else {
             vec![]
         };
-        let instance_info = vk::InstanceCreateInfo::default()
+        // With the layer: synchronization validation too (hazards between frames in flight,
+        // in-place refits and TLAS rebuilds against the traces that read them). The layer
+        // provides VK_EXT_validation_features.
+        let sync_features = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
+        let mut features =
+            vk::ValidationFeaturesEXT::default().enabled_validation_features(&sync_features);
+        let mut instance_info = vk::InstanceCreateInfo::default()
             .application_info(&app)
             .enabled_layer_names(&layer_ptrs)
             .enabled_extension_names(&ext_ptrs);
+        if validation && sync_validation() {
+            instance_info = instance_info.push_next(&mut features);
+        }
         // SAFETY: all pointers in instance_info point to locals that outlive the call.
         let instance = match unsafe { entry.create_instance(&instance_info, None) } {
             Ok(i) => i,
