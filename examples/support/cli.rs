@@ -21,6 +21,10 @@ pub enum Preset {
     Small,
     /// 16 km, 1.76M instances.
     Large,
+    /// A dense city: 1.14 km, ten times the default's density (90k instances), tall buildings.
+    City,
+    /// 3x3 levels (214 m) with 603 generated skinned characters.
+    Crowd,
 }
 
 /// Policies.
@@ -144,6 +148,8 @@ pub fn world_preset(preset: Preset, seed: u64, asset_dir: Option<&PathBuf>) -> W
         Preset::Default => WorldPreset::default_world(),
         Preset::Small => WorldPreset::small(16, seed),
         Preset::Large => WorldPreset::large_world(),
+        Preset::City => WorldPreset::city(),
+        Preset::Crowd => WorldPreset::crowd(600),
     };
     p.seed = seed;
     if let Some(dir) = asset_dir {

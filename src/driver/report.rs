@@ -27,12 +27,20 @@ pub struct FrameRow {
     pub memory_budget: u64,
     /// TLAS instances.
     pub tlas_instances: u32,
+    /// Instances with a BLAS that culling left out of the TLAS.
+    pub culled: u32,
     /// BLAS builds this frame.
     pub builds: u32,
     /// Triangles built this frame.
     pub build_primitives: u64,
     /// Skinned refits this frame.
     pub refits: u32,
+    /// Skinned rebuilds this frame (refit quality past its bound).
+    pub rebuilds: u32,
+    /// Triangles refitted this frame.
+    pub refit_primitives: u64,
+    /// Worst measured refit quality this frame (SAH-cost ratio to a fresh build; 1 = fresh).
+    pub worst_refit_quality: f32,
     /// Compactions this frame.
     pub compactions: u32,
     /// Memory evictions this frame.
@@ -76,9 +84,13 @@ impl FrameRow {
             retiring_bytes: s.retiring_bytes,
             memory_budget: s.memory_budget,
             tlas_instances: s.tlas_instances,
+            culled: s.culled,
             builds: s.builds,
             build_primitives: s.build_primitives,
             refits: s.refits,
+            rebuilds: s.rebuilds,
+            refit_primitives: s.refit_primitives,
+            worst_refit_quality: s.worst_refit_quality,
             compactions: s.compactions,
             evictions: s.evictions,
             proxy_instances: s.proxy_instances,

@@ -56,8 +56,23 @@ pub struct WorldPreset {
     pub instances: u32,
     /// Every `character_every`-th level holds a generated skinned character.
     pub character_every: u32,
+    /// Generated skinned characters in every level besides those (0 in the maps; a crowd).
+    pub characters_per_level: u32,
+    /// What the free instances are (the open map, or a dense city).
+    pub style: WorldStyle,
     /// Directory holding assimp-testmodels' glTF2 models.
     pub asset_dir: PathBuf,
+}
+
+/// The mix of a world's free instances (after terrain and characters).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WorldStyle {
+    /// The open map: rocks 42%, props 32%, buildings 12%, trees 9%, grass 3.5%, glass 1.5%.
+    #[default]
+    Open,
+    /// A city: props 58%, buildings 25% (2x to 8x taller), trees 8%, rocks 5%, grass 2%,
+    /// glass 2%.
+    City,
 }
 
 impl WorldPreset {
@@ -76,6 +91,8 @@ impl WorldPreset {
             grid: 56,
             instances: 110_000,
             character_every: 8,
+            characters_per_level: 0,
+            style: WorldStyle::Open,
             asset_dir: PathBuf::from(ASSIMP_GLTF2_DIR),
         }
     }
@@ -103,6 +120,30 @@ impl WorldPreset {
             grid,
             instances: (f64::from(d.instances) * cells).round() as u32,
             ..d
+        }
+    }
+
+    /// A dense city: 16 x 16 levels of the default map's cell size (1.14 km), ten times the
+    /// default's instance density (89,796 instances), tall buildings and many small props.
+    pub fn city() -> WorldPreset {
+        let small = WorldPreset::small(16, WorldPreset::default_world().seed);
+        WorldPreset {
+            name: "city".into(),
+            instances: small.instances * 10,
+            style: WorldStyle::City,
+            ..small
+        }
+    }
+
+    /// A crowd: 3 x 3 levels of the default map (214 m) with `characters` generated skinned
+    /// characters spread over them (besides the map's own content).
+    pub fn crowd(characters: u32) -> WorldPreset {
+        let small = WorldPreset::small(3, WorldPreset::default_world().seed);
+        WorldPreset {
+            name: format!("crowd{characters}"),
+            characters_per_level: characters.div_ceil(9),
+            instances: small.instances + characters.div_ceil(9) * 9,
+            ..small
         }
     }
 
@@ -276,14 +317,25 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
             .unwrap_or(&[])
     };
     // Weighted mix of the free instances (after terrain and characters).
-    let mix: [(Kind, f32); 6] = [
-        (Kind::Rock, 0.42),
-        (Kind::Building, 0.12),
-        (Kind::Prop, 0.32),
-        (Kind::Tree, 0.09),
-        (Kind::Grass, 0.035),
-        (Kind::Glass, 0.015),
-    ];
+    let mix: [(Kind, f32); 6] = match preset.style {
+        WorldStyle::Open => [
+            (Kind::Rock, 0.42),
+            (Kind::Building, 0.12),
+            (Kind::Prop, 0.32),
+            (Kind::Tree, 0.09),
+            (Kind::Grass, 0.035),
+            (Kind::Glass, 0.015),
+        ],
+        WorldStyle::City => [
+            (Kind::Rock, 0.05),
+            (Kind::Building, 0.25),
+            (Kind::Prop, 0.58),
+            (Kind::Tree, 0.08),
+            (Kind::Grass, 0.02),
+            (Kind::Glass, 0.02),
+        ],
+    };
+    let city = preset.style == WorldStyle::City;
 
     let n_levels = preset.grid * preset.grid;
     let cell = preset.cell_size();
@@ -322,8 +374,15 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
                     Kind::Rock => rng.range(0.5, 2.5),
                     _ => rng.range(0.85, 1.2),
                 };
+                // City towers: 2x to 8x taller (drawn only in the city, so the open map's
+                // random sequence is unchanged).
+                let tall = if city && kind == Kind::Building {
+                    rng.range(2.0, 8.0)
+                } else {
+                    1.0
+                };
                 Mat4::from_scale_rotation_translation(
-                    Vec3::splat(s),
+                    Vec3::new(s, s * tall, s),
                     Quat::from_rotation_y(rng.range(0.0, std::f32::consts::TAU)),
                     p,
                 )
@@ -353,6 +412,10 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
         if lid % 64 == 17 {
             fixed.push(Kind::RealSkinned);
         }
+        fixed.extend(std::iter::repeat_n(
+            Kind::Character,
+            preset.characters_per_level as usize,
+        ));
         for k in fixed {
             if left == 0 {
                 break;

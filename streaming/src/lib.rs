@@ -55,7 +55,8 @@ mod world;
 pub use bake::{bake, read_manifest, BakeReport, Manifest};
 pub use error::{FormatError, Result, StreamingError};
 pub use generate::{
-    generate, GeneratedWorld, WorldPreset, WorldStats, ASSIMP_GLTF2_DIR, REAL_PROPS, REAL_SKINNED,
+    generate, GeneratedWorld, WorldPreset, WorldStats, WorldStyle, ASSIMP_GLTF2_DIR, REAL_PROPS,
+    REAL_SKINNED,
 };
 pub use gltf_import::{load_gltf, load_gltf_slice, GltfScene, MeshInstance, TriMesh};
 pub use loader::LoadFault;

@@ -1,0 +1,207 @@
+//! City: the dense preset (ten times the default map's instance density, towers 2x to 8x
+//! taller, many small props) walked with each culling mode of the managed policy, culling off
+//! included, over the same path in one run. Reports how many TLAS instances culling removes
+//! and what that costs in image error against the full-world ground truth; charts TLAS
+//! instances against error. Runs on the real backend through the shared driver and sweep code.
+//!
+//! ```text
+//! cargo run --release --example city -- --help
+//! cargo run --release --example city -- --deterministic --json
+//! ```
+
+#[path = "support/charts.rs"]
+mod charts;
+#[path = "support/cli.rs"]
+mod cli;
+#[path = "support/sweep.rs"]
+mod sweep;
+
+use std::sync::Arc;
+
+use clap::Parser;
+use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
+use rtstream::as_manager::{CullMode, PolicyKind};
+use rtstream::driver::RunConfig;
+use rtstream::streaming::WorldPreset;
+use serde::Serialize;
+
+/// The dense city under each culling mode: TLAS instances removed and the error it costs.
+#[derive(Debug, Parser)]
+#[command(version)]
+struct Cli {
+    #[command(flatten)]
+    run: cli::RunArgs,
+    /// Print the summary as one JSON object on the last line of stdout.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(Debug, Serialize)]
+struct Mode {
+    cull: String,
+    tlas_instances_mean: f64,
+    culled_mean: f64,
+    removed_share: f64,
+    peak_blas_mb: f64,
+    update_ms_p50: f64,
+    hit_mismatch_mean: f64,
+    shadow_mismatch_mean: f64,
+    over_budget_frames: u64,
+    validation_messages: u64,
+}
+
+#[derive(Debug, Serialize)]
+struct Summary {
+    device: String,
+    frames: u64,
+    instances: usize,
+    instances_per_km2: f64,
+    default_instances_per_km2: f64,
+    modes: Vec<Mode>,
+    over_budget_frames: u64,
+    validation_messages: u64,
+}
+
+fn main() -> anyhow::Result<()> {
+    cli::init_tracing();
+    let mut cli = Cli::parse();
+    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
+        cli.run.out = "out/city".into();
+    }
+    let mut base = cli.run.run_config()?;
+    let mut preset = WorldPreset::city();
+    preset.seed = cli.run.seed;
+    if let Some(dir) = &cli.run.asset_dir {
+        preset.asset_dir = dir.clone();
+    }
+    if cli.run.world.is_none() {
+        base.world_dir = format!("out/world-{}-{:x}", preset.name, preset.seed).into();
+    }
+    let km2 = f64::from(preset.size_m).powi(2) / 1e6;
+    let density = f64::from(preset.instances) / km2;
+    let d = WorldPreset::default_world();
+    let default_density = f64::from(d.instances) / (f64::from(d.size_m).powi(2) / 1e6);
+    base.preset = preset;
+    base.policies = vec![PolicyKind::Managed];
+    base.maps = 0;
+    base.all_geometry_reference = false;
+    base.out_dir = None;
+    let modes = [
+        ("far or small (default)", CullMode::FarOrSmall),
+        ("far and small", CullMode::FarAndSmall),
+        ("far only", CullMode::Far),
+        ("small only", CullMode::Small),
+        ("off", CullMode::Off),
+    ];
+    let points: Vec<(String, RunConfig)> = modes
+        .iter()
+        .map(|(name, mode)| {
+            let mut c = base.clone();
+            c.managed.cull.mode = *mode;
+            (format!("cull {name}"), c)
+        })
+        .collect();
+    let ctx = Arc::new(VulkanContext::new(&ContextDesc {
+        validation: base.validation,
+        ..ContextDesc::default()
+    })?);
+    let world = rtstream::driver::prepare_world(&base.preset, &base.world_dir)?;
+    let instances = world.instance_count();
+    eprintln!(
+        "city: {instances} instances on {km2:.2} km2 ({density:.0}/km2, {:.1}x the default map's {default_density:.0}/km2)",
+        density / default_density
+    );
+    let reports = sweep::run_points(&ctx, &points, cli.quiet)?;
+    let mut out = Vec::new();
+    for ((name, _), r) in modes.iter().zip(&reports) {
+        let p = &r.summary.policies[0];
+        let rows: Vec<_> = r.rows.iter().filter(|x| x.policy == "managed").collect();
+        let n = rows.len().max(1) as f64;
+        let tlas = rows
+            .iter()
+            .map(|x| f64::from(x.tlas_instances))
+            .sum::<f64>()
+            / n;
+        let culled = rows.iter().map(|x| f64::from(x.culled)).sum::<f64>() / n;
+        out.push(Mode {
+            cull: (*name).into(),
+            tlas_instances_mean: tlas,
+            culled_mean: culled,
+            removed_share: culled / (tlas + culled).max(1.0),
+            peak_blas_mb: p.peak_blas_bytes as f64 / (1 << 20) as f64,
+            update_ms_p50: p.update_ms_p50,
+            hit_mismatch_mean: p.hit_mismatch_mean,
+            shadow_mismatch_mean: p.shadow_mismatch_mean,
+            over_budget_frames: p.over_budget_frames,
+            validation_messages: p.validation_messages,
+        });
+    }
+    let summary = Summary {
+        device: reports[0].summary.policies[0].backend.clone(),
+        frames: base.frames,
+        instances,
+        instances_per_km2: density,
+        default_instances_per_km2: default_density,
+        over_budget_frames: out.iter().map(|m| m.over_budget_frames).sum(),
+        validation_messages: ctx.validation_log().failure_count(),
+        modes: out,
+    };
+    println!(
+        "{:<24} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
+        "culling", "TLAS inst", "culled", "removed", "peak MB", "upd ms", "hit %", "shadow %"
+    );
+    for m in &summary.modes {
+        println!(
+            "{:<24} {:>10.0} {:>8.0} {:>7.1}% {:>8.1} {:>8.3} {:>8.2} {:>9.2}",
+            m.cull,
+            m.tlas_instances_mean,
+            m.culled_mean,
+            m.removed_share * 100.0,
+            m.peak_blas_mb,
+            m.update_ms_p50,
+            m.hit_mismatch_mean * 100.0,
+            m.shadow_mismatch_mean * 100.0
+        );
+    }
+    println!(
+        "frames over budget {}; validation messages {}",
+        summary.over_budget_frames, summary.validation_messages
+    );
+    std::fs::create_dir_all(&cli.run.out)?;
+    let point = |m: &Mode| charts::Point {
+        x: m.tlas_instances_mean,
+        y: m.hit_mismatch_mean * 100.0,
+        label: m.cull.clone(),
+    };
+    let files = charts::scatter(
+        &cli.run.out.join("culling"),
+        "City: TLAS instances against hit mismatch, by culling mode",
+        "mean TLAS instances",
+        "hit mismatch, %",
+        false,
+        &[
+            charts::Series {
+                name: "default culling".into(),
+                role: charts::Role::Default,
+                points: summary.modes.iter().take(1).map(point).collect(),
+            },
+            charts::Series {
+                name: "other modes".into(),
+                role: charts::Role::Sweep,
+                points: summary.modes.iter().skip(1).map(point).collect(),
+            },
+        ],
+    )?;
+    let json = serde_json::to_string(&summary)?;
+    std::fs::write(cli.run.out.join("city.json"), &json)?;
+    for f in &files {
+        eprintln!("wrote {}", f.display());
+    }
+    if cli.json {
+        println!("{json}");
+    }
+    Ok(())
+}
