@@ -56,6 +56,11 @@ pub(crate) struct FarField {
     pub records: Vec<TlasInstance>,
     /// Leaves covered by a proxy this frame (slots), for the invariants.
     pub covered: Vec<u32>,
+    /// Root slots (rebuilt after the tree changes).
+    roots: Vec<u32>,
+    roots_dirty: bool,
+    /// Leaves on the near side of the hand-over (rebuilt by `far_prepare`).
+    near_leaves: Vec<u32>,
 }
 
 impl FarField {
@@ -84,6 +89,7 @@ impl FarField {
             }
         }
         self.generations[i] = id.generation;
+        self.roots_dirty = true;
         self.nodes[i] = Some(GroupNode {
             desc,
             parent,
@@ -112,6 +118,7 @@ impl FarField {
         let Some(n) = self.nodes[id.index as usize].take() else {
             return;
         };
+        self.roots_dirty = true;
         if let Some(Some(p)) = self.nodes.get_mut(n.parent as usize) {
             p.children.retain(|&c| c != id.index);
         }
@@ -134,10 +141,15 @@ impl FarField {
         self.nodes[i as usize].as_ref().expect("live group")
     }
 
-    fn roots(&self) -> Vec<u32> {
-        (0..self.nodes.len() as u32)
-            .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent == NONE))
-            .collect()
+    /// The root slots (cached; the tree changes rarely).
+    fn roots(&mut self) -> Vec<u32> {
+        if self.roots_dirty {
+            self.roots = (0..self.nodes.len() as u32)
+                .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent == NONE))
+                .collect();
+            self.roots_dirty = false;
+        }
+        self.roots.clone()
     }
 
     /// Whether `group` is a leaf on the near (detail) side of the hand-over.
@@ -149,7 +161,11 @@ impl FarField {
     /// instances there are near field too), into `out`.
     pub fn near_leaf_boxes(&self, cameras: &[Vec3], r2: f32, out: &mut Vec<[f32; 4]>) {
         out.clear();
-        for n in self.nodes.iter().flatten() {
+        for n in self
+            .near_leaves
+            .iter()
+            .filter_map(|&i| self.nodes[i as usize].as_ref())
+        {
             if !n.children.is_empty() || !n.near {
                 continue;
             }
@@ -197,7 +213,9 @@ impl<B: AsBackend> AsManager<B> {
         let r2 = self.config.residency.r2;
         let f = self.config.far_field.clone();
         let cams = self.cam_pos.clone();
-        for n in self.far.nodes.iter_mut().flatten() {
+        self.far.near_leaves.clear();
+        for (i, n) in self.far.nodes.iter_mut().enumerate() {
+            let Some(n) = n else { continue };
             n.dist = cams
                 .iter()
                 .map(|&c| aabb_distance(n.desc.bounds_min, n.desc.bounds_max, c))
@@ -208,6 +226,9 @@ impl<B: AsBackend> AsManager<B> {
                     n.near = true;
                 } else if n.dist > r2 + f.handover_margin {
                     n.near = false;
+                }
+                if n.near {
+                    self.far.near_leaves.push(i as u32);
                 }
             }
         }
@@ -337,14 +358,18 @@ impl<B: AsBackend> AsManager<B> {
         complete
     }
 
-    fn mark_covered(&mut self, i: u32) {
-        let children = self.far.node(i).children.clone();
-        if children.is_empty() {
-            self.far.nodes[i as usize].as_mut().expect("live").covered = true;
-            self.far.covered.push(i);
-        }
-        for c in children {
-            self.mark_covered(c);
+    /// Marks every leaf under `i` covered (an explicit stack; no allocation per node).
+    fn mark_covered(&mut self, i: u32, stack: &mut Vec<u32>) {
+        stack.clear();
+        stack.push(i);
+        while let Some(j) = stack.pop() {
+            let n = self.far.nodes[j as usize].as_mut().expect("live");
+            if n.children.is_empty() {
+                n.covered = true;
+                self.far.covered.push(j);
+            } else {
+                stack.extend_from_slice(&n.children);
+            }
         }
     }
 
@@ -352,7 +377,7 @@ impl<B: AsBackend> AsManager<B> {
     /// TLAS list, the proxy records.
     pub(crate) fn far_select(&mut self) {
         self.far.records.clear();
-        self.far.covered.clear();
+        let last_covered = std::mem::take(&mut self.far.covered);
         if !self.far_on() {
             self.tlas_groups.clear();
             return;
@@ -361,9 +386,15 @@ impl<B: AsBackend> AsManager<B> {
         for r in self.far.roots() {
             self.display_cut(r, &mut picks);
         }
-        for n in self.far.nodes.iter_mut().flatten() {
-            n.covered = false;
+        // Last frame's covered leaves are uncovered (the only ones set).
+        for &i in &last_covered {
+            if let Some(Some(n)) = self.far.nodes.get_mut(i as usize) {
+                n.covered = false;
+            }
         }
+        self.far.covered = last_covered;
+        self.far.covered.clear();
+        let mut stack = Vec::new();
         let frame = self.frame;
         let mut proxy_bytes = 0;
         for &(g, slot, addr) in &picks {
@@ -379,7 +410,7 @@ impl<B: AsBackend> AsManager<B> {
             let (custom, mask, was_culled) = (n.desc.custom_index, n.desc.mask, n.culled);
             // Culling decides what is traced, not what is covered: a culled proxy's detail
             // stays out too (it is beyond r2 or handing over).
-            self.mark_covered(g);
+            self.mark_covered(g, &mut stack);
             let culled = self.culler.cull_small(radius, centre_dist, was_culled);
             self.far.nodes[g as usize].as_mut().expect("live").culled = culled;
             let e = &mut self.t.entries[slot as usize];

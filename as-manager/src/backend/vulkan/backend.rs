@@ -387,6 +387,28 @@ impl VulkanBackend {
                 .any(|e| e.parts.first().is_some_and(|p| p.address == address))
     }
 
+    /// Bytes of acceleration-structure storage of BLASes not yet destroyed (live and
+    /// retiring; split parts included): what the manager's memory budget counts. Input
+    /// buffers kept for shading are not in it (see [`VulkanBackend::blas_allocated_bytes`]).
+    pub fn blas_storage_bytes(&self) -> u64 {
+        let live: u64 = self
+            .blases
+            .iter()
+            .flatten()
+            .flat_map(|e| &e.parts)
+            .map(|a| a.size)
+            .sum();
+        let retiring: u64 = self
+            .retiring
+            .iter()
+            .map(|(_, r)| match r {
+                Retired::BlasAccel(a) => a.size,
+                _ => 0,
+            })
+            .sum();
+        live + retiring
+    }
+
     /// Bytes of BLAS storage and BLAS input buffers (what `memory_limit` caps).
     pub fn blas_allocated_bytes(&self) -> u64 {
         self.blas_allocated

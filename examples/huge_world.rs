@@ -1,0 +1,328 @@
+//! Huge worlds, in two parts, each against the default world in the same run:
+//! - `model`: the 1,000,000-instance synthetic world on the model backend (no GPU): the
+//!   manager's per-frame `update` p50/p99 against the 104k-instance default;
+//! - `stream`: the 1.76M-instance `large_world` preset, baked to disk and streamed from it into
+//!   the managed policy on the real Vulkan backend through the shared driver, along a path
+//!   that crosses the map: per-frame `update` p50/p99 against the default world's, and the
+//!   process's resident memory and open files sampled along the way (they must stay flat).
+//!
+//! ```text
+//! cargo run --release --example huge_world -- --help
+//! cargo run --release --example huge_world -- --part model --json
+//! cargo run --release --example huge_world -- --part stream --frames 600 --json
+//! ```
+
+#[path = "support/charts.rs"]
+mod charts;
+#[path = "support/cli.rs"]
+mod cli;
+
+use anyhow::Context;
+use clap::{Parser, ValueEnum};
+use rtstream::as_manager::backend::model::ModelBackend;
+use rtstream::as_manager::synth::{SynthParams, SynthWorld};
+use rtstream::as_manager::{AsManager, Config, FrameInput, PolicyKind};
+use rtstream::driver::{self, stats::Summary as Stat};
+use rtstream::streaming::WorldPreset;
+use serde::Serialize;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Part {
+    /// 1M synthetic instances on the model backend.
+    Model,
+    /// The 1.76M-instance large world streamed from disk on the real backend.
+    Stream,
+    /// Both.
+    Both,
+}
+
+/// The 1M-instance and 1.76M-instance worlds against the default one.
+#[derive(Debug, Parser)]
+#[command(version)]
+struct Cli {
+    #[command(flatten)]
+    run: cli::RunArgs,
+    /// Which part to run.
+    #[arg(long, value_enum, default_value_t = Part::Both)]
+    part: Part,
+    /// Frames of the model part (after 300 warm-up frames).
+    #[arg(long, default_value_t = 2000)]
+    model_frames: u64,
+    /// Sample resident memory and open files every this many frames (stream part).
+    #[arg(long, default_value_t = 30)]
+    sample_every: u64,
+    /// Print the summary as one JSON object on the last line of stdout.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// Per-frame update time of one world.
+#[derive(Debug, Serialize)]
+struct WorldRun {
+    world: String,
+    instances: usize,
+    update_ms: Stat,
+}
+
+/// Resident memory and open files along the stream part's path.
+#[derive(Debug, Serialize)]
+struct Sample {
+    frame: u64,
+    rss_mib: f64,
+    open_files: usize,
+    levels_loaded: usize,
+}
+
+#[derive(Debug, Serialize)]
+struct StreamRun {
+    world: String,
+    instances: usize,
+    update_ms: Stat,
+    samples: Vec<Sample>,
+    /// Largest over smallest resident memory after the first tenth of the path.
+    rss_ratio: f64,
+    open_files_min: usize,
+    open_files_max: usize,
+    over_budget_frames: u64,
+    validation_messages: u64,
+}
+
+#[derive(Debug, Default, Serialize)]
+struct Summary {
+    model: Vec<WorldRun>,
+    /// p50 and p99 of the 1M world over the default's.
+    model_ratio_p50: Option<f64>,
+    model_ratio_p99: Option<f64>,
+    stream: Vec<StreamRun>,
+    stream_ratio_p50: Option<f64>,
+    stream_ratio_p99: Option<f64>,
+    over_budget_frames: u64,
+    validation_messages: u64,
+}
+
+fn main() -> anyhow::Result<()> {
+    cli::init_tracing();
+    let mut cli = Cli::parse();
+    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
+        cli.run.out = "out/huge_world".into();
+    }
+    let mut s = Summary::default();
+    if matches!(cli.part, Part::Model | Part::Both) {
+        for (name, params) in [
+            ("default (104k)", SynthParams::default_world()),
+            ("million", SynthParams::million()),
+        ] {
+            eprintln!("model backend: {name}");
+            s.model.push(model_run(name, params, cli.model_frames)?);
+        }
+        let (a, b) = (&s.model[0].update_ms, &s.model[1].update_ms);
+        s.model_ratio_p50 = Some(b.p50 / a.p50);
+        s.model_ratio_p99 = Some(b.p99 / a.p99);
+    }
+    if matches!(cli.part, Part::Stream | Part::Both) {
+        let base = cli.run.run_config()?;
+        for preset in [WorldPreset::default_world(), WorldPreset::large_world()] {
+            let mut preset = WorldPreset {
+                seed: cli.run.seed,
+                ..preset
+            };
+            if let Some(dir) = &cli.run.asset_dir {
+                preset.asset_dir = dir.clone();
+            }
+            let mut c = base.clone();
+            c.world_dir = format!("out/world-{}-{:x}", preset.name, preset.seed).into();
+            c.preset = preset;
+            c.policies = vec![PolicyKind::Managed];
+            c.eval_every = 0;
+            c.maps = 0;
+            c.out_dir = None;
+            eprintln!("streamed from disk: {}", c.preset.name);
+            let r = stream_run(&c, cli.sample_every, cli.quiet)?;
+            s.over_budget_frames += r.over_budget_frames;
+            s.validation_messages += r.validation_messages;
+            s.stream.push(r);
+        }
+        let (a, b) = (&s.stream[0].update_ms, &s.stream[1].update_ms);
+        s.stream_ratio_p50 = Some(b.p50 / a.p50);
+        s.stream_ratio_p99 = Some(b.p99 / a.p99);
+    }
+    print_table(&s);
+    std::fs::create_dir_all(&cli.run.out)?;
+    if !s.stream.is_empty() {
+        let series = |f: fn(&Sample) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {
+            s.stream
+                .iter()
+                .map(|r| {
+                    (
+                        r.world.clone(),
+                        r.samples.iter().map(|x| (x.frame as f64, f(x))).collect(),
+                    )
+                })
+                .collect()
+        };
+        let mut files = charts::lines(
+            &cli.run.out.join("rss"),
+            "Resident memory along a path across the map",
+            "frame",
+            "MiB",
+            &series(|x| x.rss_mib),
+        )?;
+        files.extend(charts::lines(
+            &cli.run.out.join("open_files"),
+            "Open files along a path across the map",
+            "frame",
+            "file descriptors",
+            &series(|x| x.open_files as f64),
+        )?);
+        for f in &files {
+            eprintln!("wrote {}", f.display());
+        }
+    }
+    let json = serde_json::to_string(&s)?;
+    std::fs::write(cli.run.out.join("huge_world.json"), &json)?;
+    if cli.json {
+        println!("{json}");
+    }
+    Ok(())
+}
+
+/// The manager on the model backend over `params`'s world, camera on the synthetic loop.
+fn model_run(name: &str, params: SynthParams, frames: u64) -> anyhow::Result<WorldRun> {
+    let world = SynthWorld::generate(params);
+    let manager = AsManager::new(Config::default(), ModelBackend::lavapipe())?;
+    world.populate(&manager)?;
+    let mut manager = manager;
+    let mut times = Vec::with_capacity(frames as usize);
+    for frame in 0..300 + frames {
+        let cams = [world.camera_on_path(frame, 0.5)];
+        let t = std::time::Instant::now();
+        manager.update(FrameInput {
+            frame,
+            cameras: &cams,
+        })?;
+        if frame >= 300 {
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    Ok(WorldRun {
+        world: name.into(),
+        instances: world.instances.len(),
+        update_ms: Stat::of(times),
+    })
+}
+
+/// Resident set size of this process in MiB (Linux; 0 elsewhere).
+fn rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmRSS:"))
+                .and_then(|v| v.split_whitespace().next()?.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kib| kib / 1024.0)
+}
+
+/// Open file descriptors of this process (Linux; 0 elsewhere).
+fn open_files() -> usize {
+    std::fs::read_dir("/proc/self/fd").map_or(0, |d| d.count())
+}
+
+fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<StreamRun> {
+    let world = driver::prepare_world(&c.preset, &c.world_dir)
+        .with_context(|| format!("generating and baking {}", c.preset.name))?;
+    let instances = world.instance_count();
+    drop(world);
+    let (bar, mut progress) = cli::progress_bar(c.frames, quiet);
+    let mut samples = Vec::new();
+    let report = driver::run(c, &mut |p| {
+        if p.frame % every.max(1) == 0 {
+            samples.push(Sample {
+                frame: p.frame,
+                rss_mib: rss_mib(),
+                open_files: open_files(),
+                levels_loaded: p.levels_loaded,
+            });
+        }
+        progress(p);
+    })
+    .with_context(|| format!("streaming {}", c.preset.name))?;
+    bar.finish_and_clear();
+    let p = &report.summary.policies[0];
+    let times = report
+        .rows
+        .iter()
+        .filter(|r| r.policy == "managed")
+        .map(|r| r.update_ms);
+    let later: Vec<&Sample> = samples.iter().skip(samples.len() / 10).collect();
+    let rss_min = later
+        .iter()
+        .map(|x| x.rss_mib)
+        .fold(f64::INFINITY, f64::min);
+    let rss_max = later.iter().map(|x| x.rss_mib).fold(0.0, f64::max);
+    Ok(StreamRun {
+        world: c.preset.name.clone(),
+        instances,
+        update_ms: Stat::of(times),
+        rss_ratio: if rss_min > 0.0 {
+            rss_max / rss_min
+        } else {
+            0.0
+        },
+        open_files_min: later.iter().map(|x| x.open_files).min().unwrap_or(0),
+        open_files_max: later.iter().map(|x| x.open_files).max().unwrap_or(0),
+        samples,
+        over_budget_frames: p.over_budget_frames,
+        validation_messages: p.validation_messages,
+    })
+}
+
+fn print_table(s: &Summary) {
+    if !s.model.is_empty() {
+        println!("model backend: per-frame update (ms)");
+        println!(
+            "{:<16} {:>10} {:>9} {:>9}",
+            "world", "instances", "p50", "p99"
+        );
+        for r in &s.model {
+            println!(
+                "{:<16} {:>10} {:>9.3} {:>9.3}",
+                r.world, r.instances, r.update_ms.p50, r.update_ms.p99
+            );
+        }
+        println!(
+            "million / default: p50 {:.2}x, p99 {:.2}x (target at most 1.2x)",
+            s.model_ratio_p50.unwrap_or(0.0),
+            s.model_ratio_p99.unwrap_or(0.0)
+        );
+    }
+    if !s.stream.is_empty() {
+        println!("streamed from disk, real backend: per-frame update (ms), memory, open files");
+        println!(
+            "{:<10} {:>10} {:>9} {:>9} {:>10} {:>12} {:>5} {:>5}",
+            "world", "instances", "p50", "p99", "RSS ratio", "open files", "over", "valid"
+        );
+        for r in &s.stream {
+            println!(
+                "{:<10} {:>10} {:>9.3} {:>9.3} {:>10.3} {:>5}..{:<6} {:>5} {:>5}",
+                r.world,
+                r.instances,
+                r.update_ms.p50,
+                r.update_ms.p99,
+                r.rss_ratio,
+                r.open_files_min,
+                r.open_files_max,
+                r.over_budget_frames,
+                r.validation_messages
+            );
+        }
+        println!(
+            "large / default: p50 {:.2}x, p99 {:.2}x (target at most 1.2x)",
+            s.stream_ratio_p50.unwrap_or(0.0),
+            s.stream_ratio_p99.unwrap_or(0.0)
+        );
+    }
+}
