@@ -18,7 +18,9 @@
 //!    out of the TLAS, so no frame shows a group's proxy and its detail together. A near leaf
 //!    whose proxy is not built shows its detail, so none shows neither.
 //!
-//! Proxies cost a tree walk per frame (a few thousand nodes), not a pass over the instances.
+//! Proxies cost a walk of the cut per frame (the nodes near the cameras and the shown cut,
+//! distances computed as visited; covered leaves are found through their ancestors' `shown`
+//! epoch), not a pass over the tree or over the instances.
 
 use glam::{Affine3A, Vec3};
 
@@ -35,12 +37,19 @@ pub(crate) struct GroupNode {
     children: Vec<u32>,
     /// (proxy mesh slot, error in metres).
     proxy: Option<(u32, f32)>,
-    /// Distance from the nearest camera to the bounds, this frame.
+    /// Distance from the nearest camera to the bounds, as of epoch `dist_epoch`.
     dist: f32,
-    /// Leaf: detail (true) or proxy (false) side of the hand-over hysteresis.
+    dist_epoch: u64,
+    /// Leaf: detail (true) or proxy (false) side of the hand-over hysteresis. A near leaf is
+    /// always in `FarField::near_leaves`.
     near: bool,
-    /// Leaf: covered by a shown proxy last frame.
-    covered: bool,
+    /// Leaf: the epoch it was last put in `near_leaves`.
+    listed: u64,
+    /// The epoch (far-field frame) this node was last part of the display cut; every leaf
+    /// under it was covered then.
+    shown: u64,
+    /// Leaves under this node (itself for a leaf).
+    leaves: u32,
     /// Leaf: unculled instances within r2 without a BLAS to show, this frame.
     pub unready: u32,
     /// Proxy culled last frame (culling hysteresis).
@@ -54,13 +63,19 @@ pub(crate) struct FarField {
     generations: Vec<u32>,
     /// Proxy records of this frame.
     pub records: Vec<TlasInstance>,
-    /// Leaves covered by a proxy this frame (slots), for the invariants.
-    pub covered: Vec<u32>,
     /// Root slots (rebuilt after the tree changes).
     roots: Vec<u32>,
     roots_dirty: bool,
-    /// Leaves on the near side of the hand-over (rebuilt by `far_prepare`).
+    /// Leaves on the near side of the hand-over.
     near_leaves: Vec<u32>,
+    /// Leaves whose `unready` count is non-zero this frame.
+    unready_leaves: Vec<u32>,
+    /// Nodes of this frame's display cut.
+    picks: Vec<u32>,
+    /// Far-field frames so far (one per `far_prepare`); 0: none yet.
+    epoch: u64,
+    /// Live nodes.
+    live: usize,
 }
 
 impl FarField {
@@ -70,7 +85,7 @@ impl FarField {
     }
 
     pub fn is_empty(&self) -> bool {
-        self.nodes.iter().all(Option::is_none)
+        self.live == 0
     }
 
     pub fn register(&mut self, id: GroupId, desc: GroupDesc) {
@@ -90,14 +105,18 @@ impl FarField {
         }
         self.generations[i] = id.generation;
         self.roots_dirty = true;
+        self.live += usize::from(self.nodes[i].is_none());
         self.nodes[i] = Some(GroupNode {
             desc,
             parent,
             children: Vec::new(),
             proxy: None,
             dist: f32::INFINITY,
+            dist_epoch: 0,
             near: false,
-            covered: false,
+            listed: 0,
+            shown: u64::MAX,
+            leaves: 1,
             unready: 0,
             culled: false,
         });
@@ -119,6 +138,7 @@ impl FarField {
             return;
         };
         self.roots_dirty = true;
+        self.live -= 1;
         if let Some(Some(p)) = self.nodes.get_mut(n.parent as usize) {
             p.children.retain(|&c| c != id.index);
         }
@@ -129,11 +149,15 @@ impl FarField {
         }
     }
 
-    /// The leaf slot an instance's group names, if it is a live leaf.
-    pub fn leaf_unready(&mut self, group: u32) -> Option<&mut u32> {
-        match self.nodes.get_mut(group as usize) {
-            Some(Some(n)) if n.children.is_empty() => Some(&mut n.unready),
-            _ => None,
+    /// Counts an unculled instance within r2 of leaf `group` that has no BLAS to show yet.
+    pub fn add_unready(&mut self, group: u32) {
+        if let Some(Some(n)) = self.nodes.get_mut(group as usize) {
+            if n.children.is_empty() {
+                if n.unready == 0 {
+                    self.unready_leaves.push(group);
+                }
+                n.unready += 1;
+            }
         }
     }
 
@@ -141,15 +165,49 @@ impl FarField {
         self.nodes[i as usize].as_ref().expect("live group")
     }
 
-    /// The root slots (cached; the tree changes rarely).
+    /// The root slots and every node's leaf count (recomputed after the tree changed; it
+    /// changes rarely).
     fn roots(&mut self) -> Vec<u32> {
         if self.roots_dirty {
             self.roots = (0..self.nodes.len() as u32)
                 .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent == NONE))
                 .collect();
+            // Leaf counts, children before parents (post-order from the roots).
+            let mut order = Vec::with_capacity(self.live);
+            let mut stack = self.roots.clone();
+            while let Some(i) = stack.pop() {
+                order.push(i);
+                stack.extend_from_slice(&self.node(i).children);
+            }
+            for &i in order.iter().rev() {
+                let n = self.node(i);
+                let leaves = if n.children.is_empty() {
+                    1
+                } else {
+                    n.children.iter().map(|&c| self.node(c).leaves).sum()
+                };
+                self.nodes[i as usize].as_mut().expect("live").leaves = leaves;
+            }
             self.roots_dirty = false;
         }
         self.roots.clone()
+    }
+
+    /// Whether `leaf` or one of its ancestors was part of the display cut of `epoch`.
+    fn shown_in(&self, leaf: u32, epoch: u64) -> bool {
+        let mut i = leaf;
+        while let Some(Some(n)) = self.nodes.get(i as usize) {
+            if n.shown == epoch {
+                return true;
+            }
+            i = n.parent;
+        }
+        false
+    }
+
+    /// Whether a leaf was covered by a shown proxy in the previous far-field frame.
+    fn covered_last(&self, leaf: u32) -> bool {
+        self.epoch >= 1 && self.shown_in(leaf, self.epoch - 1)
     }
 
     /// Whether `group` is a leaf on the near (detail) side of the hand-over.
@@ -182,10 +240,24 @@ impl FarField {
         }
     }
 
-    /// Whether a leaf is covered by a proxy this frame.
+    /// Whether a leaf is covered by a proxy this frame (after `far_select`).
     pub fn is_covered(&self, group: u32) -> bool {
-        matches!(self.nodes.get(group as usize), Some(Some(n)) if n.covered)
+        self.epoch >= 1 && self.shown_in(group, self.epoch)
     }
+}
+
+/// Pixels an error of `error` metres projects to at `dist` (the LOD config's screen).
+fn projected_px(c: &crate::Config, error: f32, dist: f32) -> f32 {
+    let l = &c.lod;
+    let pixel_angle = l.vertical_fov / l.screen_height_px;
+    error / (dist.max(1e-3) * pixel_angle)
+}
+
+/// Distance from the nearest camera to a node's bounds.
+fn node_distance(n: &GroupNode, cams: &[Vec3]) -> f32 {
+    cams.iter()
+        .map(|&c| aabb_distance(n.desc.bounds_min, n.desc.bounds_max, c))
+        .fold(f32::INFINITY, f32::min)
 }
 
 fn aabb_distance(lo: [f32; 3], hi: [f32; 3], p: Vec3) -> f32 {
@@ -200,9 +272,7 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Pixels a proxy error of `error` metres spans at `dist` metres.
     fn projected_px(&self, error: f32, dist: f32) -> f32 {
-        let l = &self.config.lod;
-        let pixel_angle = l.vertical_fov / l.screen_height_px;
-        error / (dist.max(1e-3) * pixel_angle)
+        projected_px(&self.config, error, dist)
     }
 
     /// Step 1 (see the module docs): distances, hand-over states, proxy requests.
@@ -212,44 +282,65 @@ impl<B: AsBackend> AsManager<B> {
         }
         let r2 = self.config.residency.r2;
         let f = self.config.far_field.clone();
-        let cams = self.cam_pos.clone();
-        self.far.near_leaves.clear();
-        for (i, n) in self.far.nodes.iter_mut().enumerate() {
-            let Some(n) = n else { continue };
-            n.dist = cams
-                .iter()
-                .map(|&c| aabb_distance(n.desc.bounds_min, n.desc.bounds_max, c))
-                .fold(f32::INFINITY, f32::min);
-            n.unready = 0;
+        let cams = std::mem::take(&mut self.cam_pos);
+        let far = &mut self.far;
+        far.epoch += 1;
+        let e = far.epoch;
+        for i in std::mem::take(&mut far.unready_leaves) {
+            if let Some(Some(n)) = far.nodes.get_mut(i as usize) {
+                n.unready = 0;
+            }
+        }
+        // Distances are computed for the nodes a walk visits, not for the whole tree; a leaf's
+        // hand-over side changes only near the cameras (visited) or for leaves that were near
+        // (listed), so both are updated and the rest keep `near == false`.
+        let visit = |n: &mut GroupNode| {
+            if n.dist_epoch != e {
+                n.dist = node_distance(n, &cams);
+                n.dist_epoch = e;
+            }
             if n.children.is_empty() {
                 if n.dist <= r2 {
                     n.near = true;
                 } else if n.dist > r2 + f.handover_margin {
                     n.near = false;
                 }
-                if n.near {
-                    self.far.near_leaves.push(i as u32);
+            }
+        };
+        let listed = std::mem::take(&mut far.near_leaves);
+        for i in listed {
+            if let Some(Some(n)) = far.nodes.get_mut(i as usize) {
+                visit(n);
+                if n.near && n.listed != e {
+                    n.listed = e;
+                    far.near_leaves.push(i);
                 }
             }
         }
         let mut want = Vec::new();
-        let mut stack = self.far.roots();
+        let mut stack = far.roots();
         while let Some(i) = stack.pop() {
-            let n = self.far.node(i);
+            let n = far.nodes[i as usize].as_mut().expect("live group");
+            visit(n);
+            if n.children.is_empty() && n.near && n.listed != e {
+                n.listed = e;
+                far.near_leaves.push(i);
+            }
+            let n = far.node(i);
             if n.dist > f.far_radius {
                 continue;
             }
             if n.children.is_empty() {
                 // Far or soon far, or still handing over.
                 let soon = n.dist > r2 - f.handover_margin;
-                if soon || !n.near || n.covered {
+                if soon || !n.near || far.covered_last(i) {
                     want.push(i);
                 }
                 continue;
             }
-            let px = n
-                .proxy
-                .map_or(f32::INFINITY, |(_, e)| self.projected_px(e, n.dist));
+            let px = n.proxy.map_or(f32::INFINITY, |(_, err)| {
+                projected_px(&self.config, err, n.dist)
+            });
             if n.dist > r2 + f.lookahead && px <= f.max_pixel_error {
                 want.push(i);
                 // Its children will replace it when the camera comes closer: build them ahead.
@@ -260,13 +351,24 @@ impl<B: AsBackend> AsManager<B> {
                 stack.extend(n.children.iter().copied());
             }
         }
+        self.cam_pos = cams;
         let frame = self.frame;
         for i in want {
             let n = self.far.node(i);
-            let (Some((mesh, _)), dist) = (n.proxy, n.dist) else {
+            let (Some((mesh, _)), dist) = (n.proxy, self.far_dist(i)) else {
                 continue;
             };
             self.request_proxy(mesh, dist, frame);
+        }
+    }
+
+    /// A node's distance to the nearest camera this frame (cached by the walk, else computed).
+    fn far_dist(&self, i: u32) -> f32 {
+        let n = self.far.node(i);
+        if n.dist_epoch == self.far.epoch {
+            n.dist
+        } else {
+            node_distance(n, &self.cam_pos)
         }
     }
 
@@ -316,11 +418,12 @@ impl<B: AsBackend> AsManager<B> {
         let f = &self.config.far_field;
         let r2 = self.config.residency.r2;
         let n = self.far.node(i);
-        if n.dist > f.far_radius {
+        let dist = self.far_dist(i);
+        if dist > f.far_radius {
             return true;
         }
         if n.children.is_empty() {
-            let wants = !n.near || (n.covered && n.unready > 0);
+            let wants = !n.near || (self.far.covered_last(i) && n.unready > 0);
             if !wants {
                 return true;
             }
@@ -333,11 +436,11 @@ impl<B: AsBackend> AsManager<B> {
                 None => n.near,
             };
         }
-        let all_far = n.dist > r2 + f.handover_margin;
+        let all_far = dist > r2 + f.handover_margin;
         let parent = if all_far { self.proxy_built(i) } else { None };
         let px = n
             .proxy
-            .map_or(f32::INFINITY, |(_, e)| self.projected_px(e, n.dist));
+            .map_or(f32::INFINITY, |(_, e)| self.projected_px(e, dist));
         if let (Some((slot, addr)), true) = (parent, px <= f.max_pixel_error) {
             picks.push((i, slot, addr));
             return true;
@@ -358,26 +461,11 @@ impl<B: AsBackend> AsManager<B> {
         complete
     }
 
-    /// Marks every leaf under `i` covered (an explicit stack; no allocation per node).
-    fn mark_covered(&mut self, i: u32, stack: &mut Vec<u32>) {
-        stack.clear();
-        stack.push(i);
-        while let Some(j) = stack.pop() {
-            let n = self.far.nodes[j as usize].as_mut().expect("live");
-            if n.children.is_empty() {
-                n.covered = true;
-                self.far.covered.push(j);
-            } else {
-                stack.extend_from_slice(&n.children);
-            }
-        }
-    }
-
     /// Step 3 (see the module docs): the display cut, the detail it covers taken out of the
     /// TLAS list, the proxy records.
     pub(crate) fn far_select(&mut self) {
         self.far.records.clear();
-        let last_covered = std::mem::take(&mut self.far.covered);
+        self.far.picks.clear();
         if !self.far_on() {
             self.tlas_groups.clear();
             return;
@@ -386,15 +474,6 @@ impl<B: AsBackend> AsManager<B> {
         for r in self.far.roots() {
             self.display_cut(r, &mut picks);
         }
-        // Last frame's covered leaves are uncovered (the only ones set).
-        for &i in &last_covered {
-            if let Some(Some(n)) = self.far.nodes.get_mut(i as usize) {
-                n.covered = false;
-            }
-        }
-        self.far.covered = last_covered;
-        self.far.covered.clear();
-        let mut stack = Vec::new();
         let frame = self.frame;
         let mut proxy_bytes = 0;
         for &(g, slot, addr) in &picks {
@@ -410,7 +489,7 @@ impl<B: AsBackend> AsManager<B> {
             let (custom, mask, was_culled) = (n.desc.custom_index, n.desc.mask, n.culled);
             // Culling decides what is traced, not what is covered: a culled proxy's detail
             // stays out too (it is beyond r2 or handing over).
-            self.mark_covered(g, &mut stack);
+            self.far.picks.push(g);
             let culled = self.culler.cull_small(radius, centre_dist, was_culled);
             self.far.nodes[g as usize].as_mut().expect("live").culled = culled;
             let e = &mut self.t.entries[slot as usize];
@@ -429,8 +508,16 @@ impl<B: AsBackend> AsManager<B> {
                 addr,
             ));
         }
+        // Every leaf under a pick is covered this frame.
+        let e = self.far.epoch;
+        let mut covered_leaves = 0;
+        for &g in &self.far.picks {
+            let n = self.far.nodes[g as usize].as_mut().expect("live");
+            n.shown = e;
+            covered_leaves += n.leaves;
+        }
         // Take the covered leaves' detail out of the TLAS list.
-        if !self.far.covered.is_empty() {
+        if !self.far.picks.is_empty() {
             let mut keep = Vec::with_capacity(self.tlas_list.len());
             for (item, &g) in self.tlas_list.iter().zip(&self.tlas_groups) {
                 if g == NONE || !self.far.is_covered(g) {
@@ -442,6 +529,6 @@ impl<B: AsBackend> AsManager<B> {
         self.tlas_groups.clear();
         self.stats.proxy_instances = self.far.records.len() as u32;
         self.stats.proxy_blas_bytes = proxy_bytes;
-        self.stats.far_groups_covered = self.far.covered.len() as u32;
+        self.stats.far_groups_covered = covered_leaves;
     }
 }

@@ -222,9 +222,7 @@ impl<B: AsBackend> AsManager<B> {
                 short += u32::from(!covered);
             }
             if chosen.0 == NONE && !culled && group != NONE {
-                if let Some(u) = self.far.leaf_unready(group) {
-                    *u += 1;
-                }
+                self.far.add_unready(group);
             }
             if chosen.0 != NONE {
                 if culled {
