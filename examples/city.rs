@@ -31,12 +31,8 @@ use serde::Serialize;
 struct Cli {
     #[command(flatten)]
     run: cli::RunArgs,
-    /// Print the summary as one JSON object on the last line of stdout.
-    #[arg(long)]
-    json: bool,
-    /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    output: cli::OutputArgs,
 }
 
 #[derive(Debug, Serialize)]
@@ -68,23 +64,14 @@ struct Summary {
 fn main() -> anyhow::Result<()> {
     cli::init_tracing();
     let mut cli = Cli::parse();
-    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
-        cli.run.out = "out/city".into();
-    }
+    cli.run.default_out("out/city");
     let mut base = cli.run.run_config()?;
-    let mut preset = WorldPreset::city();
-    preset.seed = cli.run.seed;
-    if let Some(dir) = &cli.run.asset_dir {
-        preset.asset_dir = dir.clone();
-    }
-    if cli.run.world.is_none() {
-        base.world_dir = format!("out/world-{}-{:x}", preset.name, preset.seed).into();
-    }
+    cli.run.use_preset(&mut base, WorldPreset::city());
+    let preset = base.preset.clone();
     let km2 = f64::from(preset.size_m).powi(2) / 1e6;
     let density = f64::from(preset.instances) / km2;
     let d = WorldPreset::default_world();
     let default_density = f64::from(d.instances) / (f64::from(d.size_m).powi(2) / 1e6);
-    base.preset = preset;
     base.policies = vec![PolicyKind::Managed];
     base.maps = 0;
     base.all_geometry_reference = false;
@@ -114,7 +101,7 @@ fn main() -> anyhow::Result<()> {
         "city: {instances} instances on {km2:.2} km2 ({density:.0}/km2, {:.1}x the default map's {default_density:.0}/km2)",
         density / default_density
     );
-    let reports = sweep::run_points(&ctx, &points, cli.quiet)?;
+    let reports = sweep::run_points(&ctx, &points, cli.output.quiet)?;
     let mut out = Vec::new();
     for ((name, _), r) in modes.iter().zip(&reports) {
         let p = &r.summary.policies[0];
@@ -200,7 +187,7 @@ fn main() -> anyhow::Result<()> {
     for f in &files {
         eprintln!("wrote {}", f.display());
     }
-    if cli.json {
+    if cli.output.json {
         println!("{json}");
     }
     Ok(())

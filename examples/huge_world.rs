@@ -51,12 +51,8 @@ struct Cli {
     /// Sample resident memory and open files every this many frames (stream part).
     #[arg(long, default_value_t = 30)]
     sample_every: u64,
-    /// Print the summary as one JSON object on the last line of stdout.
-    #[arg(long)]
-    json: bool,
-    /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    output: cli::OutputArgs,
 }
 
 /// Per-frame update time of one world.
@@ -106,9 +102,7 @@ struct Summary {
 fn main() -> anyhow::Result<()> {
     cli::init_tracing();
     let mut cli = Cli::parse();
-    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
-        cli.run.out = "out/huge_world".into();
-    }
+    cli.run.default_out("out/huge_world");
     let mut s = Summary::default();
     if matches!(cli.part, Part::Model | Part::Both) {
         for (name, params) in [
@@ -125,22 +119,18 @@ fn main() -> anyhow::Result<()> {
     if matches!(cli.part, Part::Stream | Part::Both) {
         let base = cli.run.run_config()?;
         for preset in [WorldPreset::default_world(), WorldPreset::large_world()] {
-            let mut preset = WorldPreset {
-                seed: cli.run.seed,
-                ..preset
-            };
-            if let Some(dir) = &cli.run.asset_dir {
-                preset.asset_dir = dir.clone();
-            }
             let mut c = base.clone();
-            c.world_dir = format!("out/world-{}-{:x}", preset.name, preset.seed).into();
-            c.preset = preset;
+            cli.run.use_preset(&mut c, preset);
+            if cli.run.world.is_some() {
+                // One --world cannot hold both worlds.
+                c.world_dir = format!("out/world-{}-{:x}", c.preset.name, c.preset.seed).into();
+            }
             c.policies = vec![PolicyKind::Managed];
             c.eval_every = 0;
             c.maps = 0;
             c.out_dir = None;
             eprintln!("streamed from disk: {}", c.preset.name);
-            let r = stream_run(&c, cli.sample_every, cli.quiet)?;
+            let r = stream_run(&c, cli.sample_every, cli.output.quiet)?;
             s.over_budget_frames += r.over_budget_frames;
             s.validation_messages += r.validation_messages;
             s.stream.push(r);
@@ -183,7 +173,7 @@ fn main() -> anyhow::Result<()> {
     }
     let json = serde_json::to_string(&s)?;
     std::fs::write(cli.run.out.join("huge_world.json"), &json)?;
-    if cli.json {
+    if cli.output.json {
         println!("{json}");
     }
     Ok(())

@@ -33,12 +33,8 @@ struct Cli {
     /// Budgets to sweep, MB (comma-separated).
     #[arg(long, value_delimiter = ',', default_values_t = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])]
     budgets_mb: Vec<f64>,
-    /// Print the summary as one JSON object on the last line of stdout.
-    #[arg(long)]
-    json: bool,
-    /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    output: cli::OutputArgs,
 }
 
 /// One budget's figures.
@@ -70,9 +66,7 @@ struct Summary {
 fn main() -> anyhow::Result<()> {
     cli::init_tracing();
     let mut cli = Cli::parse();
-    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
-        cli.run.out = "out/memory_budget".into();
-    }
+    cli.run.default_out("out/memory_budget");
     anyhow::ensure!(
         cli.budgets_mb.iter().all(|b| b.is_finite() && *b > 0.0),
         "every budget must be a positive number of MB"
@@ -96,7 +90,7 @@ fn main() -> anyhow::Result<()> {
         validation: base.validation,
         ..ContextDesc::default()
     })?);
-    let reports = sweep::run_points(&ctx, &points, cli.quiet)?;
+    let reports = sweep::run_points(&ctx, &points, cli.output.quiet)?;
     let mut out = Vec::new();
     for (b, r) in budgets.iter().zip(&reports) {
         let p = &r.summary.policies[0];
@@ -175,7 +169,7 @@ fn main() -> anyhow::Result<()> {
     for f in &files {
         eprintln!("wrote {}", f.display());
     }
-    if cli.json {
+    if cli.output.json {
         println!("{json}");
     }
     Ok(())

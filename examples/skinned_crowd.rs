@@ -34,12 +34,8 @@ struct Cli {
     /// Triangles refitted per frame at most (the manager's `max_refit_primitives`).
     #[arg(long)]
     max_refit_tris: Option<u64>,
-    /// Print the summary as one JSON object on the last line of stdout.
-    #[arg(long)]
-    json: bool,
-    /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    output: cli::OutputArgs,
 }
 
 #[derive(Debug, Serialize)]
@@ -68,20 +64,11 @@ struct Summary {
 fn main() -> anyhow::Result<()> {
     cli::init_tracing();
     let mut cli = Cli::parse();
-    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
-        cli.run.out = "out/skinned_crowd".into();
-    }
+    cli.run.default_out("out/skinned_crowd");
     anyhow::ensure!(cli.characters > 0, "--characters must be at least 1");
     let mut config = cli.run.run_config()?;
-    let mut preset = WorldPreset::crowd(cli.characters);
-    preset.seed = cli.run.seed;
-    if let Some(dir) = &cli.run.asset_dir {
-        preset.asset_dir = dir.clone();
-    }
-    if cli.run.world.is_none() {
-        config.world_dir = format!("out/world-{}-{:x}", preset.name, preset.seed).into();
-    }
-    config.preset = preset;
+    cli.run
+        .use_preset(&mut config, WorldPreset::crowd(cli.characters));
     config.policies = vec![PolicyKind::Managed];
     config.maps = 0;
     // A slow walk through the middle of the crowd.
@@ -109,7 +96,7 @@ fn main() -> anyhow::Result<()> {
         skinned_triangles as f64 / budget.max(1) as f64,
         budget
     );
-    let (bar, mut progress) = cli::progress_bar(config.frames, cli.quiet);
+    let (bar, mut progress) = cli::progress_bar(config.frames, cli.output.quiet);
     let report = driver::run(&config, &mut progress).context("skinned crowd run")?;
     bar.finish_and_clear();
 
@@ -216,7 +203,7 @@ fn main() -> anyhow::Result<()> {
     for f in files.iter().chain(&report.files) {
         eprintln!("wrote {}", f.display());
     }
-    if cli.json {
+    if cli.output.json {
         println!("{json}");
     }
     Ok(())

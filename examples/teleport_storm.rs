@@ -30,12 +30,8 @@ struct Cli {
     /// Frames between teleports.
     #[arg(long, default_value_t = 30)]
     every: u64,
-    /// Print the summary as one JSON object on the last line of stdout.
-    #[arg(long)]
-    json: bool,
-    /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    output: cli::OutputArgs,
 }
 
 /// One teleport's figures.
@@ -71,9 +67,7 @@ struct Summary {
 fn main() -> anyhow::Result<()> {
     cli::init_tracing();
     let mut cli = Cli::parse();
-    if cli.run.out.as_path() == std::path::Path::new("out/flythrough") {
-        cli.run.out = "out/teleport_storm".into();
-    }
+    cli.run.default_out("out/teleport_storm");
     anyhow::ensure!(cli.every > 0, "--every must be at least 1");
     let mut config = cli.run.run_config()?;
     config.policies = vec![PolicyKind::Managed];
@@ -83,7 +77,7 @@ fn main() -> anyhow::Result<()> {
         "teleport storm: {} frames, a teleport every {} frames, world {} (seed {:#x})",
         config.frames, cli.every, config.preset.name, config.preset.seed
     );
-    let (bar, mut progress) = cli::progress_bar(config.frames, cli.quiet);
+    let (bar, mut progress) = cli::progress_bar(config.frames, cli.output.quiet);
     let report = driver::run(&config, &mut progress).context("teleport storm run")?;
     bar.finish_and_clear();
 
@@ -167,7 +161,7 @@ fn main() -> anyhow::Result<()> {
     for f in files.iter().chain(&report.files) {
         eprintln!("wrote {}", f.display());
     }
-    if cli.json {
+    if cli.output.json {
         println!("{json}");
     }
     Ok(())

@@ -158,7 +158,42 @@ pub fn world_preset(preset: Preset, seed: u64, asset_dir: Option<&PathBuf>) -> W
     p
 }
 
+/// Output flags every driver example takes.
+#[derive(Debug, Clone, Args)]
+pub struct OutputArgs {
+    /// Print the summary as one JSON object on the last line of stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
 impl RunArgs {
+    /// Replaces the fly-through's default output directory with `dir` (an explicit `--out`
+    /// stays).
+    pub fn default_out(&mut self, dir: &str) {
+        if self.out.as_path() == std::path::Path::new("out/flythrough") {
+            self.out = dir.into();
+        }
+    }
+
+    /// Runs `config` on `preset` instead of `--preset` (an example with a world of its own),
+    /// with `--seed`, `--asset-dir` and `--world` (default `out/world-<name>-<seed>`) applied.
+    pub fn use_preset(&self, config: &mut RunConfig, preset: WorldPreset) {
+        let mut preset = WorldPreset {
+            seed: self.seed,
+            ..preset
+        };
+        if let Some(dir) = &self.asset_dir {
+            preset.asset_dir = dir.clone();
+        }
+        config.world_dir = self.world.clone().unwrap_or_else(|| {
+            PathBuf::from(format!("out/world-{}-{:x}", preset.name, preset.seed))
+        });
+        config.preset = preset;
+    }
+
     /// The world preset.
     pub fn world_preset(&self) -> WorldPreset {
         world_preset(self.preset, self.seed, self.asset_dir.as_ref())
