@@ -37,5 +37,5 @@ pub use camera::Camera;
 pub use error::{RenderError, Result};
 pub use frame::{save_rgba_png, side_by_side, Frame, PassStats, PixelHit};
 pub use metrics::{difference_image, FrameMetrics};
-pub use renderer::{InstanceShading, RenderDesc, RenderPath, Renderer, RqRenderer};
+pub use renderer::{InstanceShading, RenderDesc, RenderPath, Renderer};
 pub use traced_scene::{cpu_reference, SceneInstance, TracedScene};

@@ -144,9 +144,6 @@ pub struct Renderer {
     tracer: Option<Tracer>,
 }
 
-/// The renderer under its foundation-era name (it now also has a ray-tracing-pipeline path).
-pub type RqRenderer = Renderer;
-
 impl Renderer {
     /// Creates the renderer on the device's best path ([`RenderPath::for_device`]).
     pub fn new(ctx: Arc<VulkanContext>) -> Result<Self> {

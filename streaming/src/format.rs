@@ -16,7 +16,7 @@ use crate::model::{
     Aabb, Instance, InstanceId, Level, LevelId, LodGeometry, MaterialClass, MeshId, Motion,
     SkinWeights,
 };
-use crate::skin::{Channel, ChannelPath, Joint, Skeleton};
+use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
 /// Format version written and accepted.
 pub const VERSION: u32 = 1;

@@ -18,7 +18,7 @@ use glam::{Mat4, Quat, Vec3, Vec4};
 
 use crate::error::{Result, StreamingError};
 use crate::model::{MaterialClass, SkinWeights};
-use crate::skin::{Channel, ChannelPath, Joint, Skeleton};
+use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
 /// Deepest node nesting accepted; deeper graphs are reported as invalid (they are almost surely
 /// cycles, which the glTF spec forbids but broken files contain).

@@ -49,6 +49,7 @@ mod lod;
 pub mod model;
 pub mod procedural;
 pub mod proxy;
+pub mod skeleton;
 pub mod skin;
 mod world;
 

@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use glam::{Mat4, Vec3};
 
-use crate::skin::Skeleton;
+use crate::skeleton::Skeleton;
 
 /// Identifies a mesh (a LOD chain) in the world's mesh library.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]

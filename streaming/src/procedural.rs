@@ -12,7 +12,7 @@ use glam::{Mat4, Quat, Vec3, Vec4};
 
 use crate::lod::build_lod_chain;
 use crate::model::{Aabb, Mesh, MeshId, SkinWeights};
-use crate::skin::{Channel, ChannelPath, Joint, Skeleton};
+use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
 /// SplitMix64: tiny, fast, and good enough for placement; the same seed gives the same world.
 #[derive(Debug, Clone)]
