@@ -4,6 +4,7 @@ use crate::backend::BackendError;
 
 /// Everything the manager can refuse or fail at.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
 pub enum AsError {
     /// A [`crate::Config`] value is out of range; the string names the field and the rule.
     #[error("invalid config: {0}")]

@@ -6,6 +6,7 @@ use rtstream_as_manager::backend::vulkan::VulkanError;
 
 /// Everything rendering can fail with.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum RenderError {
     /// A Vulkan failure (device lost, out of memory, ...).
     #[error(transparent)]

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 /// Everything that can go wrong while reading world data. Each variant names the file.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum StreamingError {
     /// The file could not be read or parsed as glTF 2.0.
     #[error("{path}: not a readable glTF 2.0 file: {source}")]
@@ -51,6 +52,7 @@ pub enum StreamingError {
 
 /// Why a baked file was rejected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
 pub enum FormatError {
     /// The file does not start with the expected magic.
     #[error("bad magic {found:?} (expected {expected:?})")]

@@ -156,6 +156,7 @@ pub struct Measurement {
 
 /// Backend failures the manager reacts to.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum BackendError {
     /// VK_ERROR_OUT_OF_DEVICE_MEMORY (or host memory) on an allocation; nothing was allocated.
     #[error("out of device memory")]

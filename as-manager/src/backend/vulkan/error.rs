@@ -9,6 +9,7 @@ has VK_KHR_acceleration_structure and VK_KHR_ray_query; bookworm's own 22.3 has 
 
 /// Everything the Vulkan backend can fail with.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum VulkanError {
     /// libvulkan could not be loaded.
     #[error("no Vulkan loader (libvulkan.so.1) could be loaded: {reason}; {hint}", hint = INSTALL_HINT)]
