@@ -182,13 +182,5 @@ fn main() -> anyhow::Result<()> {
             },
         ],
     )?;
-    let json = serde_json::to_string(&summary)?;
-    std::fs::write(cli.run.out.join("city.json"), &json)?;
-    for f in &files {
-        eprintln!("wrote {}", f.display());
-    }
-    if cli.output.json {
-        println!("{json}");
-    }
-    Ok(())
+    cli.output.finish(&cli.run.out, "city", &summary, &files)
 }

@@ -159,6 +159,7 @@ fn main() -> anyhow::Result<()> {
     }
     print_table(&s);
     std::fs::create_dir_all(&cli.run.out)?;
+    let mut files = Vec::new();
     if !s.stream.is_empty() {
         let series = |f: fn(&Sample) -> f64| -> Vec<(String, Vec<(f64, f64)>)> {
             s.stream
@@ -171,7 +172,7 @@ fn main() -> anyhow::Result<()> {
                 })
                 .collect()
         };
-        let mut files = charts::lines(
+        files = charts::lines(
             &cli.run.out.join("rss"),
             "Resident memory along a path across the map",
             "frame",
@@ -185,16 +186,8 @@ fn main() -> anyhow::Result<()> {
             "file descriptors",
             &series(|x| x.open_files as f64),
         )?);
-        for f in &files {
-            eprintln!("wrote {}", f.display());
-        }
     }
-    let json = serde_json::to_string(&s)?;
-    std::fs::write(cli.run.out.join("huge_world.json"), &json)?;
-    if cli.output.json {
-        println!("{json}");
-    }
-    Ok(())
+    cli.output.finish(&cli.run.out, "huge_world", &s, &files)
 }
 
 /// Medians of the pairs' p50 and p99 ratios.

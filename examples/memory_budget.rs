@@ -164,15 +164,8 @@ fn main() -> anyhow::Result<()> {
             ("budget".into(), series(|p| p.budget_mb.unwrap_or(0.0))),
         ],
     )?);
-    let json = serde_json::to_string(&summary)?;
-    std::fs::write(cli.run.out.join("memory_budget.json"), &json)?;
-    for f in &files {
-        eprintln!("wrote {}", f.display());
-    }
-    if cli.output.json {
-        println!("{json}");
-    }
-    Ok(())
+    cli.output
+        .finish(&cli.run.out, "memory_budget", &summary, &files)
 }
 
 fn print_table(s: &Summary) {

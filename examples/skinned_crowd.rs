@@ -198,13 +198,7 @@ fn main() -> anyhow::Result<()> {
         "ms",
         &[("GPU AS ms".into(), per_frame(|r| r.gpu_as_ms))],
     )?);
-    let json = serde_json::to_string(&summary)?;
-    std::fs::write(cli.run.out.join("skinned_crowd.json"), &json)?;
-    for f in files.iter().chain(&report.files) {
-        eprintln!("wrote {}", f.display());
-    }
-    if cli.output.json {
-        println!("{json}");
-    }
-    Ok(())
+    files.extend(report.files.iter().cloned());
+    cli.output
+        .finish(&cli.run.out, "skinned_crowd", &summary, &files)
 }

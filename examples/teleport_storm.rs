@@ -156,15 +156,9 @@ fn main() -> anyhow::Result<()> {
             ),
         ],
     )?);
-    let json = serde_json::to_string(&summary)?;
-    std::fs::write(cli.run.out.join("teleport_storm.json"), &json)?;
-    for f in files.iter().chain(&report.files) {
-        eprintln!("wrote {}", f.display());
-    }
-    if cli.output.json {
-        println!("{json}");
-    }
-    Ok(())
+    files.extend(report.files.iter().cloned());
+    cli.output
+        .finish(&cli.run.out, "teleport_storm", &summary, &files)
 }
 
 fn print_table(s: &Summary) {

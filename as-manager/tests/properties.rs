@@ -78,6 +78,26 @@ proptest! {
     }
 }
 
+/// Frames with new instances (builds) and a new pose (refits) each, until the fault armed at
+/// `POINTS[point]` has struck (at most 30).
+fn drive_until_struck(h: &mut Harness<ModelBackend>, point: usize) {
+    for k in 0..30 {
+        h.apply(Op::Add {
+            mesh: k % 8,
+            n: 1,
+            x: (point * 30 + k) as f32,
+            z: 8.0,
+        })
+        .unwrap();
+        h.apply(Op::Deform { k }).unwrap();
+        h.apply(Op::Frames { n: 1 }).unwrap();
+        if h.m.backend().faults.is_empty() {
+            return;
+        }
+    }
+    panic!("{:?} never struck", POINTS[point]);
+}
+
 /// The fault path of the harness runs: a fault at each point fails one frame, which is rolled
 /// back and retried; a lost device is reported by every later update.
 #[test]
@@ -101,24 +121,9 @@ fn injected_faults_are_retried_and_a_lost_device_stays_lost() {
     })
     .unwrap();
     h.apply(Op::Frames { n: 3 }).unwrap();
-    for (point, at) in POINTS.iter().enumerate() {
+    for point in 0..POINTS.len() {
         h.apply(Op::Fault { point, lost: false }).unwrap();
-        for k in 0..30 {
-            // New instances (builds) and a new pose (refits) every frame.
-            h.apply(Op::Add {
-                mesh: k % 8,
-                n: 1,
-                x: (point * 30 + k) as f32,
-                z: 8.0,
-            })
-            .unwrap();
-            h.apply(Op::Deform { k }).unwrap();
-            h.apply(Op::Frames { n: 1 }).unwrap();
-            if h.m.backend().faults.is_empty() {
-                break;
-            }
-        }
-        assert!(h.m.backend().faults.is_empty(), "{at:?} never struck");
+        drive_until_struck(&mut h, point);
     }
     assert_eq!(h.retried as usize, POINTS.len());
     h.apply(Op::Fault {
@@ -208,25 +213,7 @@ fn injected_out_of_memory_evicts_and_retries() {
     // Compaction first: after a build's OOM the capped budget leaves no room to compact.
     for point in [2, 1, 0] {
         h.apply(Op::Oom { point }).unwrap();
-        for k in 0..30 {
-            h.apply(Op::Add {
-                mesh: k % 8,
-                n: 1,
-                x: (point * 30 + k) as f32,
-                z: 8.0,
-            })
-            .unwrap();
-            h.apply(Op::Deform { k }).unwrap();
-            h.apply(Op::Frames { n: 1 }).unwrap();
-            if h.m.backend().faults.is_empty() {
-                break;
-            }
-        }
-        assert!(
-            h.m.backend().faults.is_empty(),
-            "{:?} never struck",
-            POINTS[point]
-        );
+        drive_until_struck(&mut h, point);
     }
     // A refused compaction stays queued for a later frame (no event); a refused build or
     // refit caps the budget and reports an OOM event.

@@ -169,6 +169,28 @@ pub struct OutputArgs {
     pub quiet: bool,
 }
 
+impl OutputArgs {
+    /// Writes `summary` as `<out>/<name>.json`, lists the files written, and prints the JSON as
+    /// the last stdout line with `--json`.
+    pub fn finish(
+        &self,
+        out: &std::path::Path,
+        name: &str,
+        summary: &impl serde::Serialize,
+        files: &[PathBuf],
+    ) -> anyhow::Result<()> {
+        let json = serde_json::to_string(summary)?;
+        std::fs::write(out.join(format!("{name}.json")), &json)?;
+        for f in files {
+            eprintln!("wrote {}", f.display());
+        }
+        if self.json {
+            println!("{json}");
+        }
+        Ok(())
+    }
+}
+
 impl RunArgs {
     /// Replaces the fly-through's default output directory with `dir` (an explicit `--out`
     /// stays).
