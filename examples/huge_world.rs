@@ -52,6 +52,11 @@ struct Cli {
     /// the medians over the pairs (the machine's noise is of the size of the differences).
     #[arg(long, default_value_t = 1)]
     repeat: u32,
+    /// Walk both worlds' paths in the same number of frames (the large world's camera then moves
+    /// 4x as far per frame). By default the large world gets frames in proportion to its size,
+    /// so that both cameras move at the same speed and only the world's size differs.
+    #[arg(long)]
+    equal_frames: bool,
     /// Sample resident memory and open files every this many frames (stream part).
     #[arg(long, default_value_t = 30)]
     sample_every: u64,
@@ -81,6 +86,9 @@ struct StreamRun {
     world: String,
     instances: usize,
     update_ms: Stat,
+    /// Frames of the path, and the camera's mean speed along it (metres per frame).
+    frames: u64,
+    m_per_frame: f64,
     samples: Vec<Sample>,
     /// Largest over smallest resident memory after the first tenth of the path.
     rss_ratio: f64,
@@ -136,6 +144,12 @@ fn main() -> anyhow::Result<()> {
             if cli.run.world.is_some() {
                 // One --world cannot hold both worlds.
                 c.world_dir = format!("out/world-{}-{:x}", c.preset.name, c.preset.seed).into();
+            }
+            if !cli.equal_frames {
+                // The path crosses the map's diagonal in `frames` frames: scale the frames with
+                // the map so that the camera moves as many metres per frame in both worlds.
+                let scale = c.preset.size_m / WorldPreset::default_world().size_m;
+                c.frames = (base.frames as f32 * scale).round() as u64;
             }
             c.policies = vec![PolicyKind::Managed];
             c.eval_every = 0;
@@ -246,7 +260,12 @@ fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<
     drop(world);
     let (bar, mut progress) = cli::progress_bar(c.frames, quiet);
     let mut samples = Vec::new();
+    let (mut travelled, mut last) = (0.0f64, None::<glam::Vec3>);
     let report = driver::run(c, &mut |p| {
+        if let Some(l) = last {
+            travelled += f64::from(l.distance(p.camera));
+        }
+        last = Some(p.camera);
         if p.frame % every.max(1) == 0 {
             samples.push(Sample {
                 frame: p.frame,
@@ -275,6 +294,8 @@ fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<
         world: c.preset.name.clone(),
         instances,
         update_ms: Stat::of(times),
+        frames: c.frames,
+        m_per_frame: travelled / c.frames.saturating_sub(1).max(1) as f64,
         rss_ratio: if rss_min > 0.0 {
             rss_max / rss_min
         } else {
@@ -311,14 +332,25 @@ fn print_table(s: &Summary) {
     if !s.stream.is_empty() {
         println!("streamed from disk, real backend: per-frame update (ms), memory, open files");
         println!(
-            "{:<10} {:>10} {:>9} {:>9} {:>10} {:>12} {:>5} {:>5}",
-            "world", "instances", "p50", "p99", "RSS ratio", "open files", "over", "valid"
+            "{:<10} {:>10} {:>7} {:>7} {:>9} {:>9} {:>10} {:>12} {:>5} {:>5}",
+            "world",
+            "instances",
+            "frames",
+            "m/frame",
+            "p50",
+            "p99",
+            "RSS ratio",
+            "open files",
+            "over",
+            "valid"
         );
         for r in &s.stream {
             println!(
-                "{:<10} {:>10} {:>9.3} {:>9.3} {:>10.3} {:>5}..{:<6} {:>5} {:>5}",
+                "{:<10} {:>10} {:>7} {:>7.1} {:>9.3} {:>9.3} {:>10.3} {:>5}..{:<6} {:>5} {:>5}",
                 r.world,
                 r.instances,
+                r.frames,
+                r.m_per_frame,
                 r.update_ms.p50,
                 r.update_ms.p99,
                 r.rss_ratio,

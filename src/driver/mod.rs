@@ -166,6 +166,8 @@ pub struct Progress {
     pub frames: u64,
     /// Levels loaded now.
     pub levels_loaded: usize,
+    /// The camera's position this frame.
+    pub camera: glam::Vec3,
     /// Per policy: (name, BLAS bytes now, TLAS instances now, last hit mismatch if scored).
     pub policies: Vec<(&'static str, u64, u32, Option<f64>)>,
 }
@@ -470,6 +472,7 @@ pub fn run_cached(
             frame,
             frames: config.frames,
             levels_loaded: world.stats().loaded_levels,
+            camera: cam.position,
             policies: rows[rows.len() - n..]
                 .iter()
                 .map(|r| {
