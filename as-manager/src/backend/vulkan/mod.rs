@@ -1,37 +1,37 @@
-//! The Vulkan backend (ash): context, buffers, acceleration structures, scenes.
+//! The Vulkan backend (ash), in three layers, each in its own folder:
+//! - `device/`: the context (created here, or imported from the engine), buffers, query pools,
+//!   acceleration-structure objects and barriers;
+//! - `as_backend/`: [`VulkanBackend`], the manager's [`AsBackend`](crate::backend::AsBackend):
+//!   frame ring, builds, refits, compaction, splitting, retirement;
+//! - `render/`: the renderer's compute and ray-tracing pipelines and static scenes.
 //!
 //! Everything `unsafe` in rtstream lives under this module, each block with a `// SAFETY:` line.
 //! It runs on Mesa lavapipe (CPU) and on NVIDIA GPUs; device selection prefers ray queries.
 
-mod accel;
-mod backend;
-mod buffer;
-mod compute;
-mod context;
+mod as_backend;
+mod device;
 mod error;
-mod geometry;
-mod measure;
-mod query;
-mod rt_pipeline;
-mod scene;
+mod render;
 
 pub use super::FaultPoint;
-pub use accel::{align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE};
-pub use backend::{class_flags, VulkanBackend, VulkanBackendDesc, VulkanCounters};
-pub use buffer::{BufferDesc, GpuBuffer, MemoryKind};
-pub use compute::{BindingKind, Bound, ComputePipeline};
-pub use context::{
-    live_vulkan_handles, ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog,
-    VulkanContext,
-};
-pub use error::{VkResult, VulkanError, INSTALL_HINT};
-pub use geometry::{GpuGeometry, MeshDesc};
-pub use measure::{
+pub use as_backend::measure::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
     CompactionResult,
 };
-pub use query::{QueryKind, QueryPool};
-pub use rt_pipeline::{RayTracingPipeline, RtShaders};
-pub use scene::{GpuMesh, InstanceDesc, SceneBuildStats, StaticScene};
+pub use as_backend::{class_flags, VulkanBackend, VulkanBackendDesc, VulkanCounters};
+pub use device::accel::{
+    align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE,
+};
+pub use device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
+pub use device::context::{
+    live_vulkan_handles, ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog,
+    VulkanContext,
+};
+pub use device::query::{QueryKind, QueryPool};
+pub use error::{VkResult, VulkanError, INSTALL_HINT};
+pub use render::compute::{BindingKind, Bound, ComputePipeline};
+pub use render::geometry::{GpuGeometry, MeshDesc};
+pub use render::rt_pipeline::{RayTracingPipeline, RtShaders};
+pub use render::scene::{GpuMesh, InstanceDesc, SceneBuildStats, StaticScene};
 
 pub use ash;

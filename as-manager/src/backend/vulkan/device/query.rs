@@ -2,8 +2,8 @@
 
 use ash::vk;
 
-use super::context::VulkanContext;
-use super::error::{VkResult, VkResultExt};
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VkResultExt};
 
 /// What a [`QueryPool`] measures.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -38,7 +38,7 @@ impl QueryPool {
         ctx.failpoint("query_pool")?;
         // SAFETY: the device is valid; info is well-formed.
         let raw = unsafe { ctx.device.create_query_pool(&info, None) }.op("vkCreateQueryPool")?;
-        super::context::handle_created();
+        crate::backend::vulkan::device::context::handle_created();
         ctx.set_name(raw, name);
         let pool = Self {
             raw,
@@ -127,7 +127,7 @@ impl QueryPool {
     pub fn destroy(self, ctx: &VulkanContext) {
         // SAFETY: by contract the pool is not in use.
         unsafe { ctx.device.destroy_query_pool(self.raw, None) };
-        super::context::handle_destroyed();
+        crate::backend::vulkan::device::context::handle_destroyed();
     }
 }
 

@@ -3,11 +3,11 @@
 
 use ash::vk;
 
-use super::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
-use super::context::VulkanContext;
-use super::error::VkResult;
-use super::geometry::GpuGeometry;
-use super::query::{QueryKind, QueryPool};
+use crate::backend::vulkan::device::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
+use crate::backend::vulkan::error::VkResult;
+use crate::backend::vulkan::render::geometry::GpuGeometry;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 
 fn median(mut v: Vec<f64>) -> f64 {

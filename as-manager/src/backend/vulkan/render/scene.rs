@@ -7,12 +7,12 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
-use super::backend::class_flags;
-use super::buffer::GpuBuffer;
-use super::context::VulkanContext;
-use super::error::{VkResult, VulkanError};
-use super::geometry::{GpuGeometry, MeshDesc};
+use crate::backend::vulkan::as_backend::class_flags;
+use crate::backend::vulkan::device::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::buffer::GpuBuffer;
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VulkanError};
+use crate::backend::vulkan::render::geometry::{GpuGeometry, MeshDesc};
 use crate::backend::BlasClass;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 

@@ -6,10 +6,10 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::accel::AccelStruct;
-use super::buffer::GpuBuffer;
-use super::context::VulkanContext;
-use super::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::device::accel::AccelStruct;
+use crate::backend::vulkan::device::buffer::GpuBuffer;
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 /// What a descriptor binding holds (binding numbers are positions in the list, set 0).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

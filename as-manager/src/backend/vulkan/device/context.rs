@@ -12,7 +12,7 @@ use ash::{ext, khr, vk};
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use parking_lot::Mutex;
 
-use super::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
 

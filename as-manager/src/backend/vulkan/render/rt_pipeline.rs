@@ -1,7 +1,7 @@
 //! A small safe ray-tracing-pipeline wrapper (VK_KHR_ray_tracing_pipeline): one raygen, one miss
 //! and one triangle hit group with a closest-hit shader, a shader binding table laid out with the
 //! device's handle size and alignments, and the same binding model as
-//! [`ComputePipeline`](super::ComputePipeline) (set 0, bindings in list order, push constants).
+//! [`ComputePipeline`](crate::backend::vulkan::ComputePipeline) (set 0, bindings in list order, push constants).
 //!
 //! This is the renderer's path on GPUs without VK_KHR_ray_query (the NVIDIA H100/H200 here).
 
@@ -10,11 +10,13 @@ use std::time::Instant;
 
 use ash::vk;
 
-use super::accel::align_up;
-use super::buffer::{BufferDesc, GpuBuffer, MemoryKind};
-use super::compute::{descriptor_type, write_descriptor_set, BindingKind, Bound};
-use super::context::VulkanContext;
-use super::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::device::accel::align_up;
+use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::render::compute::{
+    descriptor_type, write_descriptor_set, BindingKind, Bound,
+};
 
 /// SPIR-V of the three shaders (entry point `main` in each).
 #[derive(Debug, Clone, Copy)]

@@ -1,9 +1,9 @@
 //! Triangle geometry on the GPU: validated upload of positions and indices.
 
-use super::accel::{TriangleGeometry, BUILD_INPUT_USAGE};
-use super::buffer::GpuBuffer;
-use super::context::VulkanContext;
-use super::error::{VkResult, VulkanError};
+use crate::backend::vulkan::device::accel::{TriangleGeometry, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::buffer::GpuBuffer;
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VulkanError};
 
 /// A triangle mesh to upload.
 #[derive(Debug, Clone, Copy)]

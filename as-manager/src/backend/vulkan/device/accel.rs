@@ -2,9 +2,9 @@
 
 use ash::vk;
 
-use super::buffer::{BufferDesc, GpuBuffer, MemoryKind};
-use super::context::VulkanContext;
-use super::error::{VkResult, VulkanError};
+use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VulkanError};
 
 /// Usage of buffers read by acceleration-structure builds (vertices, indices, instances).
 pub const BUILD_INPUT_USAGE: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(

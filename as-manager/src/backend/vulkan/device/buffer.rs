@@ -6,8 +6,8 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
-use super::context::VulkanContext;
-use super::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 /// Where a buffer's memory lives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

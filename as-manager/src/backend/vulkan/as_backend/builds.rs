@@ -1,0 +1,404 @@
+//! BLAS builds, refits, compaction and frees, recorded into the frame being recorded.
+
+use super::*;
+
+impl VulkanBackend {
+    /// Splits a geometry's triangle range into parts that respect the device and size limits.
+    pub(super) fn parts_of(&self, g: &GeometryRef<'_>, class: BlasClass, sizes: &BlasSizes) -> u32 {
+        let max_prims = self.ctx.info().max_primitive_count.max(1);
+        let by_prims = u64::from(g.triangle_count).div_ceil(max_prims);
+        let biggest = sizes.as_bytes.max(sizes.build_scratch);
+        let by_bytes = biggest.div_ceil(self.desc.max_part_bytes.max(1));
+        // Skinned meshes are refitted as one structure: never split them.
+        if class == BlasClass::Skinned {
+            return 1;
+        }
+        by_prims
+            .max(by_bytes)
+            .clamp(1, u64::from(g.triangle_count.max(1))) as u32
+    }
+
+    pub(super) fn record_blas_builds(
+        &mut self,
+        builds: &[BlasBuild<'_>],
+    ) -> BackendResult<Vec<BlasHandle>> {
+        self.fault(FaultPoint::BuildBlases)?;
+        if builds.is_empty() {
+            return Ok(Vec::new());
+        }
+        let cmd = self.cmd()?;
+        struct Planned {
+            geoms: Vec<TriangleGeometry>,
+            accels: Vec<AccelStruct>,
+            scratch: Vec<u64>,
+            skinned: Option<SkinnedInputs>,
+            inputs: Option<(GpuBuffer, GpuBuffer)>,
+            shading: (u64, u64),
+        }
+        let mut planned: Vec<Planned> = Vec::with_capacity(builds.len());
+        let align = self.ctx.info().min_scratch_alignment;
+        let result: BackendResult<()> = (|| {
+            for b in builds {
+                let (Some(pos), Some(idx)) = (b.geometry.positions, b.geometry.indices) else {
+                    return Err(BackendError::MissingGeometry);
+                };
+                let parts = self.parts_of(&b.geometry, b.class, &b.sizes);
+                let mut ib = self.create_buffer(
+                    BufferDesc {
+                        name: "BLAS indices",
+                        size: (idx.len() * 4).max(4) as u64,
+                        usage: BUILD_INPUT_USAGE,
+                        memory: MemoryKind::Upload,
+                    },
+                    true,
+                )?;
+                ib.write(0, bytemuck::cast_slice(idx));
+                let iaddr = ib.address;
+                let (vaddr, skinned, inputs) = if b.class == BlasClass::Skinned {
+                    let pose = match self.pose_buffer(pos) {
+                        Ok(pb) => pb,
+                        Err(e) => {
+                            self.destroy(Retired::BlasBuffer(ib));
+                            return Err(e);
+                        }
+                    };
+                    (
+                        pose.address,
+                        Some(SkinnedInputs {
+                            indices: ib,
+                            triangles: b.geometry.triangle_count,
+                            vertices: b.geometry.vertex_count,
+                            poses: vec![pose],
+                            next: 1,
+                        }),
+                        None,
+                    )
+                } else {
+                    let vb = match self.create_buffer(
+                        BufferDesc {
+                            name: "BLAS positions",
+                            size: (pos.len() * 12).max(4) as u64,
+                            usage: BUILD_INPUT_USAGE,
+                            memory: MemoryKind::Upload,
+                        },
+                        true,
+                    ) {
+                        Ok(mut vb) => {
+                            vb.write(0, bytemuck::cast_slice(pos));
+                            vb
+                        }
+                        Err(e) => {
+                            self.destroy(Retired::BlasBuffer(ib));
+                            return Err(e);
+                        }
+                    };
+                    (vb.address, None, Some((vb, ib)))
+                };
+                let p = Planned {
+                    geoms: Vec::new(),
+                    accels: Vec::new(),
+                    scratch: Vec::new(),
+                    skinned,
+                    inputs,
+                    shading: (vaddr, iaddr),
+                };
+                let tris = b.geometry.triangle_count;
+                let per = tris.div_ceil(parts);
+                planned.push(p);
+                let p = planned.last_mut().expect("just pushed");
+                for k in 0..parts {
+                    let first = k * per;
+                    let count = per.min(tris - first);
+                    if count == 0 {
+                        break;
+                    }
+                    let g = TriangleGeometry {
+                        vertex_address: vaddr,
+                        vertex_stride: 12,
+                        max_vertex: b.geometry.vertex_count.saturating_sub(1),
+                        index_address: iaddr + u64::from(first) * 12,
+                        triangle_count: count,
+                        opaque: b.geometry.opaque,
+                    };
+                    let s = if parts == 1 {
+                        crate::backend::vulkan::device::accel::AsSizes {
+                            storage: b.sizes.as_bytes,
+                            build_scratch: b.sizes.build_scratch,
+                            update_scratch: b.sizes.update_scratch,
+                        }
+                    } else {
+                        self.ctx.blas_sizes(&[g], class_flags(b.class))
+                    };
+                    let a = self.create_accel(s.storage, "BLAS")?;
+                    p.geoms.push(g);
+                    p.accels.push(a);
+                    p.scratch
+                        .push(align_up(s.build_scratch.max(s.update_scratch), align));
+                }
+            }
+            let total: u64 = planned.iter().flat_map(|p| p.scratch.iter()).sum();
+            self.ensure_scratch(total)
+        })();
+        if let Err(e) = result {
+            // All or nothing: release what this call created (nothing was recorded yet).
+            for p in planned {
+                for a in p.accels {
+                    self.destroy(Retired::BlasAccel(a));
+                }
+                for b in p.skinned.into_iter().flat_map(SkinnedInputs::buffers) {
+                    self.destroy(Retired::BlasBuffer(b));
+                }
+                if let Some((vb, ib)) = p.inputs {
+                    self.destroy(Retired::BlasBuffer(vb));
+                    self.destroy(Retired::BlasBuffer(ib));
+                }
+            }
+            return Err(e);
+        }
+        let mut raw_builds = Vec::new();
+        let mut addrs = Vec::new();
+        for p in &planned {
+            for (g, (a, s)) in p.geoms.iter().zip(p.accels.iter().zip(&p.scratch)) {
+                addrs.push((g, a.raw, *s));
+            }
+        }
+        for (g, dst, s) in addrs {
+            let scratch_address = self.scratch_alloc(s);
+            raw_builds.push(RawBuild {
+                geometries: std::slice::from_ref(g),
+                flags: vk::BuildAccelerationStructureFlagsKHR::empty(),
+                dst,
+                update_from: None,
+                scratch_address,
+            });
+        }
+        // Flags per build (raw_builds was filled in plan order).
+        let mut k = 0;
+        for (b, p) in builds.iter().zip(&planned) {
+            for _ in &p.accels {
+                raw_builds[k].flags = class_flags(b.class);
+                k += 1;
+            }
+        }
+        let tris: u64 = builds
+            .iter()
+            .map(|b| u64::from(b.geometry.triangle_count))
+            .sum();
+        let op = if builds.iter().all(|b| b.class == BlasClass::Skinned) {
+            CostOp::BuildSkinned
+        } else {
+            CostOp::BuildStatic
+        };
+        let t = self.timestamp_begin(op, tris);
+        // SAFETY: cmd is recording; inputs are the BLASes' own buffers, retired with them after
+        // the frame completes; scratch ranges are disjoint and aligned.
+        unsafe { self.ctx.cmd_build_blases(cmd, &raw_builds) };
+        self.timestamp_end(t);
+        drop(raw_builds);
+        // Compacted-size queries for static BLASes (single-part only).
+        let statics: Vec<usize> = (0..builds.len())
+            .filter(|&i| builds[i].class == BlasClass::Static && planned[i].accels.len() == 1)
+            .collect();
+        let mut handles = Vec::with_capacity(builds.len());
+        let mut query_targets = Vec::new();
+        for (i, (b, p)) in builds.iter().zip(planned).enumerate() {
+            if p.accels.len() > 1 {
+                self.counters.split_meshes += 1;
+                let first = p.accels[0].address;
+                let iaddr = p.shading.1;
+                let parts = p.accels[1..]
+                    .iter()
+                    .zip(&p.geoms[1..])
+                    .map(|(a, g)| (a.address, ((g.index_address - iaddr) / 12) as u32))
+                    .collect();
+                self.split_parts.insert(first, parts);
+            }
+            let gen = self.next_gen;
+            self.next_gen = self.next_gen.wrapping_add(1).max(1);
+            let raw0 = p.accels[0].raw;
+            let h = self.insert(BlasEntry {
+                gen,
+                parts: p.accels,
+                class: b.class,
+                sizes: b.sizes,
+                skinned: p.skinned,
+                static_inputs: p.inputs,
+                shading: p.shading,
+                compacted_size: None,
+            });
+            if statics.contains(&i) {
+                query_targets.push((h, raw0));
+            }
+            handles.push(h);
+            self.counters.built += 1;
+        }
+        if !query_targets.is_empty() {
+            let s = &mut self.slots[self.current];
+            let room = (COMPACT_QUERIES_PER_SLOT as usize).saturating_sub(s.compact_queries.len());
+            query_targets.truncate(room);
+            if !query_targets.is_empty() {
+                let first = s.compact_queries.len() as u32;
+                let raws: Vec<_> = query_targets.iter().map(|(_, r)| *r).collect();
+                // SAFETY: recording; the barrier orders the builds before the queries, which
+                // were reset in begin_frame and are written once.
+                unsafe {
+                    self.ctx.cmd_accel_barrier(cmd);
+                    s.compact_pool
+                        .cmd_compacted_sizes(&self.ctx, cmd, &raws, first);
+                }
+                for (k, (h, _)) in query_targets.into_iter().enumerate() {
+                    s.compact_queries.push((h, first + k as u32));
+                }
+            }
+        }
+        Ok(handles)
+    }
+
+    pub(super) fn record_refits(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
+        self.fault(FaultPoint::RefitBlases)?;
+        if refits.is_empty() {
+            return Ok(());
+        }
+        let cmd = self.cmd()?;
+        let align = self.ctx.info().min_scratch_alignment;
+        let mut plan = Vec::with_capacity(refits.len());
+        let mut total = 0;
+        for r in refits {
+            let e = self
+                .entry(r.blas)
+                .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+            let Some(SkinnedInputs {
+                indices: ib,
+                triangles: tris,
+                vertices: verts,
+                ..
+            }) = &e.skinned
+            else {
+                return Err(BackendError::Other("refit of a static BLAS".into()));
+            };
+            let Some(pos) = r.geometry.positions else {
+                return Err(BackendError::MissingGeometry);
+            };
+            if pos.len() as u32 != *verts || r.geometry.triangle_count != *tris {
+                return Err(BackendError::Other(
+                    "refit with a different topology".into(),
+                ));
+            }
+            let scratch = if r.rebuild {
+                e.sizes.build_scratch
+            } else {
+                e.sizes.update_scratch
+            };
+            total += align_up(scratch.max(1), align);
+            plan.push((r, ib.address, *tris, *verts, e.parts[0].raw, scratch));
+        }
+        self.ensure_scratch(total)?;
+        let mut geoms = Vec::with_capacity(plan.len());
+        for (r, iaddr, tris, verts, _, _) in &plan {
+            let vaddr = self.write_pose(r.blas, r.geometry.positions.expect("checked above"))?;
+            geoms.push(TriangleGeometry {
+                vertex_address: vaddr,
+                vertex_stride: 12,
+                max_vertex: verts.saturating_sub(1),
+                index_address: *iaddr,
+                triangle_count: *tris,
+                opaque: r.geometry.opaque,
+            });
+        }
+        let mut raw = Vec::with_capacity(plan.len());
+        let mut tris_total = 0u64;
+        let flags = class_flags(BlasClass::Skinned);
+        for (i, (r, _, tris, _, dst, scratch)) in plan.iter().enumerate() {
+            let scratch_address = self.scratch_alloc((*scratch).max(1));
+            tris_total += u64::from(*tris);
+            raw.push(RawBuild {
+                geometries: std::slice::from_ref(&geoms[i]),
+                flags,
+                dst: *dst,
+                update_from: (!r.rebuild).then_some(*dst),
+                scratch_address,
+            });
+            if r.rebuild {
+                self.counters.rebuilds += 1;
+            } else {
+                self.counters.refits += 1;
+            }
+        }
+        let t = self.timestamp_begin(CostOp::Refit, tris_total);
+        // SAFETY: recording; the barrier orders this frame's earlier builds (and previous frames'
+        // traces, via begin_frame's barrier) before the updates; src == dst is allowed.
+        unsafe {
+            self.ctx.cmd_accel_barrier(cmd);
+            self.ctx.cmd_build_blases(cmd, &raw);
+        }
+        self.timestamp_end(t);
+        Ok(())
+    }
+
+    pub(super) fn record_compaction(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
+        self.fault(FaultPoint::CompactBlas)?;
+        let cmd = self.cmd()?;
+        let e = self
+            .entry(blas)
+            .ok_or_else(|| BackendError::Other(format!("compaction of unknown {blas:?}")))?;
+        let size = e
+            .compacted_size
+            .ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
+        let (src, class, sizes, shading) = (e.parts[0].raw, e.class, e.sizes, e.shading);
+        let dst = self.create_accel(size.max(256), "compacted BLAS")?;
+        let t = self.timestamp_begin(CostOp::Compact, e_bytes(self.entry(blas)));
+        // The compacted copy takes over the input buffers (shading reads them).
+        let inputs = {
+            let slot = (blas.0 & 0xffff_ffff) as usize;
+            self.blases[slot]
+                .as_mut()
+                .and_then(|e| e.static_inputs.take())
+        };
+        // SAFETY: recording; the source was built in an earlier, completed frame (its size query
+        // was read), and begin_frame's barrier orders it; dst is at least the compacted size.
+        unsafe { self.ctx.cmd_compact(cmd, src, dst.raw) };
+        self.timestamp_end(t);
+        self.counters.compactions += 1;
+        let gen = self.next_gen;
+        self.next_gen = self.next_gen.wrapping_add(1).max(1);
+        Ok(self.insert(BlasEntry {
+            gen,
+            parts: vec![dst],
+            class,
+            sizes: BlasSizes {
+                as_bytes: size,
+                ..sizes
+            },
+            skinned: None,
+            static_inputs: inputs,
+            shading,
+            compacted_size: Some(size),
+        }))
+    }
+
+    pub(super) fn retire_blas(&mut self, blas: BlasHandle, last_used_frame: u64) {
+        let Some(e) = self.take(blas) else {
+            tracing::warn!(?blas, "free of an unknown BLAS");
+            return;
+        };
+        if e.parts.len() > 1 {
+            self.split_parts.remove(&e.parts[0].address);
+        }
+        for a in e.parts {
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasAccel(a)));
+        }
+        for b in e.skinned.into_iter().flat_map(SkinnedInputs::buffers) {
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasBuffer(b)));
+        }
+        if let Some((vb, ib)) = e.static_inputs {
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasBuffer(vb)));
+            self.retiring
+                .push_back((last_used_frame, Retired::BlasBuffer(ib)));
+        }
+        // Keep the queue ordered by frame (frees of older frames may arrive late).
+        self.retiring.make_contiguous().sort_by_key(|(f, _)| *f);
+    }
+}

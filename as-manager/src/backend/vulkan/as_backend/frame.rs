@@ -1,0 +1,314 @@
+//! The frame ring: beginning a frame (waiting for its slot, harvesting queries, retiring what
+//! the GPU is done with), scratch and timestamps of the frame being recorded, allocation and
+//! destruction, and ending a frame (submitting it).
+
+use super::*;
+
+impl VulkanBackend {
+    pub(super) fn slot_of(&self, handle: TlasHandle) -> Option<&Slot> {
+        self.slots
+            .get(handle.slot() as usize)
+            .filter(|s| s.frame == handle.frame())
+    }
+
+    /// Waits until every submitted frame finished (e.g. before reading a TLAS on another queue
+    /// submission, or at shutdown).
+    pub fn wait_idle(&mut self) -> VkResult<()> {
+        let last = self
+            .slots
+            .iter()
+            .map(|s| s.submitted_value)
+            .max()
+            .unwrap_or(0);
+        self.wait_value(last)
+    }
+
+    pub(super) fn wait_value(&self, value: u64) -> VkResult<()> {
+        if value == 0 {
+            return Ok(());
+        }
+        let sems = [self.timeline];
+        let vals = [value];
+        // SAFETY: the semaphore is a timeline semaphore of this device.
+        unsafe {
+            self.ctx.device.wait_semaphores(
+                &vk::SemaphoreWaitInfo::default()
+                    .semaphores(&sems)
+                    .values(&vals),
+                u64::MAX,
+            )
+        }
+        .op("vkWaitSemaphores")
+    }
+
+    /// Counts `bytes` as allocated; `limited` allocations (BLAS storage and inputs, what the
+    /// manager can answer by evicting) are refused past `memory_limit`.
+    pub(super) fn reserve(&mut self, bytes: u64, limited: bool) -> BackendResult<()> {
+        if let (Some(limit), true) = (self.desc.memory_limit, limited) {
+            if self.blas_allocated + bytes > limit {
+                self.counters.oom += 1;
+                return Err(BackendError::OutOfDeviceMemory);
+            }
+        }
+        self.allocated += bytes;
+        if limited {
+            self.blas_allocated += bytes;
+        }
+        Ok(())
+    }
+
+    pub(super) fn unreserve(&mut self, bytes: u64, limited: bool) {
+        self.allocated -= bytes;
+        if limited {
+            self.blas_allocated -= bytes;
+        }
+    }
+
+    pub(super) fn create_accel(&mut self, size: u64, name: &str) -> BackendResult<AccelStruct> {
+        self.reserve(size, true)?;
+        self.ctx
+            .create_accel(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, size, name)
+            .map_err(|e| {
+                self.unreserve(size, true);
+                backend_err(e)
+            })
+    }
+
+    pub(super) fn create_buffer(
+        &mut self,
+        desc: BufferDesc<'_>,
+        limited: bool,
+    ) -> BackendResult<GpuBuffer> {
+        self.reserve(desc.size, limited)?;
+        self.ctx.create_buffer(&desc).map_err(|e| {
+            self.unreserve(desc.size, limited);
+            backend_err(e)
+        })
+    }
+
+    pub(super) fn destroy(&mut self, r: Retired) {
+        let limited = matches!(r, Retired::BlasAccel(_) | Retired::BlasBuffer(_));
+        match r {
+            Retired::Accel(a) | Retired::BlasAccel(a) => {
+                self.unreserve(a.size, limited);
+                self.ctx.destroy_accel(a);
+            }
+            Retired::Buffer(b) | Retired::BlasBuffer(b) => {
+                self.unreserve(b.size, limited);
+                self.ctx.destroy_buffer(b);
+            }
+        }
+    }
+
+    /// Retires an object against the frame being recorded.
+    pub(super) fn retire_now(&mut self, r: Retired) {
+        let frame = self.slots[self.current].frame;
+        self.retiring.push_back((frame, r));
+    }
+
+    /// Reserves `bytes` of the current slot's scratch; returns an aligned device address.
+    /// The scratch buffer grows between batches (never within one recorded batch: callers
+    /// reserve a batch's total first via `ensure_scratch`).
+    pub(super) fn ensure_scratch(&mut self, total: u64) -> BackendResult<()> {
+        let s = self.current;
+        let used = self.slots[s].scratch_used;
+        let cap = self.slots[s].scratch.as_ref().map_or(0, |x| x.2);
+        if used + total <= cap {
+            return Ok(());
+        }
+        let align = self.ctx.info().min_scratch_alignment;
+        let size = (cap * 2).max(total).max(1 << 20);
+        let buf = self.create_buffer(
+            BufferDesc {
+                name: "frame scratch",
+                size: size + align,
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                    | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+                memory: MemoryKind::DeviceLocal,
+            },
+            false,
+        )?;
+        let base = align_up(buf.address, align);
+        if let Some((old, _, _)) = self.slots[s].scratch.replace((buf, base, size)) {
+            // Batches already recorded this frame still use the old buffer.
+            self.retire_now(Retired::Buffer(old));
+        }
+        self.slots[s].scratch_used = 0;
+        Ok(())
+    }
+
+    pub(super) fn scratch_alloc(&mut self, bytes: u64) -> vk::DeviceAddress {
+        let align = self.ctx.info().min_scratch_alignment;
+        let s = &mut self.slots[self.current];
+        let (_, base, _) = s
+            .scratch
+            .as_ref()
+            .expect("ensure_scratch before scratch_alloc");
+        let addr = base + s.scratch_used;
+        s.scratch_used += align_up(bytes, align);
+        addr
+    }
+
+    pub(super) fn cmd(&self) -> BackendResult<vk::CommandBuffer> {
+        let s = &self.slots[self.current];
+        if s.recording {
+            Ok(s.cmd)
+        } else {
+            Err(BackendError::Other(
+                "no frame is being recorded (call begin_frame)".into(),
+            ))
+        }
+    }
+
+    pub(super) fn timestamp_begin(&mut self, op: CostOp, units: u64) -> Option<u32> {
+        let timestamps = self.ctx.info().timestamps;
+        let s = &mut self.slots[self.current];
+        let first = s.timed.len() as u32 * 2;
+        if !timestamps || first + 2 > QUERIES_PER_SLOT {
+            return None;
+        }
+        s.timed.push((op, units, first));
+        // SAFETY: the slot's command buffer is recording; the query was reset in begin_frame.
+        unsafe { s.timestamps.cmd_timestamp(&self.ctx, s.cmd, first) };
+        Some(first)
+    }
+
+    pub(super) fn timestamp_end(&self, first: Option<u32>) {
+        if let Some(first) = first {
+            let s = &self.slots[self.current];
+            // SAFETY: as in timestamp_begin.
+            unsafe { s.timestamps.cmd_timestamp(&self.ctx, s.cmd, first + 1) };
+        }
+    }
+
+    pub(super) fn read_completed_slot(&mut self, slot: usize) -> VkResult<()> {
+        let s = &mut self.slots[slot];
+        if !s.timed.is_empty() {
+            let n = s.timed.len() as u32 * 2;
+            let ticks = s.timestamps.read(&self.ctx, 0, n)?;
+            for &(op, units, first) in &s.timed {
+                let dt = ticks[first as usize + 1].saturating_sub(ticks[first as usize]);
+                let m = Measurement {
+                    op,
+                    units,
+                    gpu_ms: s.timestamps.ticks_to_ms(dt),
+                };
+                self.measurements.push(m);
+                if self.log.len() == 256 {
+                    self.log.pop_front();
+                }
+                self.log.push_back(m);
+            }
+            s.timed.clear();
+        }
+        if !s.compact_queries.is_empty() {
+            let n = s.compact_queries.len() as u32;
+            let sizes = s.compact_pool.read(&self.ctx, 0, n)?;
+            let queries = std::mem::take(&mut s.compact_queries);
+            for ((h, _), size) in queries.into_iter().zip(sizes) {
+                let (slot_i, gen) = ((h.0 & 0xffff_ffff) as usize, (h.0 >> 32) as u32);
+                if let Some(Some(e)) = self.blases.get_mut(slot_i) {
+                    if e.gen == gen {
+                        e.compacted_size = Some(size);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub(super) fn begin_frame_inner(&mut self, frame: u64) -> VkResult<()> {
+        let slot = (frame % self.slots.len() as u64) as usize;
+        self.current = slot;
+        // Wait for the frame that last used this slot, then harvest its queries.
+        let value = self.slots[slot].submitted_value;
+        self.wait_value(value)?;
+        if value > 0 {
+            let done = value - 1;
+            self.completed = Some(self.completed.map_or(done, |c| c.max(done)));
+            self.read_completed_slot(slot)?;
+        }
+        let reached = if self.desc.deterministic {
+            0
+        } else {
+            // SAFETY: the timeline value is a plain read of our own semaphore.
+            unsafe { self.ctx.device.get_semaphore_counter_value(self.timeline) }
+                .op("vkGetSemaphoreCounterValue")?
+        };
+        if reached > 0 {
+            self.completed = Some(self.completed.map_or(reached - 1, |c| c.max(reached - 1)));
+        }
+        while let Some((f, _)) = self.retiring.front() {
+            if self.completed.is_some_and(|c| c >= *f) {
+                let (_, r) = self.retiring.pop_front().expect("front exists");
+                if matches!(r, Retired::BlasAccel(_)) {
+                    self.counters.destroyed += 1;
+                }
+                self.destroy(r);
+            } else {
+                break;
+            }
+        }
+        let s = &mut self.slots[slot];
+        s.frame = frame;
+        s.scratch_used = 0;
+        s.timestamps.reset(&self.ctx);
+        s.compact_pool.reset(&self.ctx);
+        let dev = &self.ctx.device;
+        // SAFETY: the slot's previous submission completed (waited above), so its command buffer
+        // may be reset and re-recorded.
+        unsafe {
+            dev.reset_command_buffer(s.cmd, vk::CommandBufferResetFlags::empty())
+                .op("vkResetCommandBuffer")?;
+            dev.begin_command_buffer(
+                s.cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .op("vkBeginCommandBuffer")?;
+        }
+        s.recording = true;
+        // Order every earlier submission's AS writes before this frame's AS reads/writes.
+        // SAFETY: the command buffer is recording.
+        unsafe { self.ctx.cmd_accel_barrier(s.cmd) };
+        Ok(())
+    }
+
+    pub(super) fn end_and_submit(&mut self, frame: u64) -> BackendResult<()> {
+        self.fault(FaultPoint::EndFrame)?;
+        let cmd = self.cmd()?;
+        let value = frame + 1;
+        let r = (|| {
+            // SAFETY: recording; the barrier makes the TLAS build visible to later traces.
+            unsafe {
+                self.ctx.cmd_accel_barrier(cmd);
+                self.ctx
+                    .device
+                    .end_command_buffer(cmd)
+                    .op("vkEndCommandBuffer")?;
+            }
+            let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+            let signal = [vk::SemaphoreSubmitInfo::default()
+                .semaphore(self.timeline)
+                .value(value)
+                .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)];
+            let submit = [vk::SubmitInfo2::default()
+                .command_buffer_infos(&cmds)
+                .signal_semaphore_infos(&signal)];
+            self.ctx.submit(&submit)
+        })();
+        let s = &mut self.slots[self.current];
+        s.recording = false;
+        match r {
+            Ok(()) => {
+                s.submitted_value = value;
+                Ok(())
+            }
+            Err(e) => {
+                let e = backend_err(e);
+                self.lost |= e == BackendError::DeviceLost;
+                Err(e)
+            }
+        }
+    }
+}

@@ -1,0 +1,549 @@
+//! [`VulkanBackend`]: the manager's [`AsBackend`] on a real Vulkan device.
+//!
+//! - **Frames in flight.** `frames_in_flight` slots (default 2), each with its own command
+//!   buffer, TLAS, instance buffer, scratch buffer and query pools, so frame `n+1`
+//!   records and builds while frame `n`'s TLAS is traced. One timeline semaphore: frame `n`
+//!   signals `n + 1`; `begin_frame(n)` waits for frame `n - frames_in_flight` before reusing
+//!   its slot.
+//! - **Batched builds.** A frame's BLAS builds go into one vkCmdBuildAccelerationStructuresKHR;
+//!   scratch is sub-allocated from the slot's scratch buffer at multiples of
+//!   `minAccelerationStructureScratchOffsetAlignment`; AS storage and buffers are sub-allocated
+//!   by gpu-allocator.
+//! - **Build inputs.** A static BLAS keeps the vertex and index buffers it was built from (the
+//!   engine-side geometry a shader reads through [`VulkanBackend::shading_geometry`]). A skinned
+//!   BLAS keeps its index buffer, which updates reuse, and a ring of `frames_in_flight + 1`
+//!   pose buffers: each build or refit writes the next one, so the shading reads the last pose
+//!   for as long as no refit replaces it, and no buffer is written while a frame may read it.
+//! - **Retirement.** A freed BLAS (and every buffer a slot outgrew) is queued against the last
+//!   frame that used it and destroyed once the timeline passes that frame.
+//! - **Compaction.** Static BLASes get a compacted-size query after their build; the size is
+//!   read when the frame completes; `compact_blas` allocates the copy and records it.
+//! - **Oversized meshes** (more primitives than the device allows, or storage/scratch over
+//!   `max_part_bytes`, default 256 MiB — the limit a mobile GPU in the seeds had) are split into
+//!   parts, each its own BLAS; `build_tlas` expands an instance of the first part into one record
+//!   per part, so the manager sees one BLAS. Primitive ids of a hit are then part-relative.
+//! - **Measured costs.** GPU timestamps around each batch, read back when the frame completes,
+//!   reported through `take_measurements`.
+//! - **Memory limit.** `memory_limit` (optional) makes the backend answer OutOfDeviceMemory above
+//!   that many bytes of BLAS storage and BLAS inputs (frame infrastructure is not capped), exactly as the driver's error would arrive: a way to
+//!   test the manager's OOM handling on machines with plenty of memory.
+
+mod builds;
+mod frame;
+pub(crate) mod measure;
+mod registry;
+mod tlas;
+
+use std::collections::{HashMap, VecDeque};
+
+use crate::backend::FaultPoint;
+use std::sync::Arc;
+
+use ash::vk;
+
+use crate::backend::vulkan::device::accel::{
+    align_up, AccelStruct, BlasBuild as RawBuild, TriangleGeometry, BUILD_INPUT_USAGE,
+};
+use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::{
+    AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
+    CostOp, GeometryRef, Measurement, TlasHandle,
+};
+use crate::record::TlasInstance;
+
+/// Build flags of a BLAS class.
+pub fn class_flags(class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
+    match class {
+        BlasClass::Static => {
+            vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
+                | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
+        }
+        BlasClass::Skinned => {
+            vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
+                | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
+        }
+    }
+}
+
+/// Creation parameters of a [`VulkanBackend`].
+#[derive(Debug, Clone)]
+pub struct VulkanBackendDesc {
+    /// Frames in flight (>= 1; default 2).
+    pub frames_in_flight: u32,
+    /// TLAS build flags (default PREFER_FAST_TRACE; see docs/GPU.md for the measurement).
+    pub tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
+    /// Split a mesh whose BLAS storage or scratch would exceed this many bytes (default 256 MiB).
+    pub max_part_bytes: u64,
+    /// Refuse allocations past this many bytes with OutOfDeviceMemory (None: only the driver's
+    /// own limit applies).
+    pub memory_limit: Option<u64>,
+    /// Deterministic retirement: frame N counts frames up to N - `frames_in_flight` as
+    /// completed (the ones it waited for) and never polls the timeline for more, so what is
+    /// freed when, and the bytes counted as retiring, do not depend on GPU speed. Off by
+    /// default (frees as soon as the GPU is done).
+    pub deterministic: bool,
+}
+
+impl Default for VulkanBackendDesc {
+    fn default() -> Self {
+        Self {
+            frames_in_flight: 2,
+            tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
+            max_part_bytes: 256 << 20,
+            memory_limit: None,
+            deterministic: false,
+        }
+    }
+}
+
+const QUERIES_PER_SLOT: u32 = 16;
+const COMPACT_QUERIES_PER_SLOT: u32 = 4096;
+
+#[derive(Debug)]
+struct BlasEntry {
+    gen: u32,
+    parts: Vec<AccelStruct>,
+    class: BlasClass,
+    sizes: BlasSizes,
+    /// Skinned: the index buffer that updates reuse, the poses the shading reads.
+    skinned: Option<SkinnedInputs>,
+    /// Static: the vertex and index buffers it was built from (kept for shading lookups).
+    static_inputs: Option<(GpuBuffer, GpuBuffer)>,
+    /// Device addresses of the positions and indices a shader should read for this BLAS
+    /// (skinned: the last pose written to its ring).
+    shading: (u64, u64),
+    compacted_size: Option<u64>,
+}
+
+/// A skinned BLAS's own inputs. The positions of each build or refit go to the next buffer of
+/// a ring of `frames_in_flight + 1`, owned by the BLAS (not the frame's upload arena): the
+/// shading keeps reading the last pose for as long as no refit replaces it, and a buffer is
+/// written again only after every frame that could read it has completed.
+#[derive(Debug)]
+struct SkinnedInputs {
+    indices: GpuBuffer,
+    triangles: u32,
+    vertices: u32,
+    poses: Vec<GpuBuffer>,
+    /// Ring position of the next write.
+    next: usize,
+}
+
+impl SkinnedInputs {
+    fn buffers(self) -> impl Iterator<Item = GpuBuffer> {
+        std::iter::once(self.indices).chain(self.poses)
+    }
+}
+
+#[derive(Debug)]
+enum Retired {
+    /// Frame infrastructure (TLAS).
+    Accel(AccelStruct),
+    /// Frame infrastructure (scratch, instance buffers).
+    Buffer(GpuBuffer),
+    /// A BLAS (counted against `memory_limit`).
+    BlasAccel(AccelStruct),
+    /// A BLAS input buffer (counted against `memory_limit`).
+    BlasBuffer(GpuBuffer),
+}
+
+#[derive(Debug)]
+struct Slot {
+    cmd: vk::CommandBuffer,
+    recording: bool,
+    /// Timeline value this slot's last submit signals (0: never submitted).
+    submitted_value: u64,
+    frame: u64,
+    tlas: Option<AccelStruct>,
+    tlas_capacity: u32,
+    instances: Option<GpuBuffer>,
+    /// Primitive bases of this frame's TLAS records (see `primitive_bases`).
+    bases: Option<GpuBuffer>,
+    bases_address: u64,
+    scratch: Option<(GpuBuffer, vk::DeviceAddress, u64)>,
+    scratch_used: u64,
+    timestamps: QueryPool,
+    /// (op, units, first query) of timestamp pairs recorded this frame.
+    timed: Vec<(CostOp, u64, u32)>,
+    compact_pool: QueryPool,
+    /// (handle, query index) of compacted-size queries recorded this frame.
+    compact_queries: Vec<(BlasHandle, u32)>,
+}
+
+/// Counters of what the backend did (for tests and stats).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct VulkanCounters {
+    /// BLASes built (split parts count once).
+    pub built: u64,
+    /// Skinned updates recorded.
+    pub refits: u64,
+    /// Skinned rebuilds recorded.
+    pub rebuilds: u64,
+    /// Compaction copies recorded.
+    pub compactions: u64,
+    /// BLASes destroyed after retirement.
+    pub destroyed: u64,
+    /// Meshes split into several parts.
+    pub split_meshes: u64,
+    /// Calls answered with OutOfDeviceMemory.
+    pub oom: u64,
+}
+
+/// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.
+#[derive(Debug)]
+pub struct VulkanBackend {
+    ctx: Arc<VulkanContext>,
+    desc: VulkanBackendDesc,
+    pool: vk::CommandPool,
+    timeline: vk::Semaphore,
+    slots: Vec<Slot>,
+    current: usize,
+    blases: Vec<Option<BlasEntry>>,
+    free_slots: Vec<u32>,
+    next_gen: u32,
+    /// First-part address -> other parts' addresses, for split meshes.
+    /// (the parts' addresses and first primitives).
+    split_parts: HashMap<u64, Vec<(u64, u32)>>,
+    /// First-part address -> blas slot (shading lookups by instance record).
+    by_address: HashMap<u64, u32>,
+    retiring: VecDeque<(u64, Retired)>,
+    completed: Option<u64>,
+    measurements: Vec<Measurement>,
+    /// The most recent measurements (kept after `take_measurements`), newest last.
+    log: VecDeque<Measurement>,
+    allocated: u64,
+    blas_allocated: u64,
+    lost: bool,
+    counters: VulkanCounters,
+    expanded: Vec<TlasInstance>,
+    bases: Vec<u32>,
+    /// Faults armed by `inject_fault`, each striking once.
+    faults: Vec<(FaultPoint, BackendError)>,
+}
+
+fn backend_err(e: VulkanError) -> BackendError {
+    match e {
+        VulkanError::OutOfDeviceMemory { .. } => BackendError::OutOfDeviceMemory,
+        VulkanError::DeviceLost { .. } => BackendError::DeviceLost,
+        other => BackendError::Other(other.to_string()),
+    }
+}
+
+impl VulkanBackend {
+    /// Creates the backend on `ctx`.
+    pub fn new(ctx: Arc<VulkanContext>, desc: VulkanBackendDesc) -> VkResult<Self> {
+        let frames = desc.frames_in_flight.max(1);
+        let dev = &ctx.device;
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(ctx.queue_family())
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        // Each object is owned by a guard that destroys it if a later step fails.
+        ctx.failpoint("backend.pool")?;
+        // SAFETY: valid device and create-info; destroyed in Drop (or by the guard).
+        let pool =
+            unsafe { dev.create_command_pool(&pool_info, None) }.op("vkCreateCommandPool")?;
+        crate::backend::vulkan::device::context::handle_created();
+        let pool = scopeguard::guard(pool, |p| {
+            // SAFETY: nothing recorded into its command buffers was submitted.
+            unsafe { dev.destroy_command_pool(p, None) };
+            crate::backend::vulkan::device::context::handle_destroyed();
+        });
+        ctx.set_name(*pool, "VulkanBackend command pool");
+        let mut type_info = vk::SemaphoreTypeCreateInfo::default()
+            .semaphore_type(vk::SemaphoreType::TIMELINE)
+            .initial_value(0);
+        ctx.failpoint("backend.semaphore")?;
+        // SAFETY: as above.
+        let timeline = unsafe {
+            dev.create_semaphore(
+                &vk::SemaphoreCreateInfo::default().push_next(&mut type_info),
+                None,
+            )
+        }
+        .op("vkCreateSemaphore")?;
+        crate::backend::vulkan::device::context::handle_created();
+        let timeline = scopeguard::guard(timeline, |t| {
+            // SAFETY: never signalled or waited on.
+            unsafe { dev.destroy_semaphore(t, None) };
+            crate::backend::vulkan::device::context::handle_destroyed();
+        });
+        ctx.set_name(*timeline, "VulkanBackend frame timeline");
+        ctx.failpoint("backend.command_buffers")?;
+        // SAFETY: the pool was just created.
+        let cmds = unsafe {
+            dev.allocate_command_buffers(
+                &vk::CommandBufferAllocateInfo::default()
+                    .command_pool(*pool)
+                    .level(vk::CommandBufferLevel::PRIMARY)
+                    .command_buffer_count(frames),
+            )
+        }
+        .op("vkAllocateCommandBuffers")?;
+        let mut slots = scopeguard::guard(Vec::with_capacity(frames as usize), |slots| {
+            for s in slots {
+                let s: Slot = s;
+                s.timestamps.destroy(&ctx);
+                s.compact_pool.destroy(&ctx);
+            }
+        });
+        for (i, cmd) in cmds.into_iter().enumerate() {
+            ctx.set_name(cmd, &format!("frame slot {i}"));
+            let timestamps = QueryPool::new(
+                &ctx,
+                QueryKind::Timestamp,
+                QUERIES_PER_SLOT,
+                &format!("slot {i} timestamps"),
+            )?;
+            let compact_pool = match QueryPool::new(
+                &ctx,
+                QueryKind::CompactedSize,
+                COMPACT_QUERIES_PER_SLOT,
+                &format!("slot {i} compacted sizes"),
+            ) {
+                Ok(p) => p,
+                Err(e) => {
+                    timestamps.destroy(&ctx);
+                    return Err(e);
+                }
+            };
+            slots.push(Slot {
+                cmd,
+                recording: false,
+                submitted_value: 0,
+                frame: 0,
+                tlas: None,
+                tlas_capacity: 0,
+                instances: None,
+                bases: None,
+                bases_address: 0,
+                scratch: None,
+                scratch_used: 0,
+                timestamps,
+                timed: Vec::new(),
+                compact_pool,
+                compact_queries: Vec::new(),
+            });
+        }
+        let slots = scopeguard::ScopeGuard::into_inner(slots);
+        let timeline = scopeguard::ScopeGuard::into_inner(timeline);
+        let pool = scopeguard::ScopeGuard::into_inner(pool);
+        Ok(Self {
+            ctx,
+            desc,
+            pool,
+            timeline,
+            slots,
+            current: 0,
+            blases: Vec::new(),
+            free_slots: Vec::new(),
+            next_gen: 1,
+            split_parts: HashMap::new(),
+            by_address: HashMap::new(),
+            retiring: VecDeque::new(),
+            completed: None,
+            measurements: Vec::new(),
+            log: VecDeque::new(),
+            allocated: 0,
+            blas_allocated: 0,
+            lost: false,
+            counters: VulkanCounters::default(),
+            expanded: Vec::new(),
+            bases: Vec::new(),
+            faults: Vec::new(),
+        })
+    }
+
+    /// The context.
+    pub fn context(&self) -> &Arc<VulkanContext> {
+        &self.ctx
+    }
+
+    /// What the backend did so far.
+    pub fn counters(&self) -> VulkanCounters {
+        self.counters
+    }
+
+    /// The most recent GPU measurements (up to 256, oldest first), whether or not the manager
+    /// already took them.
+    pub fn measurement_log(&self) -> impl Iterator<Item = &Measurement> {
+        self.log.iter()
+    }
+
+    /// Live BLAS count (split parts count once).
+    pub fn live_blas_count(&self) -> usize {
+        self.blases.iter().filter(|b| b.is_some()).count()
+    }
+
+    /// Bytes of device memory the backend holds (AS storage, inputs, scratch, TLAS, instances).
+    pub fn allocated_bytes(&self) -> u64 {
+        self.allocated
+    }
+
+    /// Whether a device address from [`AsBackend::blas_address`] names a live BLAS (one not
+    /// yet handed to `free_blas`).
+    pub fn is_live_blas_address(&self, address: u64) -> bool {
+        address != 0
+            && self
+                .blases
+                .iter()
+                .flatten()
+                .any(|e| e.parts.first().is_some_and(|p| p.address == address))
+    }
+
+    /// Bytes of acceleration-structure storage of BLASes not yet destroyed (live and
+    /// retiring; split parts included): what the manager's memory budget counts. Input
+    /// buffers kept for shading are not in it (see [`VulkanBackend::blas_allocated_bytes`]).
+    pub fn blas_storage_bytes(&self) -> u64 {
+        let live: u64 = self
+            .blases
+            .iter()
+            .flatten()
+            .flat_map(|e| &e.parts)
+            .map(|a| a.size)
+            .sum();
+        let retiring: u64 = self
+            .retiring
+            .iter()
+            .map(|(_, r)| match r {
+                Retired::BlasAccel(a) => a.size,
+                _ => 0,
+            })
+            .sum();
+        live + retiring
+    }
+
+    /// Bytes of BLAS storage and BLAS input buffers (what `memory_limit` caps).
+    pub fn blas_allocated_bytes(&self) -> u64 {
+        self.blas_allocated
+    }
+}
+
+impl AsBackend for VulkanBackend {
+    fn begin_frame(&mut self, frame: u64) -> BackendResult<()> {
+        if self.lost {
+            return Err(BackendError::DeviceLost);
+        }
+        self.begin_frame_inner(frame).map_err(|e| {
+            let e = backend_err(e);
+            self.lost |= e == BackendError::DeviceLost;
+            e
+        })
+    }
+
+    fn completed_frame(&self) -> Option<u64> {
+        self.completed
+    }
+
+    fn blas_sizes(&self, g: &GeometryRef<'_>, class: BlasClass) -> BlasSizes {
+        let geom = TriangleGeometry {
+            vertex_address: 0,
+            vertex_stride: 12,
+            max_vertex: g.vertex_count.saturating_sub(1),
+            index_address: 0,
+            triangle_count: g.triangle_count,
+            opaque: g.opaque,
+        };
+        let s = self.ctx.blas_sizes(&[geom], class_flags(class));
+        BlasSizes {
+            as_bytes: s.storage,
+            build_scratch: s.build_scratch,
+            update_scratch: s.update_scratch,
+        }
+    }
+
+    fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
+        self.record_blas_builds(builds)
+    }
+
+    fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
+        self.record_refits(refits)
+    }
+
+    fn compacted_size(&mut self, blas: BlasHandle) -> Option<u64> {
+        self.entry(blas)?.compacted_size
+    }
+
+    fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
+        self.record_compaction(blas)
+    }
+
+    fn free_blas(&mut self, blas: BlasHandle, last_used_frame: u64) {
+        self.retire_blas(blas, last_used_frame)
+    }
+
+    fn blas_address(&self, blas: BlasHandle) -> u64 {
+        self.entry(blas).map_or(0, |e| e.parts[0].address)
+    }
+
+    fn tlas_records(&self) -> Option<usize> {
+        Some(self.expanded.len())
+    }
+
+    fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+        self.record_tlas(instances)
+    }
+
+    fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
+        self.end_and_submit(frame)
+    }
+
+    fn abort_frame(&mut self) {
+        let s = &mut self.slots[self.current];
+        // The command buffer is reset by the next begin_frame of this slot; the queries
+        // recorded into it were never written, so nothing may wait on them.
+        s.recording = false;
+        s.timed.clear();
+        s.compact_queries.clear();
+    }
+
+    fn take_measurements(&mut self) -> Vec<Measurement> {
+        std::mem::take(&mut self.measurements)
+    }
+}
+
+fn e_bytes(e: Option<&BlasEntry>) -> u64 {
+    e.map_or(0, |e| e.parts.iter().map(|a| a.size).sum())
+}
+
+impl Drop for VulkanBackend {
+    fn drop(&mut self) {
+        if let Err(e) = self.ctx.wait_idle() {
+            tracing::error!("VulkanBackend drop: wait idle failed: {e}");
+        }
+        let mut objects: Vec<Retired> = self.retiring.drain(..).map(|(_, r)| r).collect();
+        for e in self.blases.drain(..).flatten() {
+            objects.extend(e.parts.into_iter().map(Retired::BlasAccel));
+            objects.extend(
+                e.skinned
+                    .into_iter()
+                    .flat_map(SkinnedInputs::buffers)
+                    .map(Retired::BlasBuffer),
+            );
+            if let Some((vb, ib)) = e.static_inputs {
+                objects.push(Retired::BlasBuffer(vb));
+                objects.push(Retired::BlasBuffer(ib));
+            }
+        }
+        for s in std::mem::take(&mut self.slots) {
+            objects.extend(s.tlas.map(Retired::Accel));
+            objects.extend(s.instances.map(Retired::Buffer));
+            objects.extend(s.bases.map(Retired::Buffer));
+            objects.extend(s.scratch.map(|(b, _, _)| Retired::Buffer(b)));
+            s.timestamps.destroy(&self.ctx);
+            s.compact_pool.destroy(&self.ctx);
+        }
+        for o in objects {
+            self.destroy(o);
+        }
+        // SAFETY: the device is idle; the pool's command buffers and the semaphore are unused.
+        unsafe {
+            self.ctx.device.destroy_command_pool(self.pool, None);
+            self.ctx.device.destroy_semaphore(self.timeline, None);
+        }
+        crate::backend::vulkan::device::context::handle_destroyed();
+        crate::backend::vulkan::device::context::handle_destroyed();
+    }
+}

@@ -1,0 +1,158 @@
+//! The BLAS handle registry (generations, split parts, lookup by address), the shading
+//! lookups, skinned pose buffers and injected faults.
+
+use super::*;
+
+impl VulkanBackend {
+    pub(super) fn entry(&self, h: BlasHandle) -> Option<&BlasEntry> {
+        let (slot, gen) = ((h.0 & 0xffff_ffff) as usize, (h.0 >> 32) as u32);
+        self.blases.get(slot)?.as_ref().filter(|e| e.gen == gen)
+    }
+
+    pub(super) fn insert(&mut self, e: BlasEntry) -> BlasHandle {
+        let address = e.parts[0].address;
+        let slot = match self.free_slots.pop() {
+            Some(s) => {
+                self.blases[s as usize] = Some(e);
+                s
+            }
+            None => {
+                self.blases.push(Some(e));
+                (self.blases.len() - 1) as u32
+            }
+        };
+        let gen = self.blases[slot as usize].as_ref().map_or(0, |e| e.gen);
+        self.by_address.insert(address, slot);
+        BlasHandle(u64::from(slot) | (u64::from(gen) << 32))
+    }
+
+    pub(super) fn take(&mut self, h: BlasHandle) -> Option<BlasEntry> {
+        self.entry(h)?;
+        let slot = (h.0 & 0xffff_ffff) as usize;
+        self.free_slots.push(slot as u32);
+        let e = self.blases[slot].take()?;
+        self.by_address.remove(&e.parts[0].address);
+        Some(e)
+    }
+
+    /// Injected faults that have not struck yet.
+    #[doc(hidden)]
+    pub fn pending_faults(&self) -> usize {
+        self.faults.len()
+    }
+
+    /// Disarms every injected fault.
+    #[doc(hidden)]
+    pub fn clear_faults(&mut self) {
+        self.faults.clear();
+    }
+
+    /// Arms a fault: the next call at `at` fails with `error` and does nothing else
+    /// (`DeviceLost` also marks the device lost, as a real loss would). For tests of the error
+    /// paths on a real device.
+    pub fn inject_fault(&mut self, at: FaultPoint, error: BackendError) {
+        self.faults.push((at, error));
+    }
+
+    pub(super) fn fault(&mut self, at: FaultPoint) -> BackendResult<()> {
+        match self.faults.iter().position(|(p, _)| *p == at) {
+            Some(i) => {
+                let (_, e) = self.faults.remove(i);
+                self.lost |= e == BackendError::DeviceLost;
+                Err(e)
+            }
+            None => Ok(()),
+        }
+    }
+
+    /// A new host-visible buffer holding `positions` (a skinned BLAS's pose).
+    pub(super) fn pose_buffer(&mut self, positions: &[[f32; 3]]) -> BackendResult<GpuBuffer> {
+        let mut b = self.create_buffer(
+            BufferDesc {
+                name: "skinned pose",
+                size: (positions.len() * 12).max(4) as u64,
+                usage: BUILD_INPUT_USAGE,
+                memory: MemoryKind::Upload,
+            },
+            true,
+        )?;
+        b.write(0, bytemuck::cast_slice(positions));
+        Ok(b)
+    }
+
+    /// Writes a refit's pose into the next buffer of the BLAS's ring (allocating it while the
+    /// ring is short) and points the shading at it; returns its device address.
+    pub(super) fn write_pose(
+        &mut self,
+        blas: BlasHandle,
+        positions: &[[f32; 3]],
+    ) -> BackendResult<u64> {
+        let ring = self.desc.frames_in_flight as usize + 1;
+        let slot = (blas.0 & 0xffff_ffff) as usize;
+        let short = self.blases[slot]
+            .as_ref()
+            .and_then(|e| e.skinned.as_ref())
+            .is_some_and(|sk| sk.poses.len() < ring);
+        let fresh = if short {
+            Some(self.pose_buffer(positions)?)
+        } else {
+            None
+        };
+        let e = self.blases[slot]
+            .as_mut()
+            .ok_or_else(|| BackendError::Other(format!("refit of unknown {blas:?}")))?;
+        let sk = e
+            .skinned
+            .as_mut()
+            .ok_or_else(|| BackendError::Other("refit of a static BLAS".into()))?;
+        let address = match fresh {
+            Some(b) => {
+                let a = b.address;
+                sk.poses.push(b);
+                a
+            }
+            None => {
+                // Written `ring` refits ago: every frame that read it has completed.
+                let b = &mut sk.poses[sk.next % ring];
+                b.write(0, bytemuck::cast_slice(positions));
+                b.address
+            }
+        };
+        sk.next += 1;
+        e.shading.0 = address;
+        Ok(address)
+    }
+
+    /// The positions the shading of the BLAS at `blas_address` reads now, copied back from
+    /// its host-visible buffer (tests check them against the last pose or the mesh).
+    pub fn shading_positions(&self, blas_address: u64) -> Option<Vec<[f32; 3]>> {
+        let slot = *self.by_address.get(&blas_address)?;
+        let e = self.blases.get(slot as usize)?.as_ref()?;
+        let buffers = e
+            .skinned
+            .iter()
+            .flat_map(|sk| sk.poses.iter())
+            .chain(e.static_inputs.iter().map(|(vb, _)| vb));
+        let b = buffers.into_iter().find(|b| b.address == e.shading.0)?;
+        let bytes = b.mapped()?;
+        let n = bytes.len() / 12;
+        Some(
+            bytes[..n * 12]
+                .chunks_exact(12)
+                .map(|c| {
+                    let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().expect("4 bytes"));
+                    [f(0), f(4), f(8)]
+                })
+                .collect(),
+        )
+    }
+
+    /// Device addresses of the positions (`[f32; 3]`) and `u32` indices a shader should read
+    /// for the BLAS whose (first-part) device address is `blas_address` — the address in a TLAS
+    /// instance record. For a skinned BLAS the positions are this frame's pose. Valid while the
+    /// frame that recorded the record is in flight.
+    pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
+        let slot = *self.by_address.get(&blas_address)?;
+        self.blases.get(slot as usize)?.as_ref().map(|e| e.shading)
+    }
+}

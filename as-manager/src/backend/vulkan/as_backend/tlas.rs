@@ -1,0 +1,137 @@
+//! The per-frame TLAS: records (split meshes expanded into parts), the instance buffer and
+//! its build, and the handles that name it.
+
+use super::*;
+
+impl VulkanBackend {
+    /// Device address of the primitive-base table of `tlas` (one `u32` per TLAS record, in
+    /// record order: 0, or for the extra records of a split mesh's parts the part's first
+    /// primitive), or 0 when no record of it is a part. A shader adds the entry of the hit's
+    /// record (`gl_InstanceID`) to the hit's primitive id to get the mesh's primitive id, which
+    /// [`VulkanBackend::shading_geometry`]'s index buffer is indexed by. Valid while the frame
+    /// that built `tlas` is in flight.
+    pub fn primitive_bases(&self, tlas: TlasHandle) -> u64 {
+        self.slot_of(tlas).map_or(0, |s| s.bases_address)
+    }
+
+    /// The raw TLAS of a handle returned by `build_tlas`; None once its slot was reused for a
+    /// later frame (`frames_in_flight` frames later): a stale handle never resolves to a newer
+    /// TLAS.
+    pub fn tlas(&self, handle: TlasHandle) -> Option<vk::AccelerationStructureKHR> {
+        self.slot_of(handle)?.tlas.as_ref().map(|t| t.raw)
+    }
+
+    pub(super) fn record_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+        self.fault(FaultPoint::BuildTlas)?;
+        let cmd = self.cmd()?;
+        let mut records = std::mem::take(&mut self.expanded);
+        records.clear();
+        records.extend_from_slice(instances);
+        let mut bases = std::mem::take(&mut self.bases);
+        bases.clear();
+        if !self.split_parts.is_empty() {
+            for r in instances {
+                if let Some(parts) = self.split_parts.get(&r.blas_address) {
+                    if bases.is_empty() {
+                        bases.resize(instances.len(), 0);
+                    }
+                    records.extend(parts.iter().map(|&(a, _)| TlasInstance {
+                        blas_address: a,
+                        ..*r
+                    }));
+                    bases.extend(parts.iter().map(|&(_, first)| first));
+                }
+            }
+        }
+        let s = self.current;
+        self.slots[s].bases_address = 0;
+        if !bases.is_empty() {
+            let bytes = (bases.len() * 4) as u64;
+            if self.slots[s].bases.as_ref().is_none_or(|b| b.size < bytes) {
+                let buf = self.create_buffer(
+                    BufferDesc {
+                        name: "TLAS primitive bases",
+                        size: bytes.next_power_of_two().max(4096),
+                        usage: vk::BufferUsageFlags::STORAGE_BUFFER
+                            | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS,
+                        memory: MemoryKind::Upload,
+                    },
+                    false,
+                )?;
+                if let Some(old) = self.slots[s].bases.replace(buf) {
+                    self.retire_now(Retired::Buffer(old));
+                }
+            }
+            let b = self.slots[s].bases.as_mut().expect("allocated above");
+            b.write(0, bytemuck::cast_slice(&bases));
+            self.slots[s].bases_address = b.address;
+        }
+        self.bases = bases;
+        let n = records.len().max(1) as u32;
+        let bytes = u64::from(n) * 64;
+        if self.slots[s]
+            .instances
+            .as_ref()
+            .is_none_or(|b| b.size < bytes)
+        {
+            let size = bytes.next_power_of_two().max(64 * 1024);
+            let buf = self.create_buffer(
+                BufferDesc {
+                    name: "TLAS instances",
+                    size,
+                    usage: BUILD_INPUT_USAGE,
+                    memory: MemoryKind::Upload,
+                },
+                false,
+            )?;
+            if let Some(old) = self.slots[s].instances.replace(buf) {
+                self.retire_now(Retired::Buffer(old));
+            }
+        }
+        if self.slots[s].tlas_capacity < n {
+            let cap = n.next_power_of_two().max(1024);
+            let sizes = self.ctx.tlas_sizes(cap, self.desc.tlas_flags);
+            self.reserve(sizes.storage, false)?;
+            let tlas = self
+                .ctx
+                .create_accel(
+                    vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+                    sizes.storage,
+                    &format!("TLAS slot {s}"),
+                )
+                .map_err(|e| {
+                    self.unreserve(sizes.storage, false);
+                    backend_err(e)
+                })?;
+            if let Some(old) = self.slots[s].tlas.replace(tlas) {
+                self.retire_now(Retired::Accel(old));
+            }
+            self.slots[s].tlas_capacity = cap;
+        }
+        let sizes = self.ctx.tlas_sizes(n, self.desc.tlas_flags);
+        self.ensure_scratch(align_up(
+            sizes.build_scratch,
+            self.ctx.info().min_scratch_alignment,
+        ))?;
+        let scratch = self.scratch_alloc(sizes.build_scratch);
+        let slot = &mut self.slots[s];
+        let ibuf = slot.instances.as_mut().expect("allocated above");
+        ibuf.write(0, bytemuck::cast_slice(&records));
+        let (iaddr, tlas) = (
+            ibuf.address,
+            slot.tlas.as_ref().expect("allocated above").raw,
+        );
+        let count = records.len() as u32;
+        self.expanded = records;
+        let t = self.timestamp_begin(CostOp::Tlas, u64::from(count));
+        // SAFETY: recording; the barrier orders this frame's BLAS builds/refits/compactions
+        // before the TLAS build; every referenced BLAS is live until its retirement frame.
+        unsafe {
+            self.ctx.cmd_accel_barrier(cmd);
+            self.ctx
+                .cmd_build_tlas(cmd, tlas, None, self.desc.tlas_flags, iaddr, count, scratch);
+        }
+        self.timestamp_end(t);
+        Ok(TlasHandle::new(s as u32, self.slots[s].frame))
+    }
+}

@@ -1,0 +1,8 @@
+//! The device layer: the context (our own, or one imported from the engine), buffers, query
+//! pools, acceleration-structure objects and barriers, debug names. Nothing outside this folder
+//! creates device-level Vulkan objects except through it.
+
+pub(crate) mod accel;
+pub(crate) mod buffer;
+pub(crate) mod context;
+pub(crate) mod query;
