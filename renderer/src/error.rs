@@ -23,6 +23,10 @@ pub enum RenderError {
     /// A render request that cannot be satisfied.
     #[error("invalid render request: {0}")]
     InvalidRequest(String),
+    /// A recorded frame needs the resources of frame `waiting_for`, which has not completed
+    /// (more frames in flight than `RECORDED_SETS`), or the frame was recorded already.
+    #[error("frame {frame} needs frame {waiting_for} to be done first")]
+    FrameInFlight { frame: u64, waiting_for: u64 },
     /// Writing an image failed.
     #[error("{path}: cannot write image: {source}")]
     Image {

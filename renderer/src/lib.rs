@@ -28,6 +28,7 @@ mod camera;
 mod error;
 mod frame;
 pub mod metrics;
+mod recorded;
 pub mod reference;
 mod renderer;
 pub mod skinning;

@@ -20,7 +20,7 @@ const TRACE_RMISS: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/trace.rmiss
 const TRACE_RCHIT: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/trace.rchit.spv"));
 
 /// Descriptor bindings of both paths: TLAS, colour, hits, instances, surface, light.
-const BINDINGS: [BindingKind; 6] = [
+pub(crate) const BINDINGS: [BindingKind; 6] = [
     BindingKind::AccelStruct,
     BindingKind::StorageBuffer,
     BindingKind::StorageBuffer,
@@ -120,18 +120,18 @@ impl RenderPath {
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Push {
+pub(crate) struct Push {
     origin: [f32; 4],
     right: [f32; 4],
     up: [f32; 4],
     forward: [f32; 4],
     sun: [f32; 4],
-    size: [u32; 4],
+    pub(crate) size: [u32; 4],
     extra: [u32; 4],
 }
 
 #[derive(Debug)]
-enum Tracer {
+pub(crate) enum Tracer {
     Query(ComputePipeline),
     Pipeline(RayTracingPipeline),
 }
@@ -140,8 +140,10 @@ enum Tracer {
 /// [`render`](Self::render).
 #[derive(Debug)]
 pub struct Renderer {
-    ctx: Arc<VulkanContext>,
-    tracer: Option<Tracer>,
+    pub(crate) ctx: Arc<VulkanContext>,
+    pub(crate) tracer: Option<Tracer>,
+    /// Per-frame resources of recorded frames ([`record`](Self::record)).
+    pub(crate) slots: Vec<crate::recorded::RenderSlot>,
 }
 
 impl Renderer {
@@ -184,6 +186,7 @@ impl Renderer {
         Ok(Self {
             ctx,
             tracer: Some(tracer),
+            slots: Vec::new(),
         })
     }
 
@@ -206,18 +209,8 @@ impl Renderer {
         instances: &[InstanceShading],
         desc: &RenderDesc,
     ) -> Result<Frame> {
+        validate(desc)?;
         let (w, h) = (desc.width, desc.height);
-        if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
-            return Err(RenderError::InvalidRequest(format!("image size {w}x{h}")));
-        }
-        let sun_ok = (0.0..1.0).contains(&desc.sun_radius);
-        let ao_ok = desc.ao_radius.is_finite() && desc.ao_radius > 0.0;
-        if !(sun_ok && ao_ok) {
-            return Err(RenderError::InvalidRequest(format!(
-                "sun radius {} / AO radius {}",
-                desc.sun_radius, desc.ao_radius
-            )));
-        }
         let pixels = u64::from(w) * u64::from(h);
         let ctx = &*self.ctx;
         let mut bufs: Vec<GpuBuffer> = Vec::with_capacity(5);
@@ -250,23 +243,7 @@ impl Renderer {
                 vk::BufferUsageFlags::STORAGE_BUFFER,
                 bytemuck::cast_slice(inst),
             )?);
-            let (r, u, f) = desc.camera.basis();
-            let p = desc.camera.position;
-            let s = desc.sun_dir.normalize_or(Vec3::Y);
-            let mut push = Push {
-                origin: [p.x, p.y, p.z, (desc.camera.fov_y * 0.5).tan()],
-                right: [r.x, r.y, r.z, w as f32 / h as f32],
-                up: [u.x, u.y, u.z, desc.ao_radius],
-                forward: [f.x, f.y, f.z, desc.sun_radius],
-                sun: [s.x, s.y, s.z, 0.0],
-                size: [w, h, 0, desc.shadow_samples.max(1)],
-                extra: [
-                    desc.ao_samples,
-                    desc.seed,
-                    desc.primitive_bases as u32,
-                    (desc.primitive_bases >> 32) as u32,
-                ],
-            };
+            let mut push = push_constants(desc);
             let bound = [
                 Bound::AccelRaw(tlas),
                 Bound::Buffer(&bufs[0]),
@@ -288,40 +265,12 @@ impl Renderer {
                     Tracer::Pipeline(p) => p.trace(ctx, &bound, bytemuck::bytes_of(&push), w, h)?,
                 };
             }
-            let color: Vec<[u8; 4]> =
-                bytemuck::cast_slice(bufs[0].mapped().expect("readback is mapped")).to_vec();
-            let hits: Vec<PixelHit> =
-                bytemuck::cast_slice(bufs[1].mapped().expect("readback is mapped")).to_vec();
-            let light: &[[f32; 4]] = bytemuck::cast_slice(bufs[3].mapped().expect("mapped"));
-            let surf: &[[f32; 4]] = bytemuck::cast_slice(bufs[2].mapped().expect("mapped"));
-            let normals = surf.iter().map(|n| [n[0], n[1], n[2]]).collect();
-            let sun_visibility = light.iter().map(|l| l[0]).collect();
-            let ambient = light.iter().map(|l| l[1]).collect();
-            let shadow_rays = light.iter().map(|l| l[2] as u64).sum();
-            let ao_rays = light
-                .iter()
-                .zip(&hits)
-                .filter(|(_, h)| h.is_hit())
-                .map(|(l, _)| l[3] as u64)
-                .sum();
-            Ok(Frame {
-                width: w,
-                height: h,
-                color,
-                hits,
-                sun_visibility,
-                ambient,
-                normals,
-                render_ms: ms.iter().sum(),
-                passes: PassStats {
-                    primary_ms: ms[0],
-                    shadow_ms: ms[1],
-                    ao_shade_ms: ms[2],
-                    primary_rays: pixels,
-                    shadow_rays,
-                    ao_rays,
-                },
-            })
+            Ok(read_frame(
+                w,
+                h,
+                [&bufs[0], &bufs[1], &bufs[2], &bufs[3]],
+                ms,
+            ))
         })();
         for b in bufs {
             ctx.destroy_buffer(b);
@@ -330,8 +279,91 @@ impl Renderer {
     }
 }
 
+/// A frame from the passes' readback buffers (colour, hits, surface, light) and the passes'
+/// milliseconds.
+pub(crate) fn read_frame(w: u32, h: u32, bufs: [&GpuBuffer; 4], ms: [f64; 3]) -> Frame {
+    let pixels = u64::from(w) * u64::from(h);
+    let n = pixels as usize;
+    let color: Vec<[u8; 4]> =
+        bytemuck::cast_slice(bufs[0].mapped().expect("readback is mapped"))[..n].to_vec();
+    let hits: Vec<PixelHit> =
+        bytemuck::cast_slice(bufs[1].mapped().expect("readback is mapped"))[..n].to_vec();
+    let surf: &[[f32; 4]] = &bytemuck::cast_slice(bufs[2].mapped().expect("mapped"))[..n];
+    let light: &[[f32; 4]] = &bytemuck::cast_slice(bufs[3].mapped().expect("mapped"))[..n];
+    let normals = surf.iter().map(|n| [n[0], n[1], n[2]]).collect();
+    let sun_visibility = light.iter().map(|l| l[0]).collect();
+    let ambient = light.iter().map(|l| l[1]).collect();
+    let shadow_rays = light.iter().map(|l| l[2] as u64).sum();
+    let ao_rays = light
+        .iter()
+        .zip(&hits)
+        .filter(|(_, h)| h.is_hit())
+        .map(|(l, _)| l[3] as u64)
+        .sum();
+    Frame {
+        width: w,
+        height: h,
+        color,
+        hits,
+        sun_visibility,
+        ambient,
+        normals,
+        render_ms: ms.iter().sum(),
+        passes: PassStats {
+            primary_ms: ms[0],
+            shadow_ms: ms[1],
+            ao_shade_ms: ms[2],
+            primary_rays: pixels,
+            shadow_rays,
+            ao_rays,
+        },
+    }
+}
+
+/// Checks what a render request asks for.
+pub(crate) fn validate(desc: &RenderDesc) -> Result<()> {
+    let (w, h) = (desc.width, desc.height);
+    if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
+        return Err(RenderError::InvalidRequest(format!("image size {w}x{h}")));
+    }
+    let sun_ok = (0.0..1.0).contains(&desc.sun_radius);
+    let ao_ok = desc.ao_radius.is_finite() && desc.ao_radius > 0.0;
+    if !(sun_ok && ao_ok) {
+        return Err(RenderError::InvalidRequest(format!(
+            "sun radius {} / AO radius {}",
+            desc.sun_radius, desc.ao_radius
+        )));
+    }
+    Ok(())
+}
+
+/// The passes' push constants (pass index 0 in `size[2]`).
+pub(crate) fn push_constants(desc: &RenderDesc) -> Push {
+    let (w, h) = (desc.width, desc.height);
+    let (r, u, f) = desc.camera.basis();
+    let p = desc.camera.position;
+    let s = desc.sun_dir.normalize_or(Vec3::Y);
+    Push {
+        origin: [p.x, p.y, p.z, (desc.camera.fov_y * 0.5).tan()],
+        right: [r.x, r.y, r.z, w as f32 / h as f32],
+        up: [u.x, u.y, u.z, desc.ao_radius],
+        forward: [f.x, f.y, f.z, desc.sun_radius],
+        sun: [s.x, s.y, s.z, 0.0],
+        size: [w, h, 0, desc.shadow_samples.max(1)],
+        extra: [
+            desc.ao_samples,
+            desc.seed,
+            desc.primitive_bases as u32,
+            (desc.primitive_bases >> 32) as u32,
+        ],
+    }
+}
+
 impl Drop for Renderer {
     fn drop(&mut self) {
+        for s in std::mem::take(&mut self.slots) {
+            s.destroy(&self.ctx);
+        }
         match self.tracer.take() {
             Some(Tracer::Query(p)) => p.destroy(&self.ctx),
             Some(Tracer::Pipeline(p)) => p.destroy(&self.ctx),

@@ -167,6 +167,16 @@ pub enum BackendError {
     /// A real build needs vertex/index data but the mesh was registered with counts only.
     #[error("geometry data missing (mesh registered with counts only)")]
     MissingGeometry,
+    /// The engine records the frames (`VulkanBackend` in engine-recorded mode) and frame
+    /// `frame` needs the slot of frame `waiting_for`, which the engine has not reported done
+    /// (`frame_done`): more frames in flight than the backend was created with. Nothing was
+    /// recorded; report the frame done and call again.
+    #[error("frame {frame} needs frame {waiting_for} to be done (report it with frame_done)")]
+    FrameInFlight { frame: u64, waiting_for: u64 },
+    /// Engine-recorded mode: frame `frame` was ended but never handed to the engine's command
+    /// buffer (`VulkanBackend::record`); a later frame would depend on builds that never ran.
+    #[error("frame {frame} was not recorded into the engine's command buffer (call record)")]
+    FrameNotRecorded { frame: u64 },
     /// Anything else, with the backend's words.
     #[error("{0}")]
     Other(String),

@@ -20,6 +20,16 @@ pub enum VulkanError {
     /// No physical device offers what rtstream needs. `devices` says what each one lacked.
     #[error("no suitable Vulkan device: {}; {hint}", describe_devices(.devices), hint = INSTALL_HINT)]
     NoSuitableDevice { devices: Vec<(String, String)> },
+    /// The engine's device (see `VulkanContext::from_external`) lacks what rtstream needs:
+    /// device extensions or features the engine did not enable, or, in `unsupported`, why the
+    /// physical device itself cannot run rtstream.
+    #[error("the engine's device {device} lacks what rtstream needs: {}", describe_missing(.extensions, .features, .unsupported))]
+    MissingDeviceSupport {
+        device: String,
+        extensions: Vec<String>,
+        features: Vec<String>,
+        unsupported: Option<String>,
+    },
     /// The device ran out of memory (VK_ERROR_OUT_OF_DEVICE_MEMORY or an allocator failure
     /// for lack of memory). Callers may free something and retry.
     #[error("out of device memory during {op}")]
@@ -43,9 +53,32 @@ pub enum VulkanError {
     /// A request the device cannot satisfy (a size over a device limit, ...).
     #[error("{0}")]
     Unsupported(String),
+    /// A handle names an object that no longer exists: a TLAS whose frame slot was reused by a
+    /// later frame, or a BLAS that was freed (its slot may hold a newer BLAS of another
+    /// generation, which a stale handle never resolves to).
+    #[error("stale {what} handle: {detail}")]
+    StaleHandle { what: &'static str, detail: String },
     /// A failure injected by a test at a named step (see `VulkanContext::inject_failure`).
     #[error("injected failure at {at}")]
     Injected { at: &'static str },
+}
+
+fn describe_missing(
+    extensions: &[String],
+    features: &[String],
+    unsupported: &Option<String>,
+) -> String {
+    let mut parts = Vec::new();
+    if !extensions.is_empty() {
+        parts.push(format!("extensions not enabled: {}", extensions.join(", ")));
+    }
+    if !features.is_empty() {
+        parts.push(format!("features not enabled: {}", features.join(", ")));
+    }
+    if let Some(why) = unsupported {
+        parts.push(format!("the device cannot: {why}"));
+    }
+    parts.join("; ")
 }
 
 fn describe_devices(devices: &[(String, String)]) -> String {

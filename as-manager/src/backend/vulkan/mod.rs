@@ -18,7 +18,7 @@ pub use as_backend::measure::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
     CompactionResult,
 };
-pub use as_backend::{class_flags, VulkanBackend, VulkanBackendDesc, VulkanCounters};
+pub use as_backend::{class_flags, Recording, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use device::accel::{
     align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE,
 };
@@ -27,10 +27,13 @@ pub use device::context::{
     live_vulkan_handles, ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog,
     VulkanContext,
 };
+pub use device::external::{DeviceFeatures, ExternalDevice, REQUIRED_DEVICE_EXTENSIONS};
+pub use device::frames::{FrameCmd, FrameLoop};
 pub use device::query::{QueryKind, QueryPool};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
 pub use render::compute::{BindingKind, Bound, ComputePipeline};
 pub use render::geometry::{GpuGeometry, MeshDesc};
+pub use render::ring::{Pass, PassTimer, RECORDED_SETS};
 pub use render::rt_pipeline::{RayTracingPipeline, RtShaders};
 pub use render::scene::{GpuMesh, InstanceDesc, SceneBuildStats, StaticScene};
 

@@ -11,9 +11,75 @@ impl VulkanBackend {
             .filter(|s| s.frame == handle.frame())
     }
 
+    /// Engine-recorded: frame `frame` may begin only once the frame that used its slot before
+    /// was reported done, and once the previous frame was handed to the engine (`record`).
+    pub(super) fn check_slot_done(&self, frame: u64) -> BackendResult<()> {
+        if self.desc.recording != Recording::Engine {
+            return Ok(());
+        }
+        if let Some(slot) = self.to_record {
+            return Err(BackendError::FrameNotRecorded {
+                frame: self.slots[slot].frame,
+            });
+        }
+        let s = &self.slots[(frame % self.slots.len() as u64) as usize];
+        if s.submitted_value > 0 && self.engine_done.is_none_or(|d| d < s.frame) {
+            return Err(BackendError::FrameInFlight {
+                frame,
+                waiting_for: s.frame,
+            });
+        }
+        Ok(())
+    }
+
+    /// Engine-recorded: records the last frame's work (ended by the manager's `update`) into
+    /// the engine's command buffer, as one `vkCmdExecuteCommands`. Call it once per `update`,
+    /// before the engine's own commands that trace the frame's TLAS; the work ends with a
+    /// barrier that makes the builds visible to ray-query compute, fragment and ray-tracing
+    /// shaders.
+    ///
+    /// `cmd` carries the engine's promises (see [`FrameCmd::from_engine`]): the engine submits
+    /// it before the next frame's, and calls [`frame_done`](Self::frame_done) for the frame
+    /// only after that submission completed.
+    pub fn record(&mut self, cmd: &FrameCmd) -> VkResult<()> {
+        let slot = self.to_record.take().ok_or_else(|| {
+            VulkanError::Unsupported(
+                "record: no frame to record (engine-recorded mode, once per update)".into(),
+            )
+        })?;
+        let s = &mut self.slots[slot];
+        // SAFETY: a FrameCmd is a primary command buffer of this device, recording, outside a
+        // render pass (its constructor's contract); the slot's secondary was ended by
+        // `end_frame` and is executed once.
+        unsafe { self.ctx.device.cmd_execute_commands(cmd.raw(), &[s.cmd]) };
+        s.executed = true;
+        Ok(())
+    }
+
+    /// Engine-recorded: the engine's submission of frame `frame` (and every frame before it)
+    /// has completed on the GPU. What those frames used may now be freed, rewritten or reused.
+    /// Frames reported out of order are fine; the latest counts.
+    pub fn frame_done(&mut self, frame: u64) {
+        self.engine_done = Some(self.engine_done.map_or(frame, |d| d.max(frame)));
+    }
+
+    /// Who records and submits this backend's frames.
+    pub fn recording(&self) -> Recording {
+        self.desc.recording
+    }
+
     /// Waits until every submitted frame finished (e.g. before reading a TLAS on another queue
-    /// submission, or at shutdown).
+    /// submission, or at shutdown). Engine-recorded: waits for the device to be idle, so the
+    /// engine must have submitted every frame it recorded.
     pub fn wait_idle(&mut self) -> VkResult<()> {
+        if self.desc.recording == Recording::Engine {
+            self.ctx.wait_idle()?;
+            let last = self.slots.iter().map(|s| s.frame).max();
+            if let Some(last) = last.filter(|_| self.slots.iter().any(|s| s.submitted_value > 0)) {
+                self.frame_done(last);
+            }
+            return Ok(());
+        }
         let last = self
             .slots
             .iter()
@@ -182,10 +248,15 @@ impl VulkanBackend {
     }
 
     pub(super) fn read_completed_slot(&mut self, slot: usize) -> VkResult<()> {
+        // The frame completed: the results it copied into its readback buffer are there.
+        let s = &self.slots[slot];
+        let words: &[u64] = bytemuck::cast_slice(s.results.mapped().expect("readback is mapped"));
+        let ticks = (!s.timed.is_empty()).then(|| words[..s.timed.len() * 2].to_vec());
+        let base = QUERIES_PER_SLOT as usize;
+        let sizes = (!s.compact_queries.is_empty())
+            .then(|| words[base..base + s.compact_queries.len()].to_vec());
         let s = &mut self.slots[slot];
-        if !s.timed.is_empty() {
-            let n = s.timed.len() as u32 * 2;
-            let ticks = s.timestamps.read(&self.ctx, 0, n)?;
+        if let Some(ticks) = ticks {
             for &(op, units, first) in &s.timed {
                 let dt = ticks[first as usize + 1].saturating_sub(ticks[first as usize]);
                 let m = Measurement {
@@ -199,12 +270,10 @@ impl VulkanBackend {
                 }
                 self.log.push_back(m);
             }
-            s.timed.clear();
         }
-        if !s.compact_queries.is_empty() {
-            let n = s.compact_queries.len() as u32;
-            let sizes = s.compact_pool.read(&self.ctx, 0, n)?;
-            let queries = std::mem::take(&mut s.compact_queries);
+        s.timed.clear();
+        let queries = std::mem::take(&mut s.compact_queries);
+        if let Some(sizes) = sizes {
             for ((h, _), size) in queries.into_iter().zip(sizes) {
                 let (slot_i, gen) = ((h.0 & 0xffff_ffff) as usize, (h.0 >> 32) as u32);
                 if let Some(Some(e)) = self.blases.get_mut(slot_i) {
@@ -220,15 +289,27 @@ impl VulkanBackend {
     pub(super) fn begin_frame_inner(&mut self, frame: u64) -> VkResult<()> {
         let slot = (frame % self.slots.len() as u64) as usize;
         self.current = slot;
-        // Wait for the frame that last used this slot, then harvest its queries.
+        // Wait for the frame that last used this slot (engine-recorded: `check_slot_done`
+        // made sure the engine reported it done), then harvest its queries.
         let value = self.slots[slot].submitted_value;
-        self.wait_value(value)?;
+        let engine = self.desc.recording == Recording::Engine;
+        if !engine {
+            self.wait_value(value)?;
+        }
         if value > 0 {
             let done = value - 1;
             self.completed = Some(self.completed.map_or(done, |c| c.max(done)));
-            self.read_completed_slot(slot)?;
+            if engine && !self.slots[slot].executed {
+                // Never executed: its queries were never written.
+                self.slots[slot].timed.clear();
+                self.slots[slot].compact_queries.clear();
+            } else {
+                self.read_completed_slot(slot)?;
+            }
         }
-        let reached = if self.desc.deterministic {
+        let reached = if engine {
+            self.engine_done.map_or(0, |f| f + 1)
+        } else if self.desc.deterministic {
             0
         } else {
             // SAFETY: the timeline value is a plain read of our own semaphore.
@@ -254,18 +335,23 @@ impl VulkanBackend {
         s.scratch_used = 0;
         s.timestamps.reset(&self.ctx);
         s.compact_pool.reset(&self.ctx);
+        s.executed = false;
         let dev = &self.ctx.device;
-        // SAFETY: the slot's previous submission completed (waited above), so its command buffer
-        // may be reset and re-recorded.
+        // A secondary command buffer (engine-recorded) inherits no render pass: it runs outside
+        // one, like the builds it holds.
+        let inheritance = vk::CommandBufferInheritanceInfo::default();
+        let mut begin = vk::CommandBufferBeginInfo::default()
+            .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        if engine {
+            begin = begin.inheritance_info(&inheritance);
+        }
+        // SAFETY: the slot's previous submission completed (waited above, or reported done by
+        // the engine), so its command buffer may be reset and re-recorded.
         unsafe {
             dev.reset_command_buffer(s.cmd, vk::CommandBufferResetFlags::empty())
                 .op("vkResetCommandBuffer")?;
-            dev.begin_command_buffer(
-                s.cmd,
-                &vk::CommandBufferBeginInfo::default()
-                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
-            )
-            .op("vkBeginCommandBuffer")?;
+            dev.begin_command_buffer(s.cmd, &begin)
+                .op("vkBeginCommandBuffer")?;
         }
         s.recording = true;
         // Order every earlier submission's AS writes before this frame's AS reads/writes.
@@ -278,7 +364,29 @@ impl VulkanBackend {
         self.fault(FaultPoint::EndFrame)?;
         let cmd = self.cmd()?;
         let value = frame + 1;
+        let engine = self.desc.recording == Recording::Engine;
         let r = (|| {
+            let s = &self.slots[self.current];
+            // SAFETY: recording; the queries were reset at begin_frame and written by commands
+            // recorded before; the results buffer is the slot's, read only after completion.
+            unsafe {
+                s.timestamps.cmd_copy_results(
+                    &self.ctx,
+                    cmd,
+                    0,
+                    s.timed.len() as u32 * 2,
+                    &s.results,
+                    0,
+                );
+                s.compact_pool.cmd_copy_results(
+                    &self.ctx,
+                    cmd,
+                    0,
+                    s.compact_queries.len() as u32,
+                    &s.results,
+                    u64::from(QUERIES_PER_SLOT) * 8,
+                );
+            }
             // SAFETY: recording; the barrier makes the TLAS build visible to later traces.
             unsafe {
                 self.ctx.cmd_accel_barrier(cmd);
@@ -286,6 +394,10 @@ impl VulkanBackend {
                     .device
                     .end_command_buffer(cmd)
                     .op("vkEndCommandBuffer")?;
+            }
+            if engine {
+                // The engine executes it in its own command buffer (`record`) and submits.
+                return Ok(());
             }
             let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
             let signal = [vk::SemaphoreSubmitInfo::default()
@@ -302,6 +414,9 @@ impl VulkanBackend {
         match r {
             Ok(()) => {
                 s.submitted_value = value;
+                if engine {
+                    self.to_record = Some(self.current);
+                }
                 Ok(())
             }
             Err(e) => {

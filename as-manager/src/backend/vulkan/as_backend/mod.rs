@@ -46,6 +46,7 @@ use crate::backend::vulkan::device::accel::{
 };
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::{
@@ -71,6 +72,8 @@ pub fn class_flags(class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
 /// Creation parameters of a [`VulkanBackend`].
 #[derive(Debug, Clone)]
 pub struct VulkanBackendDesc {
+    /// Who records and submits (default: the backend submits itself).
+    pub recording: Recording,
     /// Frames in flight (>= 1; default 2).
     pub frames_in_flight: u32,
     /// TLAS build flags (default PREFER_FAST_TRACE; see docs/GPU.md for the measurement).
@@ -87,9 +90,37 @@ pub struct VulkanBackendDesc {
     pub deterministic: bool,
 }
 
+/// Who records and submits a frame's work.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Recording {
+    /// The backend submits each frame itself, signalling its own timeline (frame `n` signals
+    /// `n + 1`) and waits on it before reusing a frame's slot. For simple users and the examples.
+    #[default]
+    OwnSubmit,
+    /// The engine's frame: the backend records each frame into a secondary command buffer that
+    /// the engine executes in its own (`VulkanBackend::record`), submits nothing, and learns that a
+    /// frame finished from `VulkanBackend::frame_done`. Recording is the same as in own-submit
+    /// mode; only who submits and who says "done" differ.
+    Engine,
+}
+
+impl VulkanBackendDesc {
+    /// The engine records and submits (see [`Recording::Engine`]) with `frames_in_flight`
+    /// frames in flight: frame `n` reuses what frame `n - frames_in_flight` used, so that frame
+    /// must be reported done first.
+    pub fn engine_recorded(frames_in_flight: u32) -> Self {
+        Self {
+            frames_in_flight,
+            recording: Recording::Engine,
+            ..Self::default()
+        }
+    }
+}
+
 impl Default for VulkanBackendDesc {
     fn default() -> Self {
         Self {
+            recording: Recording::OwnSubmit,
             frames_in_flight: 2,
             tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
             max_part_bytes: 256 << 20,
@@ -152,14 +183,20 @@ enum Retired {
 
 #[derive(Debug)]
 struct Slot {
+    /// Primary (own-submit) or secondary (engine-recorded) command buffer.
     cmd: vk::CommandBuffer,
     recording: bool,
+    /// Engine-recorded: the engine executed this slot's commands in its own command buffer
+    /// (`record`); a slot it never executed has no query results to read.
+    executed: bool,
     /// Timeline value this slot's last submit signals (0: never submitted).
     submitted_value: u64,
     frame: u64,
     tlas: Option<AccelStruct>,
     tlas_capacity: u32,
     instances: Option<GpuBuffer>,
+    /// TLAS records of this slot's frame.
+    records: u32,
     /// Primitive bases of this frame's TLAS records (see `primitive_bases`).
     bases: Option<GpuBuffer>,
     bases_address: u64,
@@ -171,6 +208,9 @@ struct Slot {
     compact_pool: QueryPool,
     /// (handle, query index) of compacted-size queries recorded this frame.
     compact_queries: Vec<(BlasHandle, u32)>,
+    /// The frame's query results, copied on the GPU at the end of the frame (timestamps first,
+    /// then compacted sizes at `QUERIES_PER_SLOT`), read by the host once it completed.
+    results: GpuBuffer,
 }
 
 /// Counters of what the backend did (for tests and stats).
@@ -222,6 +262,10 @@ pub struct VulkanBackend {
     bases: Vec<u32>,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
+    /// Engine-recorded: the latest frame the engine reported done.
+    engine_done: Option<u64>,
+    /// Engine-recorded: the slot ended last and not yet handed to the engine's command buffer.
+    to_record: Option<usize>,
 }
 
 fn backend_err(e: VulkanError) -> BackendError {
@@ -277,7 +321,11 @@ impl VulkanBackend {
             dev.allocate_command_buffers(
                 &vk::CommandBufferAllocateInfo::default()
                     .command_pool(*pool)
-                    .level(vk::CommandBufferLevel::PRIMARY)
+                    .level(if desc.recording == Recording::Engine {
+                        vk::CommandBufferLevel::SECONDARY
+                    } else {
+                        vk::CommandBufferLevel::PRIMARY
+                    })
                     .command_buffer_count(frames),
             )
         }
@@ -287,6 +335,7 @@ impl VulkanBackend {
                 let s: Slot = s;
                 s.timestamps.destroy(&ctx);
                 s.compact_pool.destroy(&ctx);
+                ctx.destroy_buffer(s.results);
             }
         });
         for (i, cmd) in cmds.into_iter().enumerate() {
@@ -309,13 +358,28 @@ impl VulkanBackend {
                     return Err(e);
                 }
             };
+            let results = match ctx.create_buffer(&BufferDesc {
+                name: "slot query results",
+                size: u64::from(QUERIES_PER_SLOT + COMPACT_QUERIES_PER_SLOT) * 8,
+                usage: vk::BufferUsageFlags::TRANSFER_DST,
+                memory: MemoryKind::Readback,
+            }) {
+                Ok(b) => b,
+                Err(e) => {
+                    timestamps.destroy(&ctx);
+                    compact_pool.destroy(&ctx);
+                    return Err(e);
+                }
+            };
             slots.push(Slot {
                 cmd,
                 recording: false,
+                executed: false,
                 submitted_value: 0,
                 frame: 0,
                 tlas: None,
                 tlas_capacity: 0,
+                records: 0,
                 instances: None,
                 bases: None,
                 bases_address: 0,
@@ -325,6 +389,7 @@ impl VulkanBackend {
                 timed: Vec::new(),
                 compact_pool,
                 compact_queries: Vec::new(),
+                results,
             });
         }
         let slots = scopeguard::ScopeGuard::into_inner(slots);
@@ -353,6 +418,8 @@ impl VulkanBackend {
             expanded: Vec::new(),
             bases: Vec::new(),
             faults: Vec::new(),
+            engine_done: None,
+            to_record: None,
         })
     }
 
@@ -426,6 +493,7 @@ impl AsBackend for VulkanBackend {
         if self.lost {
             return Err(BackendError::DeviceLost);
         }
+        self.check_slot_done(frame)?;
         self.begin_frame_inner(frame).map_err(|e| {
             let e = backend_err(e);
             self.lost |= e == BackendError::DeviceLost;
@@ -534,6 +602,7 @@ impl Drop for VulkanBackend {
             objects.extend(s.scratch.map(|(b, _, _)| Retired::Buffer(b)));
             s.timestamps.destroy(&self.ctx);
             s.compact_pool.destroy(&self.ctx);
+            self.ctx.destroy_buffer(s.results);
         }
         for o in objects {
             self.destroy(o);

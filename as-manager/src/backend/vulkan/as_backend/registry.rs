@@ -9,6 +9,52 @@ impl VulkanBackend {
         self.blases.get(slot)?.as_ref().filter(|e| e.gen == gen)
     }
 
+    /// The device address of a live BLAS, or [`VulkanError::StaleHandle`] for a freed one
+    /// (whose slot may now hold a newer BLAS).
+    pub fn resolve_blas(&self, h: BlasHandle) -> VkResult<u64> {
+        self.entry(h)
+            .map(|e| e.parts[0].address)
+            .ok_or_else(|| VulkanError::StaleHandle {
+                what: "BLAS",
+                detail: format!(
+                    "slot {} generation {} was freed",
+                    h.0 & 0xffff_ffff,
+                    h.0 >> 32
+                ),
+            })
+    }
+
+    /// Whether the BLAS at `address` still exists on the device: live, or freed and waiting
+    /// for the frames that may use it (retiring), not yet destroyed.
+    pub fn is_blas_address_retained(&self, address: u64) -> bool {
+        self.is_live_blas_address(address)
+            || self
+                .retiring
+                .iter()
+                .any(|(_, r)| matches!(r, Retired::BlasAccel(a) if a.address == address))
+    }
+
+    /// Test support: a copy of the buffer at `address` that the backend owns as a BLAS input
+    /// (static vertices or indices, a skinned pose or index buffer), live or retiring.
+    #[doc(hidden)]
+    pub fn input_buffer_bytes(&self, address: u64) -> Option<Vec<u8>> {
+        let live = self.blases.iter().flatten().flat_map(|e| {
+            let statics = e.static_inputs.iter().flat_map(|(v, i)| [v, i]);
+            let skinned = e
+                .skinned
+                .iter()
+                .flat_map(|s| std::iter::once(&s.indices).chain(&s.poses));
+            statics.chain(skinned)
+        });
+        let retiring = self.retiring.iter().filter_map(|(_, r)| match r {
+            Retired::BlasBuffer(b) => Some(b),
+            _ => None,
+        });
+        live.chain(retiring)
+            .find(|b| b.address == address && address != 0)
+            .and_then(|b| b.mapped().map(<[u8]>::to_vec))
+    }
+
     pub(super) fn insert(&mut self, e: BlasEntry) -> BlasHandle {
         let address = e.parts[0].address;
         let slot = match self.free_slots.pop() {

@@ -21,6 +21,39 @@ impl VulkanBackend {
         self.slot_of(handle)?.tlas.as_ref().map(|t| t.raw)
     }
 
+    /// The raw TLAS of `handle`, or [`VulkanError::StaleHandle`] once its slot was reused.
+    pub fn resolve_tlas(&self, handle: TlasHandle) -> VkResult<vk::AccelerationStructureKHR> {
+        self.tlas(handle).ok_or_else(|| VulkanError::StaleHandle {
+            what: "TLAS",
+            detail: format!(
+                "frame {} (slot {} now holds frame {})",
+                handle.frame(),
+                handle.slot(),
+                self.slots
+                    .get(handle.slot() as usize)
+                    .map_or(0, |s| s.frame)
+            ),
+        })
+    }
+
+    /// Test support: a copy of the instance records frame `handle` built its TLAS from (the
+    /// host-visible instance buffer), while the handle resolves.
+    #[doc(hidden)]
+    pub fn tlas_instance_bytes(&self, handle: TlasHandle) -> Option<Vec<u8>> {
+        let s = self.slot_of(handle)?;
+        let n = self.expanded_len_of(handle)?;
+        s.instances
+            .as_ref()?
+            .mapped()
+            .map(|m| m[..n.min(m.len())].to_vec())
+    }
+
+    /// Bytes of instance records of the frame of `handle` (its TLAS's record count).
+    fn expanded_len_of(&self, handle: TlasHandle) -> Option<usize> {
+        self.slot_of(handle)
+            .map(|s| s.records as usize * std::mem::size_of::<TlasInstance>())
+    }
+
     pub(super) fn record_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
         self.fault(FaultPoint::BuildTlas)?;
         let cmd = self.cmd()?;
@@ -122,6 +155,7 @@ impl VulkanBackend {
             slot.tlas.as_ref().expect("allocated above").raw,
         );
         let count = records.len() as u32;
+        slot.records = count;
         self.expanded = records;
         let t = self.timestamp_begin(CostOp::Tlas, u64::from(count));
         // SAFETY: recording; the barrier orders this frame's BLAS builds/refits/compactions

@@ -7,6 +7,7 @@
 use std::ffi::{c_void, CStr, CString};
 use std::mem::ManuallyDrop;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
+use std::sync::Arc;
 
 use ash::{ext, khr, vk};
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
@@ -156,25 +157,33 @@ impl ValidationLog {
 }
 
 /// The Vulkan context: instance, device, one queue, the device-memory allocator.
+///
+/// Two ways in: [`VulkanContext::new`] creates everything (the examples' path), and
+/// [`VulkanContext::from_external`] takes the engine's instance, device, queue and (optionally)
+/// allocator, and creates nothing global (see [`ExternalDevice`](super::external::ExternalDevice)).
 pub struct VulkanContext {
-    _entry: ash::Entry,
+    /// The loader, when the context created the instance (None on an engine's device).
+    pub(crate) _entry: Option<ash::Entry>,
+    /// Whether the context created the instance and device (and destroys them on drop).
+    pub(crate) owns_device: bool,
     pub(crate) instance: ash::Instance,
-    debug_instance: Option<(ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
-    debug_device: Option<ext::debug_utils::Device>,
-    log: Box<ValidationLog>,
-    validation: bool,
+    pub(crate) debug_instance: Option<(ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    pub(crate) debug_device: Option<ext::debug_utils::Device>,
+    pub(crate) log: Box<ValidationLog>,
+    pub(crate) validation: bool,
     pub(crate) physical_device: vk::PhysicalDevice,
     pub(crate) device: ash::Device,
     pub(crate) accel: khr::acceleration_structure::Device,
     pub(crate) rt_pipeline: Option<khr::ray_tracing_pipeline::Device>,
-    queue: Mutex<vk::Queue>,
-    queue_family: u32,
-    command_pool: Mutex<vk::CommandPool>,
-    pub(crate) allocator: ManuallyDrop<Mutex<Allocator>>,
+    pub(crate) queue: Mutex<vk::Queue>,
+    pub(crate) queue_family: u32,
+    pub(crate) command_pool: Mutex<vk::CommandPool>,
+    /// Ours, or the engine's (shared behind its lock); dropped before the device.
+    pub(crate) allocator: ManuallyDrop<Arc<Mutex<Allocator>>>,
     pub(crate) live_buffers: AtomicI64,
-    info: DeviceInfo,
+    pub(crate) info: DeviceInfo,
     /// A failure armed by `inject_failure` (test-only).
-    failpoint: Mutex<Option<&'static str>>,
+    pub(crate) failpoint: Mutex<Option<&'static str>>,
 }
 
 impl std::fmt::Debug for VulkanContext {
@@ -197,10 +206,10 @@ struct DeviceParts {
     debug_device: Option<ext::debug_utils::Device>,
 }
 
-struct Candidate {
-    pd: vk::PhysicalDevice,
-    info: DeviceInfo,
-    queue_family: u32,
+pub(crate) struct Candidate {
+    pub(crate) pd: vk::PhysicalDevice,
+    pub(crate) info: DeviceInfo,
+    pub(crate) queue_family: u32,
     score: u32,
 }
 
@@ -388,7 +397,8 @@ impl VulkanContext {
         );
         let parts = Self::create_device(&instance, has_debug_utils, desc.fail_at, &chosen)?;
         let ctx = Self {
-            _entry: entry,
+            _entry: Some(entry),
+            owns_device: true,
             instance: scopeguard::ScopeGuard::into_inner(instance),
             debug_instance: scopeguard::ScopeGuard::into_inner(debug_instance),
             debug_device: parts.debug_device,
@@ -401,7 +411,7 @@ impl VulkanContext {
             queue: Mutex::new(parts.queue),
             queue_family: chosen.queue_family,
             command_pool: Mutex::new(parts.command_pool),
-            allocator: ManuallyDrop::new(Mutex::new(parts.allocator)),
+            allocator: ManuallyDrop::new(Arc::new(Mutex::new(parts.allocator))),
             live_buffers: AtomicI64::new(0),
             info: chosen.info,
             failpoint: Mutex::new(None),
@@ -478,7 +488,7 @@ impl VulkanContext {
         }
     }
 
-    fn evaluate(
+    pub(crate) fn evaluate(
         instance: &ash::Instance,
         pd: vk::PhysicalDevice,
         desc: &ContextDesc,
@@ -872,6 +882,10 @@ impl VulkanContext {
 
 impl Drop for VulkanContext {
     fn drop(&mut self) {
+        if !self.owns_device {
+            self.drop_imported();
+            return;
+        }
         // SAFETY: we own every object below and destroy them children-first after the device is
         // idle; the allocator is dropped before the device it allocates from.
         unsafe {

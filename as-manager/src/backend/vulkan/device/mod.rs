@@ -5,4 +5,6 @@
 pub(crate) mod accel;
 pub(crate) mod buffer;
 pub(crate) mod context;
+pub(crate) mod external;
+pub(crate) mod frames;
 pub(crate) mod query;

@@ -118,6 +118,59 @@ impl QueryPool {
         Ok(out)
     }
 
+    /// Records a copy of results `first..first + n` (u64 each) into `dst` at byte `offset`,
+    /// waiting on the GPU for them to be written, and makes the copy visible to the host once
+    /// the submission completes. Reading results this way needs no host query call, which some
+    /// drivers (lavapipe) implement as "wait for the whole queue", and which would hang behind a
+    /// later submission that waits for the host.
+    ///
+    /// # Safety
+    /// `cmd` is recording outside a render pass; the queries were reset and are written by
+    /// commands recorded before this one; `dst` has room and lives until the copy completed.
+    pub unsafe fn cmd_copy_results(
+        &self,
+        ctx: &VulkanContext,
+        cmd: vk::CommandBuffer,
+        first: u32,
+        n: u32,
+        dst: &crate::backend::vulkan::device::buffer::GpuBuffer,
+        offset: u64,
+    ) {
+        if n == 0 {
+            return;
+        }
+        debug_assert!(offset + u64::from(n) * 8 <= dst.size);
+        let before = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::HOST)
+            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE | vk::AccessFlags2::HOST_READ)
+            .dst_stage_mask(vk::PipelineStageFlags2::COPY)
+            .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)];
+        let after = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COPY)
+            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        // SAFETY: guaranteed by the caller.
+        unsafe {
+            ctx.device.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().memory_barriers(&before),
+            );
+            ctx.device.cmd_copy_query_pool_results(
+                cmd,
+                self.raw,
+                first,
+                n,
+                dst.raw,
+                offset,
+                8,
+                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+            );
+            ctx.device
+                .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&after));
+        }
+    }
+
     /// Converts a tick difference to milliseconds.
     pub fn ticks_to_ms(&self, ticks: u64) -> f64 {
         ticks as f64 * self.period_ns * 1e-6

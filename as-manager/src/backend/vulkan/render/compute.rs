@@ -9,7 +9,9 @@ use ash::vk;
 use crate::backend::vulkan::device::accel::AccelStruct;
 use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::render::ring::{check_timer, copy_timer, Pass, PassTimer, SetRing};
 
 /// What a descriptor binding holds (binding numbers are positions in the list, set 0).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -37,8 +39,7 @@ pub struct ComputePipeline {
     raw: vk::Pipeline,
     layout: vk::PipelineLayout,
     set_layout: vk::DescriptorSetLayout,
-    pool: vk::DescriptorPool,
-    set: vk::DescriptorSet,
+    sets: SetRing,
     bindings: Vec<BindingKind>,
     push_size: u32,
 }
@@ -103,47 +104,26 @@ impl ComputePipeline {
         // SAFETY: the module is no longer needed once the pipeline exists (or failed).
         unsafe { dev.destroy_shader_module(module, None) };
         let raw = raw.map_err(|(_, e)| VulkanError::from_vk("vkCreateComputePipelines", e))?[0];
-        let mut sizes: Vec<vk::DescriptorPoolSize> = Vec::new();
-        for k in bindings {
-            let ty = descriptor_type(*k);
-            match sizes.iter_mut().find(|s| s.ty == ty) {
-                Some(s) => s.descriptor_count += 1,
-                None => sizes.push(vk::DescriptorPoolSize {
-                    ty,
-                    descriptor_count: 1,
-                }),
+        let sets = match SetRing::new(ctx, set_layout, bindings, name) {
+            Ok(s) => s,
+            Err(e) => {
+                // SAFETY: nothing uses the pipeline or its layouts yet.
+                unsafe {
+                    dev.destroy_pipeline(raw, None);
+                    dev.destroy_pipeline_layout(layout, None);
+                    dev.destroy_descriptor_set_layout(set_layout, None);
+                }
+                return Err(e);
             }
-        }
-        // SAFETY: see above.
-        let pool = unsafe {
-            dev.create_descriptor_pool(
-                &vk::DescriptorPoolCreateInfo::default()
-                    .max_sets(1)
-                    .pool_sizes(&sizes),
-                None,
-            )
-        }
-        .op("vkCreateDescriptorPool")?;
-        // SAFETY: see above.
-        let set = unsafe {
-            dev.allocate_descriptor_sets(
-                &vk::DescriptorSetAllocateInfo::default()
-                    .descriptor_pool(pool)
-                    .set_layouts(&set_layouts),
-            )
-        }
-        .op("vkAllocateDescriptorSets")?[0];
+        };
         ctx.set_name(raw, name);
         ctx.set_name(layout, &format!("{name} layout"));
         ctx.set_name(set_layout, &format!("{name} set layout"));
-        ctx.set_name(pool, &format!("{name} descriptor pool"));
-        ctx.set_name(set, &format!("{name} set"));
         Ok(Self {
             raw,
             layout,
             set_layout,
-            pool,
-            set,
+            sets,
             bindings: bindings.to_vec(),
             push_size,
         })
@@ -170,7 +150,8 @@ impl ComputePipeline {
             )));
         }
         // Every dispatch waits for completion before returning, so the set is not in use.
-        write_descriptor_set(ctx, self.set, &self.bindings, bound)?;
+        let set = self.sets.blocking();
+        write_descriptor_set(ctx, set, &self.bindings, bound)?;
         let start = Instant::now();
         ctx.submit_and_wait("compute dispatch", |dev, cmd| {
             // SAFETY: cmd is recording; pipeline, layout and set are valid; the bound resources
@@ -182,7 +163,7 @@ impl ComputePipeline {
                     vk::PipelineBindPoint::COMPUTE,
                     self.layout,
                     0,
-                    &[self.set],
+                    &[set],
                     &[],
                 );
                 if !push.is_empty() {
@@ -209,16 +190,111 @@ impl ComputePipeline {
         Ok(start.elapsed().as_secs_f64() * 1e3)
     }
 
+    /// Records `passes` into `cmd` with one binding set `bound`: each pass sees the storage
+    /// writes of the passes before it, the first sees the frame's acceleration-structure builds
+    /// (recorded before it into `cmd`), and the host sees every write once the frame completed.
+    /// With `timer`, writes a timestamp before the passes and one after each (queries 0..=n; the
+    /// caller resets the pool before the frame and reads it after).
+    ///
+    /// No wait: the frame completes when `cmd`'s submission does. The bound resources must live
+    /// until then.
+    pub fn record(
+        &mut self,
+        ctx: &VulkanContext,
+        cmd: &FrameCmd,
+        bound: &[Bound<'_>],
+        passes: &[Pass<'_>],
+        timer: Option<PassTimer<'_>>,
+    ) -> VkResult<()> {
+        if bound.len() != self.bindings.len()
+            || passes.iter().any(|p| p.push.len() as u32 != self.push_size)
+        {
+            return Err(VulkanError::Unsupported(format!(
+                "record with {} bindings; the pipeline has {} bindings and {} push bytes",
+                bound.len(),
+                self.bindings.len(),
+                self.push_size
+            )));
+        }
+        check_timer(timer, passes.len())?;
+        let set = self.sets.acquire(ctx, cmd, &self.bindings, bound)?;
+        let dev = &ctx.device;
+        let c = cmd.raw();
+        // Earlier frames on this queue (the slot's last use of the same buffers) before this
+        // frame's writes; the frame's AS builds are covered by the backend's own barrier.
+        let before = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
+            .dst_access_mask(
+                vk::AccessFlags2::SHADER_STORAGE_READ | vk::AccessFlags2::SHADER_STORAGE_WRITE,
+            )];
+        let between = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
+            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
+            .dst_access_mask(
+                vk::AccessFlags2::SHADER_STORAGE_READ | vk::AccessFlags2::SHADER_STORAGE_WRITE,
+            )];
+        let to_host = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
+            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        // SAFETY: a FrameCmd is recording outside a render pass (its constructor's contract);
+        // pipeline, layout and set are valid, the set was written for this frame only; the
+        // timer has room for every timestamp (checked) and was reset by the caller.
+        unsafe {
+            dev.cmd_pipeline_barrier2(c, &vk::DependencyInfo::default().memory_barriers(&before));
+            dev.cmd_bind_pipeline(c, vk::PipelineBindPoint::COMPUTE, self.raw);
+            dev.cmd_bind_descriptor_sets(
+                c,
+                vk::PipelineBindPoint::COMPUTE,
+                self.layout,
+                0,
+                &[set],
+                &[],
+            );
+            if let Some(t) = timer {
+                t.queries.cmd_timestamp(ctx, c, 0);
+            }
+            for (i, p) in passes.iter().enumerate() {
+                if i > 0 {
+                    dev.cmd_pipeline_barrier2(
+                        c,
+                        &vk::DependencyInfo::default().memory_barriers(&between),
+                    );
+                }
+                if !p.push.is_empty() {
+                    dev.cmd_push_constants(
+                        c,
+                        self.layout,
+                        vk::ShaderStageFlags::COMPUTE,
+                        0,
+                        p.push,
+                    );
+                }
+                dev.cmd_dispatch(c, p.grid[0], p.grid[1], p.grid[2]);
+                if let Some(t) = timer {
+                    t.queries.cmd_timestamp(ctx, c, i as u32 + 1);
+                }
+            }
+            dev.cmd_pipeline_barrier2(c, &vk::DependencyInfo::default().memory_barriers(&to_host));
+            copy_timer(ctx, c, timer, passes.len());
+        }
+        Ok(())
+    }
+
     /// Destroys the pipeline. The caller guarantees no dispatch is pending (dispatch waits).
     pub fn destroy(self, ctx: &VulkanContext) {
         // SAFETY: no pending work uses these objects; each is destroyed once.
         unsafe {
             ctx.device.destroy_pipeline(self.raw, None);
             ctx.device.destroy_pipeline_layout(self.layout, None);
-            ctx.device.destroy_descriptor_pool(self.pool, None);
             ctx.device
                 .destroy_descriptor_set_layout(self.set_layout, None);
         }
+        self.sets.destroy(ctx);
     }
 }
 

@@ -4,5 +4,6 @@
 
 pub(crate) mod compute;
 pub(crate) mod geometry;
+pub(crate) mod ring;
 pub(crate) mod rt_pipeline;
 pub(crate) mod scene;

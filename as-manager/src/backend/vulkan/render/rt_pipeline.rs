@@ -13,10 +13,12 @@ use ash::vk;
 use crate::backend::vulkan::device::accel::align_up;
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::vulkan::render::compute::{
     descriptor_type, write_descriptor_set, BindingKind, Bound,
 };
+use crate::backend::vulkan::render::ring::{check_timer, copy_timer, Pass, PassTimer, SetRing};
 
 /// SPIR-V of the three shaders (entry point `main` in each).
 #[derive(Debug, Clone, Copy)]
@@ -42,8 +44,8 @@ pub struct RayTracingPipeline {
     raw: vk::Pipeline,
     layout: vk::PipelineLayout,
     set_layout: vk::DescriptorSetLayout,
-    pool: vk::DescriptorPool,
-    set: vk::DescriptorSet,
+    /// None until `finish` creates them.
+    sets: Option<SetRing>,
     sbt: GpuBuffer,
     /// raygen, miss, hit, callable (empty).
     regions: [vk::StridedDeviceAddressRegionKHR; 4],
@@ -138,8 +140,7 @@ impl RayTracingPipeline {
             raw: vk::Pipeline::null(),
             layout,
             set_layout,
-            pool: vk::DescriptorPool::null(),
-            set: vk::DescriptorSet::null(),
+            sets: None,
             sbt: ctx
                 .create_buffer(&BufferDesc {
                     name: &format!("{name} sbt"),
@@ -286,42 +287,10 @@ impl RayTracingPipeline {
             vk::StridedDeviceAddressRegionKHR::default(),
         ];
 
-        let mut sizes: Vec<vk::DescriptorPoolSize> = Vec::new();
-        for k in &self.bindings {
-            let ty = descriptor_type(*k);
-            match sizes.iter_mut().find(|s| s.ty == ty) {
-                Some(s) => s.descriptor_count += 1,
-                None => sizes.push(vk::DescriptorPoolSize {
-                    ty,
-                    descriptor_count: 1,
-                }),
-            }
-        }
-        // SAFETY: valid device; the create-info points to locals; destroyed in `destroy`.
-        self.pool = unsafe {
-            dev.create_descriptor_pool(
-                &vk::DescriptorPoolCreateInfo::default()
-                    .max_sets(1)
-                    .pool_sizes(&sizes),
-                None,
-            )
-        }
-        .op("vkCreateDescriptorPool")?;
-        let set_layouts = [self.set_layout];
-        // SAFETY: the pool has room for one set of this layout.
-        self.set = unsafe {
-            dev.allocate_descriptor_sets(
-                &vk::DescriptorSetAllocateInfo::default()
-                    .descriptor_pool(self.pool)
-                    .set_layouts(&set_layouts),
-            )
-        }
-        .op("vkAllocateDescriptorSets")?[0];
+        self.sets = Some(SetRing::new(ctx, self.set_layout, &self.bindings, name)?);
         ctx.set_name(self.raw, name);
         ctx.set_name(self.layout, &format!("{name} layout"));
         ctx.set_name(self.set_layout, &format!("{name} set layout"));
-        ctx.set_name(self.pool, &format!("{name} descriptor pool"));
-        ctx.set_name(self.set, &format!("{name} set"));
         Ok(())
     }
 
@@ -353,7 +322,12 @@ impl RayTracingPipeline {
             )));
         }
         // Every trace waits for completion before returning, so the set is not in use.
-        write_descriptor_set(ctx, self.set, &self.bindings, bound)?;
+        let set = self
+            .sets
+            .as_ref()
+            .expect("a created pipeline has its sets")
+            .blocking();
+        write_descriptor_set(ctx, set, &self.bindings, bound)?;
         let start = Instant::now();
         let [raygen, miss, hit, callable] = &self.regions;
         ctx.submit_and_wait("ray tracing", |dev, cmd| {
@@ -382,7 +356,7 @@ impl RayTracingPipeline {
                     vk::PipelineBindPoint::RAY_TRACING_KHR,
                     self.layout,
                     0,
-                    &[self.set],
+                    &[set],
                     &[],
                 );
                 if !push.is_empty() {
@@ -403,6 +377,103 @@ impl RayTracingPipeline {
         Ok(start.elapsed().as_secs_f64() * 1e3)
     }
 
+    /// Records `passes` (`grid` = rays, x/y/z) into `cmd` with one binding set `bound`, as
+    /// [`ComputePipeline::record`](crate::backend::vulkan::ComputePipeline::record) does for
+    /// compute: ordered after earlier work on the queue, each pass after the one before, and
+    /// every write visible to the host once the frame completed. No wait.
+    pub fn record(
+        &mut self,
+        ctx: &VulkanContext,
+        cmd: &FrameCmd,
+        bound: &[Bound<'_>],
+        passes: &[Pass<'_>],
+        timer: Option<PassTimer<'_>>,
+    ) -> VkResult<()> {
+        let Some(rt) = ctx.ray_tracing_pipeline() else {
+            return Err(VulkanError::Unsupported(
+                "record without VK_KHR_ray_tracing_pipeline".into(),
+            ));
+        };
+        if bound.len() != self.bindings.len()
+            || passes.iter().any(|p| p.push.len() as u32 != self.push_size)
+        {
+            return Err(VulkanError::Unsupported(format!(
+                "record with {} bindings; the pipeline has {} bindings and {} push bytes",
+                bound.len(),
+                self.bindings.len(),
+                self.push_size
+            )));
+        }
+        check_timer(timer, passes.len())?;
+        let set = self
+            .sets
+            .as_mut()
+            .expect("a created pipeline has its sets")
+            .acquire(ctx, cmd, &self.bindings, bound)?;
+        let dev = &ctx.device;
+        let c = cmd.raw();
+        let [raygen, miss, hit, callable] = &self.regions;
+        let reads = vk::AccessFlags2::SHADER_STORAGE_READ
+            | vk::AccessFlags2::SHADER_STORAGE_WRITE
+            | vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR
+            | vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR;
+        let before = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
+            .dst_access_mask(reads)];
+        let between = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
+            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
+            .dst_access_mask(
+                vk::AccessFlags2::SHADER_STORAGE_READ | vk::AccessFlags2::SHADER_STORAGE_WRITE,
+            )];
+        let to_host = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
+            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        // SAFETY: a FrameCmd is recording outside a render pass (its constructor's contract);
+        // pipeline, layout, set and SBT are valid, the set was written for this frame only; the
+        // timer has room for every timestamp (checked) and was reset by the caller.
+        unsafe {
+            dev.cmd_pipeline_barrier2(c, &vk::DependencyInfo::default().memory_barriers(&before));
+            dev.cmd_bind_pipeline(c, vk::PipelineBindPoint::RAY_TRACING_KHR, self.raw);
+            dev.cmd_bind_descriptor_sets(
+                c,
+                vk::PipelineBindPoint::RAY_TRACING_KHR,
+                self.layout,
+                0,
+                &[set],
+                &[],
+            );
+            if let Some(t) = timer {
+                t.queries.cmd_timestamp(ctx, c, 0);
+            }
+            for (i, p) in passes.iter().enumerate() {
+                if i > 0 {
+                    dev.cmd_pipeline_barrier2(
+                        c,
+                        &vk::DependencyInfo::default().memory_barriers(&between),
+                    );
+                }
+                if !p.push.is_empty() {
+                    dev.cmd_push_constants(c, self.layout, STAGES, 0, p.push);
+                }
+                rt.cmd_trace_rays(
+                    c, raygen, miss, hit, callable, p.grid[0], p.grid[1], p.grid[2],
+                );
+                if let Some(t) = timer {
+                    t.queries.cmd_timestamp(ctx, c, i as u32 + 1);
+                }
+            }
+            dev.cmd_pipeline_barrier2(c, &vk::DependencyInfo::default().memory_barriers(&to_host));
+            copy_timer(ctx, c, timer, passes.len());
+        }
+        Ok(())
+    }
+
     /// Destroys the pipeline and its SBT. The caller guarantees no trace is pending (trace waits).
     pub fn destroy(self, ctx: &VulkanContext) {
         // SAFETY: no pending work uses these objects; each is destroyed once; null handles
@@ -410,9 +481,11 @@ impl RayTracingPipeline {
         unsafe {
             ctx.device.destroy_pipeline(self.raw, None);
             ctx.device.destroy_pipeline_layout(self.layout, None);
-            ctx.device.destroy_descriptor_pool(self.pool, None);
             ctx.device
                 .destroy_descriptor_set_layout(self.set_layout, None);
+        }
+        if let Some(sets) = &self.sets {
+            sets.destroy(ctx);
         }
         ctx.destroy_buffer(self.sbt);
     }

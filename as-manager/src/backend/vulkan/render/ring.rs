@@ -1,0 +1,186 @@
+//! Descriptor sets for recorded frames: one set per frame in flight (up to [`RECORDED_SETS`]),
+//! plus one for the blocking calls that wait for their own submission.
+
+use ash::vk;
+
+use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::frames::FrameCmd;
+use crate::backend::vulkan::device::query::QueryPool;
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::render::compute::{
+    descriptor_type, write_descriptor_set, BindingKind, Bound,
+};
+
+/// Frames in flight a pipeline's recorded passes support: frame `n` writes the set frame
+/// `n - RECORDED_SETS` used, which must have completed by then.
+pub const RECORDED_SETS: u32 = 4;
+
+/// One dispatch (or trace) of a recorded frame: push constants and the grid (workgroups for
+/// a compute pipeline, rays for a ray-tracing pipeline).
+#[derive(Debug, Clone, Copy)]
+pub struct Pass<'a> {
+    /// Push constants (the pipeline's push size).
+    pub push: &'a [u8],
+    /// Workgroups (compute) or rays (ray tracing), x/y/z.
+    pub grid: [u32; 3],
+}
+
+/// Timestamps of a recorded frame's passes: one before the passes and one after each, in
+/// `queries` (reset by the caller before the frame), copied on the GPU into `results` (u64 each,
+/// host-visible) at the end of the passes, to read once the frame completed.
+#[derive(Debug, Clone, Copy)]
+pub struct PassTimer<'a> {
+    /// A timestamp pool with at least passes + 1 queries.
+    pub queries: &'a QueryPool,
+    /// A readback buffer with room for as many u64.
+    pub results: &'a crate::backend::vulkan::device::buffer::GpuBuffer,
+}
+
+/// The descriptor pool and sets of a pipeline.
+#[derive(Debug)]
+pub(crate) struct SetRing {
+    pool: vk::DescriptorPool,
+    /// `RECORDED_SETS` sets for recorded frames, then the blocking calls' set.
+    sets: Vec<vk::DescriptorSet>,
+    /// Frame each recorded set was last written for.
+    frames: Vec<Option<u64>>,
+}
+
+impl SetRing {
+    pub(crate) fn new(
+        ctx: &VulkanContext,
+        set_layout: vk::DescriptorSetLayout,
+        bindings: &[BindingKind],
+        name: &str,
+    ) -> VkResult<Self> {
+        let count = RECORDED_SETS + 1;
+        let mut sizes: Vec<vk::DescriptorPoolSize> = Vec::new();
+        for k in bindings {
+            let ty = descriptor_type(*k);
+            match sizes.iter_mut().find(|s| s.ty == ty) {
+                Some(s) => s.descriptor_count += count,
+                None => sizes.push(vk::DescriptorPoolSize {
+                    ty,
+                    descriptor_count: count,
+                }),
+            }
+        }
+        let dev = &ctx.device;
+        // SAFETY: valid device; the create-info points to locals; destroyed in `destroy`.
+        let pool = unsafe {
+            dev.create_descriptor_pool(
+                &vk::DescriptorPoolCreateInfo::default()
+                    .max_sets(count)
+                    .pool_sizes(&sizes),
+                None,
+            )
+        }
+        .op("vkCreateDescriptorPool")?;
+        let layouts = vec![set_layout; count as usize];
+        // SAFETY: the pool has room for `count` sets of this layout.
+        let sets = unsafe {
+            dev.allocate_descriptor_sets(
+                &vk::DescriptorSetAllocateInfo::default()
+                    .descriptor_pool(pool)
+                    .set_layouts(&layouts),
+            )
+        };
+        let sets = match sets {
+            Ok(s) => s,
+            Err(e) => {
+                // SAFETY: the pool is unused.
+                unsafe { dev.destroy_descriptor_pool(pool, None) };
+                return Err(VulkanError::from_vk("vkAllocateDescriptorSets", e));
+            }
+        };
+        ctx.set_name(pool, &format!("{name} descriptor pool"));
+        for (i, s) in sets.iter().enumerate() {
+            ctx.set_name(*s, &format!("{name} set {i}"));
+        }
+        Ok(Self {
+            pool,
+            frames: vec![None; RECORDED_SETS as usize],
+            sets,
+        })
+    }
+
+    /// The set of the blocking calls (each waits for its submission, so it is never in use).
+    pub(crate) fn blocking(&self) -> vk::DescriptorSet {
+        self.sets[RECORDED_SETS as usize]
+    }
+
+    /// The set for `cmd`'s frame, written with `bound`. Fails, writing nothing, when the frame
+    /// that used it last has not completed, or when the frame already recorded with it.
+    pub(crate) fn acquire(
+        &mut self,
+        ctx: &VulkanContext,
+        cmd: &FrameCmd,
+        bindings: &[BindingKind],
+        bound: &[Bound<'_>],
+    ) -> VkResult<vk::DescriptorSet> {
+        let i = (cmd.frame() % u64::from(RECORDED_SETS)) as usize;
+        if let Some(f) = self.frames[i] {
+            if f >= cmd.frame() {
+                return Err(VulkanError::Unsupported(format!(
+                    "frame {} records this pipeline after frame {f}: once per frame, in order \
+                     (several passes go into one record call)",
+                    cmd.frame()
+                )));
+            }
+            if !cmd.is_done(f) {
+                return Err(VulkanError::Unsupported(format!(
+                    "frame {} needs frame {f} to be done: more than {RECORDED_SETS} frames in \
+                     flight",
+                    cmd.frame()
+                )));
+            }
+        }
+        // The set's last frame completed: no pending work uses it.
+        write_descriptor_set(ctx, self.sets[i], bindings, bound)?;
+        self.frames[i] = Some(cmd.frame());
+        Ok(self.sets[i])
+    }
+
+    pub(crate) fn destroy(&self, ctx: &VulkanContext) {
+        // SAFETY: the caller guarantees no pending work uses the sets; the pool is ours.
+        unsafe { ctx.device.destroy_descriptor_pool(self.pool, None) };
+    }
+}
+
+/// Checks a recorded frame's timer: one timestamp before the passes and one after each.
+pub(crate) fn check_timer(timer: Option<PassTimer<'_>>, passes: usize) -> VkResult<()> {
+    match timer {
+        Some(t)
+            if (t.queries.count as usize) < passes + 1
+                || t.results.size < (passes as u64 + 1) * 8
+                || t.results.mapped().is_none() =>
+        {
+            Err(VulkanError::Unsupported(format!(
+                "a timer for {passes} passes needs {} queries and a host-visible buffer of {} \
+                 bytes",
+                passes + 1,
+                (passes + 1) * 8
+            )))
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Records the timer's copy of its `passes + 1` timestamps (after the passes).
+///
+/// # Safety
+/// `cmd` is recording outside a render pass, after the timestamps were written.
+pub(crate) unsafe fn copy_timer(
+    ctx: &VulkanContext,
+    cmd: vk::CommandBuffer,
+    timer: Option<PassTimer<'_>>,
+    passes: usize,
+) {
+    if let Some(t) = timer {
+        // SAFETY: guaranteed by the caller; `check_timer` checked the sizes.
+        unsafe {
+            t.queries
+                .cmd_copy_results(ctx, cmd, 0, passes as u32 + 1, t.results, 0)
+        };
+    }
+}

@@ -1,0 +1,228 @@
+//! The pipelined renderer: [`Renderer::record`] puts a frame's three passes into the frame's
+//! command buffer (one submission per frame, made by the engine or a `FrameLoop`, and no wait
+//! per pass); [`Renderer::take`] reads the frame back once it has completed.
+//!
+//! Each frame in flight has its own output buffers, instance buffer, timestamps and descriptor
+//! set (up to [`RECORDED_SETS`] frames in flight), so frame `n` never writes what a frame still
+//! in flight reads. Pass times come from GPU timestamps, not from the host.
+
+use rtstream_as_manager::backend::vulkan::{
+    ash::vk, BufferDesc, FrameCmd, GpuBuffer, MemoryKind, Pass, PassTimer, QueryKind, QueryPool,
+    RECORDED_SETS,
+};
+
+use crate::error::{RenderError, Result};
+use crate::frame::Frame;
+use crate::renderer::{push_constants, read_frame, validate, InstanceShading, Tracer};
+use crate::{RenderDesc, Renderer};
+
+/// Readback buffers, their bytes per pixel: colour, hits, surface, light.
+const OUTPUTS: [(&str, u64); 4] = [
+    ("render color", 4),
+    ("render hits", 16),
+    ("render surface", 16),
+    ("render light", 16),
+];
+
+/// What one frame in flight owns.
+#[derive(Debug)]
+pub(crate) struct RenderSlot {
+    /// The frame recorded into these resources last, and whether it was read back.
+    frame: Option<u64>,
+    taken: bool,
+    size: (u32, u32),
+    outputs: Vec<GpuBuffer>,
+    instances: Option<GpuBuffer>,
+    timer: QueryPool,
+    /// The timer's results, copied there on the GPU.
+    times: GpuBuffer,
+}
+
+impl RenderSlot {
+    pub(crate) fn destroy(self, ctx: &rtstream_as_manager::backend::vulkan::VulkanContext) {
+        for b in self
+            .outputs
+            .into_iter()
+            .chain(self.instances)
+            .chain(std::iter::once(self.times))
+        {
+            ctx.destroy_buffer(b);
+        }
+        self.timer.destroy(ctx);
+    }
+}
+
+impl Renderer {
+    /// Records the three passes of `desc` over `tlas` into `cmd` (after the manager's work for
+    /// the frame, so the passes see this frame's builds). Returns at once; read the frame with
+    /// [`take`](Self::take) once `cmd`'s submission has completed.
+    ///
+    /// Fails, recording nothing, when the frame that used this frame's resources
+    /// (`cmd.frame() - RECORDED_SETS`) has not completed, or when the frame was recorded already.
+    /// `tlas` must stay alive until the frame completes (the manager's TLAS of the frame does).
+    pub fn record(
+        &mut self,
+        cmd: &FrameCmd,
+        tlas: vk::AccelerationStructureKHR,
+        instances: &[InstanceShading],
+        desc: &RenderDesc,
+    ) -> Result<()> {
+        validate(desc)?;
+        let n = RECORDED_SETS as usize;
+        let i = (cmd.frame() % RECORDED_SETS as u64) as usize;
+        while self.slots.len() < n {
+            let k = self.slots.len();
+            let timer = QueryPool::new(
+                &self.ctx,
+                QueryKind::Timestamp,
+                4,
+                &format!("render slot {k} passes"),
+            )?;
+            let times = match self.ctx.create_buffer(&BufferDesc {
+                name: "render pass times",
+                size: 32,
+                usage: vk::BufferUsageFlags::TRANSFER_DST,
+                memory: MemoryKind::Readback,
+            }) {
+                Ok(b) => b,
+                Err(e) => {
+                    timer.destroy(&self.ctx);
+                    return Err(e.into());
+                }
+            };
+            self.slots.push(RenderSlot {
+                times,
+                frame: None,
+                taken: true,
+                size: (0, 0),
+                outputs: Vec::new(),
+                instances: None,
+                timer,
+            });
+        }
+        if let Some(f) = self.slots[i].frame {
+            if f >= cmd.frame() || !cmd.is_done(f) {
+                return Err(RenderError::FrameInFlight {
+                    frame: cmd.frame(),
+                    waiting_for: f,
+                });
+            }
+        }
+        let ctx = self.ctx.clone();
+        let (w, h) = (desc.width, desc.height);
+        let pixels = u64::from(w) * u64::from(h);
+        let slot = &mut self.slots[i];
+        // The slot's last frame completed: its buffers and queries are free to reuse.
+        if slot.size != (w, h) {
+            for b in slot.outputs.drain(..) {
+                ctx.destroy_buffer(b);
+            }
+            for (name, bytes) in OUTPUTS {
+                slot.outputs.push(ctx.create_buffer(&BufferDesc {
+                    name,
+                    size: pixels * bytes,
+                    usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                    memory: MemoryKind::Readback,
+                })?);
+            }
+            slot.size = (w, h);
+        }
+        let fallback = [InstanceShading {
+            vertices: 0,
+            indices: 0,
+            base_color: [0.8; 4],
+        }];
+        let inst = if instances.is_empty() {
+            &fallback[..]
+        } else {
+            instances
+        };
+        let bytes: &[u8] = bytemuck::cast_slice(inst);
+        if slot
+            .instances
+            .as_ref()
+            .is_none_or(|b| (b.size as usize) < bytes.len())
+        {
+            if let Some(b) = slot.instances.take() {
+                ctx.destroy_buffer(b);
+            }
+            slot.instances = Some(ctx.create_buffer(&BufferDesc {
+                name: "render instances",
+                size: (bytes.len() as u64).next_power_of_two(),
+                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                memory: MemoryKind::Upload,
+            })?);
+        }
+        let ibuf = slot.instances.as_mut().expect("allocated above");
+        ibuf.write(0, bytes);
+        slot.timer.reset(&ctx);
+        let mut push = push_constants(desc);
+        let pushes: Vec<_> = (0..3u32)
+            .map(|pass| {
+                push.size[2] = pass;
+                push
+            })
+            .collect();
+        let (grid, rays) = ([w.div_ceil(8), h.div_ceil(8), 1], [w, h, 1]);
+        let outputs = &slot.outputs;
+        let bound = [
+            rtstream_as_manager::backend::vulkan::Bound::AccelRaw(tlas),
+            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[0]),
+            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[1]),
+            rtstream_as_manager::backend::vulkan::Bound::Buffer(
+                slot.instances.as_ref().expect("allocated above"),
+            ),
+            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[2]),
+            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[3]),
+        ];
+        let tracer = self.tracer.as_mut().expect("tracer lives until drop");
+        let g = match tracer {
+            Tracer::Query(_) => grid,
+            Tracer::Pipeline(_) => rays,
+        };
+        let passes: Vec<Pass<'_>> = pushes
+            .iter()
+            .map(|p| Pass {
+                push: bytemuck::bytes_of(p),
+                grid: g,
+            })
+            .collect();
+        let timer = Some(PassTimer {
+            queries: &slot.timer,
+            results: &slot.times,
+        });
+        match tracer {
+            Tracer::Query(p) => p.record(&ctx, cmd, &bound, &passes, timer)?,
+            Tracer::Pipeline(p) => p.record(&ctx, cmd, &bound, &passes, timer)?,
+        }
+        slot.frame = Some(cmd.frame());
+        slot.taken = false;
+        Ok(())
+    }
+
+    /// The frame recorded for `frame`, once it has completed (`completed` is the latest frame
+    /// whose submission completed, e.g. `FrameLoop::completed`); `None` while it is in flight,
+    /// or when it was taken already or overwritten by a later frame. Pass times are GPU time
+    /// (timestamps).
+    pub fn take(&mut self, frame: u64, completed: Option<u64>) -> Result<Option<Frame>> {
+        if completed.is_none_or(|c| c < frame) {
+            return Ok(None);
+        }
+        let Some(slot) = self
+            .slots
+            .iter_mut()
+            .find(|s| s.frame == Some(frame) && !s.taken)
+        else {
+            return Ok(None);
+        };
+        // The frame completed: its timestamps were copied into `times` on the GPU.
+        let t: &[u64] = bytemuck::cast_slice(slot.times.mapped().expect("readback is mapped"));
+        let ms = |a: usize, b: usize| slot.timer.ticks_to_ms(t[b].saturating_sub(t[a]));
+        let times = [ms(0, 1), ms(1, 2), ms(2, 3)];
+        let (w, h) = slot.size;
+        let o = &slot.outputs;
+        let f = read_frame(w, h, [&o[0], &o[1], &o[2], &o[3]], times);
+        slot.taken = true;
+        Ok(Some(f))
+    }
+}
