@@ -117,7 +117,9 @@ fn threads_register_while_update_runs_and_the_result_is_the_serial_one() {
                 let mut jitter = SplitMix64::seed_from_u64(0xD1CE + u64::from(t));
                 let _ = work(&r, t, || {
                     if jitter.next_u64() % 8 == 0 {
-                        std::thread::sleep(std::time::Duration::from_micros(jitter.next_u64() % 300));
+                        std::thread::sleep(std::time::Duration::from_micros(
+                            jitter.next_u64() % 300,
+                        ));
                     }
                 });
             })
