@@ -8,26 +8,27 @@
 use std::sync::Arc;
 
 use glam::{Affine3A, Quat, Vec3};
+use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+use rand_xoshiro::SplitMix64;
 
 use crate::mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind};
 use crate::{AsManager, Camera, InstanceDesc, InstanceId, MeshId, Result};
 
-/// SplitMix64: small, deterministic, good enough for placement.
+/// The placement's random source: [`rand_xoshiro::SplitMix64`] (its raw `next_u64` is
+/// value-stable across versions) with the helpers placement needs on top of `next_u64`, so a
+/// seed gives the same world, bit for bit. No `rand` distributions: their values may change
+/// between versions.
 #[derive(Debug, Clone)]
-pub struct Rng(u64);
+pub struct Rng(SplitMix64);
 
 impl Rng {
-    /// Seeded generator.
+    /// Seeded generator (the state starts at `seed`).
     pub fn new(seed: u64) -> Self {
-        Self(seed)
+        Self(SplitMix64::seed_from_u64(seed))
     }
     /// Next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     /// Uniform in [0, 1).
     pub fn f32(&mut self) -> f32 {

@@ -9,6 +9,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use glam::{Affine3A, Vec3};
+use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+use rand_xoshiro::SplitMix64;
 use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::synth::counts_chain;
 use rtstream_as_manager::*;
@@ -16,24 +18,11 @@ use rtstream_as_manager::*;
 const THREADS: u32 = 4;
 const OPS: u32 = 300;
 
-/// A tiny deterministic PRNG per thread (SplitMix64).
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-}
-
 /// One thread's work: its own meshes and instances, in program order; returns how many of its
 /// instances are live at the end. `pause` runs between operations (random short sleeps in the
 /// concurrent run, nothing in the serial one).
 fn work(r: &Registrar, t: u32, mut pause: impl FnMut()) -> usize {
-    let mut rng = Rng(0x5EED + u64::from(t));
+    let mut rng = SplitMix64::seed_from_u64(0x5EED + u64::from(t));
     let mut meshes = Vec::new();
     for k in 0..3 {
         let m = r
@@ -49,27 +38,27 @@ fn work(r: &Registrar, t: u32, mut pause: impl FnMut()) -> usize {
     let mut live: Vec<(InstanceId, u32)> = Vec::new();
     for i in 0..OPS {
         pause();
-        let pos = |rng: &mut Rng| {
+        let pos = |rng: &mut SplitMix64| {
             Vec3::new(
-                (rng.next() % 80) as f32 - 40.0,
+                (rng.next_u64() % 80) as f32 - 40.0,
                 0.0,
-                (rng.next() % 80) as f32 - 40.0,
+                (rng.next_u64() % 80) as f32 - 40.0,
             )
         };
-        match rng.next() % 4 {
+        match rng.next_u64() % 4 {
             0 | 1 => {
-                let mesh = meshes[(rng.next() % 3) as usize];
+                let mesh = meshes[(rng.next_u64() % 3) as usize];
                 let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(pos(&mut rng)));
                 d.custom_index = t * 10_000 + i;
                 live.push((r.add_instance(d).unwrap(), t * 10_000 + i));
             }
             2 if !live.is_empty() => {
-                let (id, _) = live[(rng.next() % live.len() as u64) as usize];
+                let (id, _) = live[(rng.next_u64() % live.len() as u64) as usize];
                 r.set_transform(id, Affine3A::from_translation(pos(&mut rng)))
                     .unwrap();
             }
             3 if !live.is_empty() => {
-                let (id, _) = live.swap_remove((rng.next() % live.len() as u64) as usize);
+                let (id, _) = live.swap_remove((rng.next_u64() % live.len() as u64) as usize);
                 r.remove_instance(id).unwrap();
             }
             _ => {}
@@ -125,10 +114,12 @@ fn threads_register_while_update_runs_and_the_result_is_the_serial_one() {
             let r = m.registrar();
             std::thread::spawn(move || {
                 // Pauses from a PRNG of their own: the operations stay those of the serial run.
-                let mut jitter = Rng(0xD1CE + u64::from(t));
+                let mut jitter = SplitMix64::seed_from_u64(0xD1CE + u64::from(t));
                 let _ = work(&r, t, || {
-                    if jitter.next() % 8 == 0 {
-                        std::thread::sleep(std::time::Duration::from_micros(jitter.next() % 300));
+                    if jitter.next_u64() % 8 == 0 {
+                        std::thread::sleep(std::time::Duration::from_micros(
+                            jitter.next_u64() % 300,
+                        ));
                     }
                 });
             })

@@ -187,8 +187,10 @@ struct PolicyRun {
 pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld> {
     let world = generate(preset)?;
     let proxies = rtstream_streaming::proxy::ProxyConfig::default();
+    // The stamp names the baked format's version too: a bake of an older format is redone here
+    // (reading it would be a `FormatError::Version`), never left for the user to delete.
     let stamp = format!(
-        "{} seed={} size={} grid={} instances={} proxies={}x{}/{} v2\n",
+        "{} seed={} size={} grid={} instances={} proxies={}x{}/{} v2 format={}\n",
         preset.name,
         preset.seed,
         preset.size_m,
@@ -196,7 +198,8 @@ pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld>
         preset.instances,
         proxies.max_depth,
         proxies.triangles,
-        proxies.source_error
+        proxies.source_error,
+        rtstream_streaming::format::VERSION
     );
     let stamp_path = dir.join("preset.txt");
     let current = std::fs::read_to_string(&stamp_path).ok();

@@ -1,6 +1,8 @@
 //! The camera path of a run: seeded, deterministic, across the map.
 
 use glam::Vec3;
+use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+use rand_xoshiro::SplitMix64;
 use rtstream_streaming::{Aabb, Manifest};
 
 /// A fly-through path: an S along one of the map's diagonals at driving speed, a few metres
@@ -32,11 +34,9 @@ pub struct PathPoint {
 impl CameraPath {
     /// A path over `manifest`'s map for `seed`.
     pub fn new(manifest: &Manifest, seed: u64) -> Self {
-        // SplitMix-style scramble of the seed into a few independent choices.
-        let mut h = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        h ^= h >> 31;
+        // The seed scrambled into a few independent choices: SplitMix64's first output (the
+        // same bits as the hand-written scramble this replaced, so paths did not move).
+        let h = SplitMix64::seed_from_u64(seed).next_u64();
         let unit = |shift: u32| ((h >> shift) & 0xffff) as f32 / 65535.0;
         let default_run = seed == 0x5EED;
         Self {

@@ -2,14 +2,27 @@
 //! LODs and the manifest.
 //!
 //! Every file (and every mesh-LOD chunk inside the mesh library) is framed as
-//! `magic[4] | version u32 | payload_len u64 | fnv1a64(payload) u64 | payload`, little-endian.
+//! `magic[4] | version u32 | payload_len u64 | xxh3_64(payload) u64 | payload`, little-endian.
 //! Readers check magic, version, length and checksum before decoding, then validate what they
 //! decode (finite numbers, indices and ids in range), so a flipped byte or a truncated file is a
 //! [`FormatError`], never a panic or a huge allocation.
+//!
+//! Version 2 (this one) writes the bulk arrays (level columns, positions, indices, skin joints
+//! and weights, key frames) as their raw little-endian bytes with `bytemuck` casts, and reads them
+//! back with one copy into an aligned `Vec` (the payload inside a file buffer has no alignment
+//! guarantee: an aligned slice is cast and copied, an unaligned one is copied byte-wise by
+//! `pod_collect_to_vec`); the checks on what was decoded run over the whole array afterwards.
+//! A level holds its instances as columns (ids, meshes, 3x4 transforms, materials, motions) and a
+//! LOD chunk has a header of 4-byte fields, so that every array starts 4-byte aligned within the
+//! payload. Version 1 (element-by-element, FNV-1a) files are rejected with
+//! [`FormatError::Version`]; re-bake them. The format is little-endian and the casts assume a
+//! little-endian host: big-endian targets do not compile.
 
 use std::sync::Arc;
 
+use bytemuck::{AnyBitPattern, NoUninit};
 use glam::{Mat4, Quat, Vec3, Vec4};
+use xxhash_rust::xxh3::xxh3_64;
 
 use crate::error::FormatError;
 use crate::model::{
@@ -18,8 +31,11 @@ use crate::model::{
 };
 use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
-/// Format version written and accepted.
-pub const VERSION: u32 = 1;
+#[cfg(target_endian = "big")]
+compile_error!("the baked format is read and written with little-endian bytemuck casts");
+
+/// Format version written and accepted (see the module docs for what changed from 1).
+pub const VERSION: u32 = 2;
 /// Magic of a level file.
 pub const LEVEL_MAGIC: [u8; 4] = *b"RTSL";
 /// Magic of a mesh-LOD chunk.
@@ -31,14 +47,9 @@ pub const HEADER_LEN: usize = 24;
 
 type FResult<T> = std::result::Result<T, FormatError>;
 
-/// 64-bit FNV-1a.
-pub fn fnv1a64(bytes: &[u8]) -> u64 {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for &b in bytes {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0000_0100_0000_01b3);
-    }
-    h
+/// The payload checksum: xxh3-64 (seed 0).
+pub fn checksum(payload: &[u8]) -> u64 {
+    xxh3_64(payload)
 }
 
 /// Frames a payload with magic, version, length and checksum.
@@ -47,7 +58,7 @@ pub fn frame(magic: [u8; 4], payload: &[u8]) -> Vec<u8> {
     out.extend_from_slice(&magic);
     out.extend_from_slice(&VERSION.to_le_bytes());
     out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    out.extend_from_slice(&fnv1a64(payload).to_le_bytes());
+    out.extend_from_slice(&checksum(payload).to_le_bytes());
     out.extend_from_slice(payload);
     out
 }
@@ -80,7 +91,7 @@ pub fn unframe(magic: [u8; 4], bytes: &[u8]) -> FResult<&[u8]> {
             r.remaining()
         )));
     }
-    let actual = fnv1a64(payload);
+    let actual = checksum(payload);
     if actual != expected {
         return Err(FormatError::Checksum { expected, actual });
     }
@@ -125,6 +136,10 @@ impl Writer {
     pub fn str(&mut self, s: &str) {
         self.u32(s.len() as u32);
         self.0.extend_from_slice(s.as_bytes());
+    }
+    /// A bulk array as its raw (little-endian) bytes, in one copy.
+    pub fn pod<T: NoUninit>(&mut self, v: &[T]) {
+        self.0.extend_from_slice(bytemuck::cast_slice(v));
     }
 }
 
@@ -224,27 +239,66 @@ impl<'a> Reader<'a> {
         String::from_utf8(self.bytes(n)?.to_vec())
             .map_err(|_| FormatError::Inconsistent("name is not UTF-8".into()))
     }
+    /// `n` items of a plain-data type, copied out of the payload into an aligned `Vec`. The
+    /// bounds are checked before anything is allocated.
+    pub fn pod<T: NoUninit + AnyBitPattern>(&mut self, n: usize) -> FResult<Vec<T>> {
+        let len = n
+            .checked_mul(std::mem::size_of::<T>())
+            .ok_or(FormatError::Truncated {
+                offset: self.pos,
+                needed: usize::MAX,
+                available: self.remaining(),
+            })?;
+        let bytes = self.bytes(len)?;
+        Ok(match bytemuck::try_cast_slice::<u8, T>(bytes) {
+            Ok(aligned) => aligned.to_vec(),
+            Err(_) => bytemuck::pod_collect_to_vec(bytes),
+        })
+    }
+    /// `n` items of `T`, which is `f32` or an array of `f32`, every number finite.
+    pub fn finite<T: NoUninit + AnyBitPattern>(&mut self, n: usize) -> FResult<Vec<T>> {
+        let start = self.pos;
+        let v: Vec<T> = self.pod(n)?;
+        let floats: &[f32] = bytemuck::cast_slice(&v);
+        if let Some(k) = floats.iter().position(|x| !x.is_finite()) {
+            return Err(FormatError::Inconsistent(format!(
+                "non-finite number at offset {}",
+                start + 4 * k
+            )));
+        }
+        Ok(v)
+    }
 }
 
-/// Encodes a level: its header and, per instance, id, mesh, material, motion and a 3x4 affine
-/// transform (58 bytes). World bounds are re-derived from the mesh bounds on load.
+/// Encodes a level: its header, then its instances as columns: ids, meshes, 3x4 affine
+/// transforms (column-major, the implied last row dropped), material classes, motions (58 bytes
+/// per instance). World bounds are re-derived from the mesh bounds on load.
 pub fn encode_level(level: &Level) -> Vec<u8> {
-    let mut w = Writer::default();
+    let inst = &level.instances;
+    let mut w = Writer(Vec::with_capacity(40 + 58 * inst.len()));
     w.u32(level.id.0);
     w.i32(level.cell[0]);
     w.i32(level.cell[1]);
     w.aabb(&level.bounds);
-    w.u32(level.instances.len() as u32);
-    for i in &level.instances {
-        w.u32(i.id.0);
-        w.u32(i.mesh.0);
-        w.u8(i.material as u8);
-        w.u8(i.motion as u8);
-        let c = i.transform.to_cols_array();
+    w.u32(inst.len() as u32);
+    w.pod(&inst.iter().map(|i| i.id.0).collect::<Vec<u32>>());
+    w.pod(&inst.iter().map(|i| i.mesh.0).collect::<Vec<u32>>());
+    let affine = |m: &Mat4| {
+        let c = m.to_cols_array();
+        let mut a = [0f32; 12];
         for col in 0..4 {
-            w.f32s(&c[col * 4..col * 4 + 3]);
+            a[col * 3..col * 3 + 3].copy_from_slice(&c[col * 4..col * 4 + 3]);
         }
-    }
+        a
+    };
+    w.pod(
+        &inst
+            .iter()
+            .map(|i| affine(&i.transform))
+            .collect::<Vec<_>>(),
+    );
+    w.pod(&inst.iter().map(|i| i.material as u8).collect::<Vec<u8>>());
+    w.pod(&inst.iter().map(|i| i.motion as u8).collect::<Vec<u8>>());
     frame(LEVEL_MAGIC, &w.0)
 }
 
@@ -255,47 +309,49 @@ pub fn decode_level(bytes: &[u8], mesh_bounds: &[Aabb]) -> FResult<Level> {
     let cell = [r.i32()?, r.i32()?];
     let bounds = r.aabb()?;
     let n = r.count(58)?;
+    let ids: Vec<u32> = r.pod(n)?;
+    let meshes: Vec<u32> = r.pod(n)?;
+    let transforms: Vec<[f32; 12]> = r.finite(n)?;
+    let materials = r.bytes(n)?;
+    let motions = r.bytes(n)?;
+    if r.remaining() != 0 {
+        return Err(FormatError::Inconsistent(format!(
+            "{} unread bytes",
+            r.remaining()
+        )));
+    }
     let mut instances = Vec::with_capacity(n);
     for k in 0..n {
-        let iid = InstanceId(r.u32()?);
-        let mesh = r.u32()?;
         let bad = |what: String| FormatError::Inconsistent(format!("instance {k}: {what}"));
+        let mesh = meshes[k];
         let mb = mesh_bounds.get(mesh as usize).ok_or_else(|| {
             bad(format!(
                 "mesh {mesh} not in the library ({} meshes)",
                 mesh_bounds.len()
             ))
         })?;
-        let mat = r.u8()?;
+        let mat = materials[k];
         let material =
             MaterialClass::from_u8(mat).ok_or_else(|| bad(format!("material class {mat}")))?;
-        let motion = match r.u8()? {
+        let motion = match motions[k] {
             0 => Motion::Static,
             1 => Motion::Skinned,
             m => return Err(bad(format!("motion {m}"))),
         };
+        let a = &transforms[k];
         let mut c = [0f32; 16];
         for col in 0..4 {
-            for row in 0..3 {
-                c[col * 4 + row] = r.f32()?;
-            }
+            c[col * 4..col * 4 + 3].copy_from_slice(&a[col * 3..col * 3 + 3]);
         }
         c[15] = 1.0;
-        let transform = Mat4::from_cols_array(&c);
         instances.push(Instance::new(
-            iid,
+            InstanceId(ids[k]),
             MeshId(mesh),
-            transform,
+            Mat4::from_cols_array(&c),
             mb,
             material,
             motion,
         ));
-    }
-    if r.remaining() != 0 {
-        return Err(FormatError::Inconsistent(format!(
-            "{} unread bytes",
-            r.remaining()
-        )));
     }
     Ok(Level {
         id,
@@ -321,10 +377,8 @@ fn write_skeleton(w: &mut Writer, s: &Skeleton) {
         w.u16(c.joint);
         w.u8(c.path as u8);
         w.u32(c.times.len() as u32);
-        w.f32s(&c.times);
-        for v in &c.values {
-            w.f32s(&v.to_array());
-        }
+        w.pod(&c.times);
+        w.pod(&c.values.iter().map(|v| v.to_array()).collect::<Vec<_>>());
     }
 }
 
@@ -362,8 +416,9 @@ fn read_skeleton(r: &mut Reader) -> FResult<Skeleton> {
             p => return Err(FormatError::Inconsistent(format!("channel path {p}"))),
         };
         let keys = r.count(20)?;
-        let times = (0..keys).map(|_| r.f32()).collect::<FResult<Vec<_>>>()?;
-        let values = (0..keys).map(|_| r.vec4()).collect::<FResult<Vec<_>>>()?;
+        let times: Vec<f32> = r.finite(keys)?;
+        let values: Vec<[f32; 4]> = r.finite(keys)?;
+        let values = values.into_iter().map(Vec4::from_array).collect();
         channels.push(Channel {
             joint,
             path,
@@ -381,34 +436,23 @@ fn read_skeleton(r: &mut Reader) -> FResult<Skeleton> {
     Ok(s)
 }
 
-/// Encodes one LOD of one mesh as a framed chunk.
+/// Encodes one LOD of one mesh as a framed chunk: a header of 4-byte fields (mesh, LOD, error,
+/// vertex count, index count, skinned flag), positions, indices, and for a skinned LOD the joint
+/// indices, weights and the skeleton.
 pub fn encode_lod(mesh: MeshId, lod: usize, g: &LodGeometry) -> Vec<u8> {
-    let mut w = Writer::default();
+    let mut w = Writer(Vec::with_capacity(24 + g.byte_size()));
     w.u32(mesh.0);
-    w.u8(lod as u8);
+    w.u32(lod as u32);
     w.f32(g.error);
     w.u32(g.positions.len() as u32);
-    for p in &g.positions {
-        w.f32s(p);
-    }
     w.u32(g.indices.len() as u32);
-    for &i in &g.indices {
-        w.u32(i);
-    }
-    match &g.skin {
-        None => w.u8(0),
-        Some(s) => {
-            w.u8(1);
-            for j in &s.joints {
-                for &x in j {
-                    w.u16(x);
-                }
-            }
-            for x in &s.weights {
-                w.f32s(x);
-            }
-            write_skeleton(&mut w, &s.skeleton);
-        }
+    w.u32(u32::from(g.skin.is_some()));
+    w.pod(&g.positions);
+    w.pod(&g.indices);
+    if let Some(s) = &g.skin {
+        w.pod(&s.joints);
+        w.pod(&s.weights);
+        write_skeleton(&mut w, &s.skeleton);
     }
     frame(LOD_MAGIC, &w.0)
 }
@@ -416,46 +460,34 @@ pub fn encode_lod(mesh: MeshId, lod: usize, g: &LodGeometry) -> Vec<u8> {
 /// Decodes and validates one mesh-LOD chunk; it must be `(mesh, lod)`.
 pub fn decode_lod(bytes: &[u8], mesh: MeshId, lod: usize) -> FResult<LodGeometry> {
     let mut r = Reader::new(unframe(LOD_MAGIC, bytes)?);
-    let (m, l) = (r.u32()?, r.u8()?);
-    if m != mesh.0 || usize::from(l) != lod {
+    let (m, l) = (r.u32()?, r.u32()?);
+    if m != mesh.0 || l as usize != lod {
         return Err(FormatError::Inconsistent(format!(
             "chunk holds mesh {m} LOD {l}, index says mesh {} LOD {lod}",
             mesh.0
         )));
     }
     let error = r.f32()?;
-    let nv = r.count(12)?;
-    let mut positions = Vec::with_capacity(nv);
-    for _ in 0..nv {
-        positions.push(r.vec3()?.to_array());
-    }
-    let ni = r.count(4)?;
+    let nv = r.u32()? as usize;
+    let ni = r.u32()? as usize;
+    let skinned = r.u32()?;
     if ni % 3 != 0 {
         return Err(FormatError::Inconsistent(format!(
             "{ni} indices is not a multiple of 3"
         )));
     }
-    let mut indices = Vec::with_capacity(ni);
-    for _ in 0..ni {
-        let i = r.u32()?;
-        if i as usize >= nv {
-            return Err(FormatError::Inconsistent(format!(
-                "index {i} out of range ({nv} vertices)"
-            )));
-        }
-        indices.push(i);
+    let positions: Vec<[f32; 3]> = r.finite(nv)?;
+    let indices: Vec<u32> = r.pod(ni)?;
+    if let Some(i) = indices.iter().find(|&&i| i as usize >= nv) {
+        return Err(FormatError::Inconsistent(format!(
+            "index {i} out of range ({nv} vertices)"
+        )));
     }
-    let skin = match r.u8()? {
+    let skin = match skinned {
         0 => None,
         1 => {
-            let mut joints = Vec::with_capacity(nv);
-            for _ in 0..nv {
-                joints.push([r.u16()?, r.u16()?, r.u16()?, r.u16()?]);
-            }
-            let mut weights = Vec::with_capacity(nv);
-            for _ in 0..nv {
-                weights.push(r.vec4()?.to_array());
-            }
+            let joints: Vec<[u16; 4]> = r.pod(nv)?;
+            let weights: Vec<[f32; 4]> = r.finite(nv)?;
             let skeleton = read_skeleton(&mut r)?;
             let nj = skeleton.joints.len();
             if joints.iter().flatten().any(|&j| usize::from(j) >= nj) {
@@ -585,6 +617,65 @@ mod tests {
         for n in (0..bytes.len()).step_by(5) {
             assert!(decode_lod(&bytes[..n], MeshId(4), mesh.lods.len() - 1).is_err());
         }
+    }
+
+    #[test]
+    fn a_version_1_file_is_a_version_error() {
+        let (level, bounds) = sample_level();
+        let mut bytes = encode_level(&level);
+        bytes[4..8].copy_from_slice(&1u32.to_le_bytes());
+        let err = decode_level(&bytes, &bounds).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                FormatError::Version {
+                    found: 1,
+                    supported: VERSION
+                }
+            ),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn unaligned_buffers_decode_the_same() {
+        // Every bulk array goes through the byte-wise copy when the buffer is misaligned.
+        let (level, bounds) = sample_level();
+        let mut buf = vec![0u8];
+        buf.extend_from_slice(&encode_level(&level));
+        assert_eq!(decode_level(&buf[1..], &bounds).expect("decode"), level);
+        let mesh = procedural::character(3);
+        let lod = &mesh.lods[0];
+        let mut buf = vec![0u8; 3];
+        buf.extend_from_slice(&encode_lod(MeshId(2), 0, lod));
+        assert_eq!(
+            &decode_lod(&buf[3..], MeshId(2), 0).expect("decode"),
+            &**lod
+        );
+    }
+
+    #[test]
+    fn huge_counts_behind_a_valid_checksum_are_truncation_errors() {
+        let mut w = Writer::default();
+        w.u32(0);
+        w.u32(0);
+        w.f32(0.0);
+        w.u32(u32::MAX);
+        w.u32(0);
+        w.u32(0);
+        let err = decode_lod(&frame(LOD_MAGIC, &w.0), MeshId(0), 0).unwrap_err();
+        assert!(matches!(err, FormatError::Truncated { .. }), "{err}");
+        let mut w = Writer::default();
+        w.u32(0);
+        w.i32(0);
+        w.i32(0);
+        w.aabb(&Aabb {
+            min: Vec3::ZERO,
+            max: Vec3::ONE,
+        });
+        w.u32(u32::MAX);
+        let err = decode_level(&frame(LEVEL_MAGIC, &w.0), &[]).unwrap_err();
+        assert!(matches!(err, FormatError::Truncated { .. }), "{err}");
     }
 
     #[test]

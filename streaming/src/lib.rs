@@ -16,7 +16,7 @@
 //! - The generator ([`generate()`]) is deterministic per seed; presets match the shipped game's
 //!   map ([`WorldPreset::default_world`]) and a 16 km scale test ([`WorldPreset::large_world`]).
 //! - Baked worlds ([`bake()`]) are a manifest, a mesh library of individually checksummed LOD
-//!   chunks and one file per level, in a small versioned, FNV-1a-checksummed binary format
+//!   chunks and one file per level, in a small versioned, xxh3-checksummed binary format
 //!   ([`mod@format`]).
 //! - [`World`] owns all state on the thread that calls [`World::update`]; loader threads only
 //!   decode files and send results over crossbeam channels, so events come out in one ordered

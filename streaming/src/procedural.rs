@@ -9,27 +9,29 @@ use std::f32::consts::{PI, TAU};
 use std::sync::Arc;
 
 use glam::{Mat4, Quat, Vec3, Vec4};
+use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+use rand_xoshiro::SplitMix64;
 
 use crate::lod::build_lod_chain;
 use crate::model::{Aabb, Mesh, MeshId, SkinWeights};
 use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
-/// SplitMix64: tiny, fast, and good enough for placement; the same seed gives the same world.
+/// The generator's random source: [`rand_xoshiro::SplitMix64`] (its raw `next_u64` is
+/// value-stable across versions) with the few helpers placement needs, written on top of
+/// `next_u64` so the same seed gives the same world, bit for bit. No `rand` distributions: their
+/// values may change between versions.
 #[derive(Debug, Clone)]
-pub struct Rng(u64);
+pub struct Rng(SplitMix64);
 
 impl Rng {
-    /// A generator from a seed.
+    /// A generator from a seed. The state starts at `seed ^ 0x9E37_79B9_7F4A_7C15`, as the
+    /// hand-written SplitMix64 this replaces did (so generated worlds did not change).
     pub fn new(seed: u64) -> Rng {
-        Rng(seed ^ 0x9E37_79B9_7F4A_7C15)
+        Rng(SplitMix64::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15))
     }
     /// Next 64 random bits.
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     /// Uniform in [0, 1).
     pub fn f32(&mut self) -> f32 {

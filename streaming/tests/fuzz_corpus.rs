@@ -9,6 +9,8 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
+use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+use rand_xoshiro::SplitMix64;
 use rtstream_streaming::{bake, fuzz, read_manifest};
 
 /// Runs `body` on `data`, naming the input on a panic.
@@ -27,14 +29,8 @@ fn with_mutations(target: &str, name: &str, body: fn(&[u8]), data: &[u8], n: usi
     if data.is_empty() {
         return;
     }
-    let mut h = 0x5EEDu64 ^ data.len() as u64;
-    let mut next = || {
-        h = h.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = h;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    };
+    let mut rng = SplitMix64::seed_from_u64(0x5EED ^ data.len() as u64);
+    let mut next = || rng.next_u64();
     for k in 0..n {
         let cut = (next() % data.len() as u64) as usize;
         run(target, &format!("{name} cut at {cut}"), body, &data[..cut]);
