@@ -164,6 +164,24 @@ fn print_table(r: &RunReport) {
         });
         println!("  {:<12} {}{all}", p.policy, bands.join(", "));
     }
+    if let Some(t) = &s.frame_timing {
+        println!(
+            "frame timing ({}, {} frames in flight, {}x{}): frame p50 {:.2} / p99 {:.2} ms, \
+             render passes p50 {:.2} / p99 {:.2} ms, update p50 {:.3} / p99 {:.3} ms, \
+             frame / passes {:.2}",
+            t.mode,
+            t.frames_in_flight,
+            t.size[0],
+            t.size[1],
+            t.frame_ms.p50,
+            t.frame_ms.p99,
+            t.passes_ms.p50,
+            t.passes_ms.p99,
+            t.update_ms.p50,
+            t.update_ms.p99,
+            t.frame_over_passes_p50
+        );
+    }
     println!("validation messages: {}", s.validation_messages);
     for f in &r.files {
         println!("wrote {}", f.display());

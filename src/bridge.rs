@@ -274,7 +274,12 @@ impl WorldBridge {
         }
     }
 
-    /// The shading slot of a customIndex, if live.
+    /// The customIndex range in use (one past the highest slot ever given out).
+    pub fn slot_count(&self) -> u32 {
+        self.slots.len() as u32
+    }
+
+    /// The shading slot of `custom_index`, if one is live.
     pub fn slot(&self, custom_index: u32) -> Option<&ShadingSlot> {
         self.slots.get(custom_index as usize)?.as_ref()
     }

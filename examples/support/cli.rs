@@ -100,9 +100,20 @@ pub struct RunArgs {
     /// scores 33 frames of the 600.
     #[arg(long, default_value_t = 18)]
     pub eval_every: u64,
-    /// Size of scored frames, WxH.
+    /// Size of scored (and rendered) frames, WxH.
     #[arg(long, default_value = "320x180", value_parser = parse_size)]
     pub size: (u32, u32),
+    /// Also render every K-th frame on the frame path, unscored, and report frame time
+    /// against the render passes' GPU time (0: off).
+    #[arg(long, default_value_t = 0)]
+    pub render_every: u64,
+    /// Render those frames the old, blocking way (wait for the frame, then three passes each
+    /// submitted and waited for), to compare with the pipelined path.
+    #[arg(long)]
+    pub blocking_render: bool,
+    /// Frames in flight (1 to 4).
+    #[arg(long, default_value_t = 2)]
+    pub frames_in_flight: u32,
     /// Deterministic: freeze the cost model, retire at frame minus frames in flight, apply
     /// loads a fixed number of frames after their request. Every figure but the timings is
     /// then identical under any load.
@@ -233,6 +244,9 @@ impl RunArgs {
             policies: self.policy.iter().map(|&p| p.into()).collect(),
             eval_every: self.eval_every,
             size: self.size,
+            render_every: self.render_every,
+            blocking_render: self.blocking_render,
+            frames_in_flight: self.frames_in_flight,
             deterministic: self.deterministic,
             all_geometry_reference: !self.opaque_only,
             near_only_too: self.compare_far_field,

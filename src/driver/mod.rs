@@ -31,7 +31,8 @@ use std::time::Instant;
 
 use glam::Vec3;
 use rtstream_as_manager::backend::vulkan::{
-    ContextDesc, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
+    ContextDesc, FrameLoop, Recording, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
+    RECORDED_SETS,
 };
 use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
@@ -89,6 +90,12 @@ pub struct RunConfig {
     pub maps: u32,
     /// Frames in flight per backend.
     pub frames_in_flight: u32,
+    /// Render every this many frames on the frame path, unscored, and report frame time
+    /// against the passes' GPU time (0: only scored frames are rendered).
+    pub render_every: u64,
+    /// Render those frames the old, blocking way: wait for the frame, then three passes each
+    /// submitted and waited for (for comparison with the pipelined path).
+    pub blocking_render: bool,
     /// Validation-layer policy of the device.
     pub validation: Validation,
     /// The stretch of the camera path the run covers, as fractions of it (`(0.0, 1.0)`: the
@@ -123,6 +130,8 @@ impl Default for RunConfig {
             out_dir: None,
             maps: 3,
             frames_in_flight: 2,
+            render_every: 0,
+            blocking_render: false,
             validation: Validation::Auto,
             path_span: (0.0, 1.0),
             teleport_every: None,
@@ -170,6 +179,75 @@ pub struct Progress {
     pub camera: glam::Vec3,
     /// Per policy: (name, BLAS bytes now, TLAS instances now, last hit mismatch if scored).
     pub policies: Vec<(&'static str, u64, u32, Option<f64>)>,
+}
+
+/// A render recorded for scoring, scored once its frame completed.
+struct PendingScore {
+    frame: u64,
+    policy: usize,
+    row: usize,
+    view: ViewCamera,
+    /// customIndex -> instance id at the frame (None: a proxy, or nothing).
+    ids: Vec<Option<u32>>,
+}
+
+/// Scores the pending renders whose frames completed (`completed`: the latest such frame).
+#[allow(clippy::too_many_arguments)]
+fn score_completed(
+    pending: &mut Vec<PendingScore>,
+    completed: Option<u64>,
+    renderers: &mut [Renderer],
+    policies: &mut [PolicyRun],
+    rows: &mut [FrameRow],
+    render_ms: &mut Vec<(usize, f64)>,
+    cache: &ReferenceCache,
+    edges: BandEdges,
+) -> Result<()> {
+    let ready: Vec<PendingScore> = {
+        let (ready, wait): (Vec<_>, Vec<_>) = std::mem::take(pending)
+            .into_iter()
+            .partition(|s| completed.is_some_and(|c| c >= s.frame));
+        *pending = wait;
+        ready
+    };
+    for s in ready {
+        let Some(img) = renderers[s.policy].take(s.frame, completed)? else {
+            return Err(Error::InvalidRun(format!(
+                "the render of frame {} was lost (overwritten before it was read)",
+                s.frame
+            )));
+        };
+        render_ms.push((s.policy, img.render_ms));
+        let p = &mut policies[s.policy];
+        for (kind, reference, ref_ids) in &cache.frames[&s.frame] {
+            let reference = &**reference;
+            let (score, verdicts) = score::score(
+                &img,
+                reference,
+                &s.view,
+                edges,
+                |ci| s.ids.get(ci as usize).copied().flatten(),
+                |ci| ref_ids.get(ci as usize).copied(),
+            )
+            .map_err(Error::InvalidRun)?;
+            if *kind == TruthKind::Opaque {
+                rows[s.row].score = Some(score);
+                let worse = p.worst.as_ref().is_none_or(|w| score.hit_mismatch > w.0);
+                if worse {
+                    let diff = score::difference_picture(reference, &verdicts);
+                    let (w3, pic) = side_by_side(
+                        img.width,
+                        img.height,
+                        &[&img.color, &reference.color, &diff],
+                    );
+                    p.worst = Some((score.hit_mismatch, s.frame, w3, pic));
+                }
+            } else {
+                rows[s.row].score_all_geometry = Some(score);
+            }
+        }
+    }
+    Ok(())
 }
 
 struct PolicyRun {
@@ -312,6 +390,8 @@ pub fn run_cached(
         let backend = VulkanBackend::new(
             ctx.clone(),
             VulkanBackendDesc {
+                // Every policy's frame work goes into the run's one command buffer per frame.
+                recording: Recording::Engine,
                 frames_in_flight: config.frames_in_flight,
                 deterministic: config.deterministic,
                 ..VulkanBackendDesc::default()
@@ -332,11 +412,27 @@ pub fn run_cached(
             worst: None,
         });
     }
-    let mut renderer = if config.eval_every > 0 {
-        Some(Renderer::new(ctx.clone())?)
-    } else {
-        None
-    };
+    // One renderer per policy (each keeps its frames in flight), recording into the frame's
+    // command buffer; references are rendered apart, blocking, off the frame path.
+    let mut renderers = Vec::new();
+    if config.eval_every > 0 || config.render_every > 0 {
+        for _ in &policies {
+            renderers.push(Renderer::new(ctx.clone())?);
+        }
+    }
+    if config.frames_in_flight == 0 || config.frames_in_flight > RECORDED_SETS {
+        return Err(Error::InvalidRun(format!(
+            "frames in flight {} (1 to {RECORDED_SETS})",
+            config.frames_in_flight
+        )));
+    }
+    // The frame loop: one submission per frame holding every policy's work and the scored
+    // renders; `begin` waits only for the frame `frames_in_flight` frames back.
+    let mut frames = FrameLoop::new(&ctx, config.frames_in_flight)?;
+    let mut pending: Vec<PendingScore> = Vec::new();
+    // Unscored renders on the frame path: (frame, policy) recorded, and the timings.
+    let mut pending_renders: Vec<(u64, usize)> = Vec::new();
+    let (mut frame_ms, mut passes_ms, mut update0_ms) = (Vec::new(), Vec::new(), Vec::new());
     let edges = BandEdges::new(config.managed.residency.r1, config.managed.residency.r2);
     let map_at: Vec<u64> = (1..=u64::from(config.maps))
         .map(|i| i * config.frames / (u64::from(config.maps) + 1))
@@ -353,6 +449,7 @@ pub fn run_cached(
             None => frame as f32 / config.frames.max(1) as f32,
         };
         let cam = path.at_fraction(a + (b - a) * t);
+        let frame_start = Instant::now();
         trail.push(cam.position);
         let cams = [rtstream_streaming::Camera::from(cam.position)];
         // Never waits on the loaders, except (deterministic mode) for the loads requested
@@ -363,7 +460,47 @@ pub fn run_cached(
         }
         let time = frame as f32 / 30.0;
         let mcams = [Camera::new(cam.position, cam.forward)];
+        let policies_len = policies.len();
+        let cmd = frames.begin(frame)?;
+        // Read the renders of frames that completed.
+        let completed_now = cmd.completed();
+        let mut k = 0;
+        while k < pending_renders.len() {
+            let (f, pi) = pending_renders[k];
+            if completed_now.is_some_and(|c| c >= f) {
+                if let Some(img) = renderers[pi].take(f, completed_now)? {
+                    if pi == 0 {
+                        passes_ms.push((f, img.render_ms));
+                    }
+                }
+                pending_renders.swap_remove(k);
+            } else {
+                k += 1;
+            }
+        }
+        // Score the renders of frames that completed (no wait; before this frame's renders
+        // reuse their buffers).
+        score_completed(
+            &mut pending,
+            cmd.completed(),
+            &mut renderers,
+            &mut policies,
+            &mut rows,
+            &mut render_ms,
+            cache,
+            edges,
+        )?;
+        // What has completed: deterministic runs count only the frame `begin` waited for, so
+        // that what is freed when does not depend on GPU speed.
+        let done = if config.deterministic {
+            frame.checked_sub(u64::from(config.frames_in_flight))
+        } else {
+            cmd.completed()
+        };
         for p in policies.iter_mut() {
+            if let Some(d) = done {
+                p.manager.backend_mut().frame_done(d);
+            }
             let max_prims = p.manager.config().build.max_primitives;
             p.bridge.apply(&p.manager, &events);
             p.bridge.pose_skinned(&p.manager, &world, time, 2);
@@ -373,6 +510,9 @@ pub fn run_cached(
                 cameras: &mcams,
             })?;
             let update_ms = t.elapsed().as_secs_f64() * 1e3;
+            if rows.len() % policies_len == 0 {
+                update0_ms.push((frame, update_ms));
+            }
             rows.push(
                 FrameRow::new(frame, p.name, out.stats, update_ms)
                     .with_build_budget(max_prims, out.stats),
@@ -380,9 +520,10 @@ pub fn run_cached(
             p.tlas = out.tlas;
             p.records.clear();
             p.records.extend_from_slice(out.instances);
+            p.manager.backend_mut().record(&cmd)?;
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;
-        if let (true, Some(r)) = (scored, renderer.as_mut()) {
+        if scored {
             let view =
                 ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
             let desc = RenderDesc::new(config.size.0, config.size.1, view);
@@ -396,20 +537,18 @@ pub fn run_cached(
                 for &kind in kinds {
                     let ts = truth.build(&ctx, kind, time)?;
                     cache.build_ms.push(ts.build_ms);
-                    let img = ts.scene.render(r, &desc)?;
+                    let img = ts.scene.render(&mut renderers[0], &desc)?;
                     ts.scene.destroy(&ctx);
                     refs.push((kind, Arc::new(img), Arc::new(ts.ids)));
                 }
                 cache.frames.insert(frame, refs);
             }
-            let refs = cache.frames[&frame].clone();
             let n = policies.len();
             for (pi, p) in policies.iter_mut().enumerate() {
-                p.manager.backend_mut().wait_idle()?;
-                let Some(raw) = p.manager.backend().tlas(p.tlas) else {
+                let backend = p.manager.backend();
+                let Some(raw) = backend.tlas(p.tlas) else {
                     continue;
                 };
-                let backend = p.manager.backend();
                 let shading = p
                     .bridge
                     .shading(&p.records, |addr| backend.shading_geometry(addr));
@@ -417,42 +556,69 @@ pub fn run_cached(
                     primitive_bases: backend.primitive_bases(p.tlas),
                     ..desc
                 };
-                let img = r.render(raw, &shading, &desc)?;
-                render_ms.push((pi, img.render_ms));
-                let row = rows.len() - n + pi;
-                for (kind, reference, ids) in &refs {
-                    let (reference, bridge) = (&**reference, &p.bridge);
-                    let (s, verdicts) = score::score(
-                        &img,
-                        reference,
-                        &view,
-                        edges,
-                        |ci| {
-                            bridge
-                                .slot(ci)
-                                .filter(|s| s.proxy.is_none())
-                                .map(|s| s.instance.0)
-                        },
-                        |ci| ids.get(ci as usize).copied(),
-                    )
-                    .map_err(Error::InvalidRun)?;
-                    if *kind == TruthKind::Opaque {
-                        rows[row].score = Some(s);
-                        let worse = p.worst.as_ref().is_none_or(|w| s.hit_mismatch > w.0);
-                        if worse {
-                            let diff = score::difference_picture(reference, &verdicts);
-                            let (w3, pic) = side_by_side(
-                                img.width,
-                                img.height,
-                                &[&img.color, &reference.color, &diff],
-                            );
-                            p.worst = Some((s.hit_mismatch, frame, w3, pic));
-                        }
-                    } else {
-                        rows[row].score_all_geometry = Some(s);
-                    }
+                renderers[pi].record(&cmd, raw, &shading, &desc)?;
+                // The instance behind each customIndex now: the bridge reuses slots later.
+                let ids = (0..p.bridge.slot_count())
+                    .map(|ci| {
+                        p.bridge
+                            .slot(ci)
+                            .filter(|s| s.proxy.is_none())
+                            .map(|s| s.instance.0)
+                    })
+                    .collect();
+                pending.push(PendingScore {
+                    frame,
+                    policy: pi,
+                    row: rows.len() - n + pi,
+                    view,
+                    ids,
+                });
+            }
+        }
+        let render_now = config.render_every > 0 && frame % config.render_every == 0 && !scored;
+        let view = ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
+        let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
+        if render_now && !config.blocking_render {
+            for (pi, p) in policies.iter().enumerate() {
+                let backend = p.manager.backend();
+                let Some(raw) = backend.tlas(p.tlas) else {
+                    continue;
+                };
+                let shading = p
+                    .bridge
+                    .shading(&p.records, |addr| backend.shading_geometry(addr));
+                let desc = RenderDesc {
+                    primitive_bases: backend.primitive_bases(p.tlas),
+                    ..render_desc
+                };
+                renderers[pi].record(&cmd, raw, &shading, &desc)?;
+                pending_renders.push((frame, pi));
+            }
+        }
+        frames.submit(cmd)?;
+        if render_now && config.blocking_render {
+            // The old path: wait for the frame, then three passes, each waited for.
+            frames.wait(frame)?;
+            for (pi, p) in policies.iter().enumerate() {
+                let backend = p.manager.backend();
+                let Some(raw) = backend.tlas(p.tlas) else {
+                    continue;
+                };
+                let shading = p
+                    .bridge
+                    .shading(&p.records, |addr| backend.shading_geometry(addr));
+                let desc = RenderDesc {
+                    primitive_bases: backend.primitive_bases(p.tlas),
+                    ..render_desc
+                };
+                let img = renderers[pi].render(raw, &shading, &desc)?;
+                if pi == 0 {
+                    passes_ms.push((frame, img.render_ms));
                 }
             }
+        }
+        if render_now {
+            frame_ms.push((frame, frame_start.elapsed().as_secs_f64() * 1e3));
         }
         if let (Some(dir), true) = (&config.out_dir, map_at.contains(&frame)) {
             let file = dir.join(format!("map_{frame:05}.png"));
@@ -489,9 +655,22 @@ pub fn run_cached(
                 .collect(),
         });
     }
+    frames.wait_all()?;
+    let last = config.frames - 1;
     for p in &mut policies {
-        p.manager.backend_mut().wait_idle()?;
+        p.manager.backend_mut().frame_done(last);
     }
+    score_completed(
+        &mut pending,
+        Some(last),
+        &mut renderers,
+        &mut policies,
+        &mut rows,
+        &mut render_ms,
+        cache,
+        edges,
+    )?;
+    drop(frames);
     let never_loaded_instances = truth.instances_outside(TruthKind::Opaque, |i| ever_loaded[i]);
     let validation_messages = ctx.validation_log().failure_count();
     let mut report = RunReport::new(
@@ -512,6 +691,33 @@ pub fn run_cached(
         ctx.info().name.clone(),
     );
     report.rows = rows;
+    if config.render_every > 0 {
+        // Steady state: after the first tenth of the run.
+        let from = config.frames / 10;
+        let later = |v: &[(u64, f64)]| {
+            stats::Summary::of(v.iter().filter(|(f, _)| *f >= from).map(|(_, x)| *x))
+        };
+        let rendered: std::collections::HashSet<u64> = frame_ms.iter().map(|(f, _)| *f).collect();
+        let updates: Vec<(u64, f64)> = update0_ms
+            .into_iter()
+            .filter(|(f, _)| rendered.contains(f))
+            .collect();
+        let (fm, pm) = (later(&frame_ms), later(&passes_ms));
+        report.summary.frame_timing = Some(report::FrameTiming {
+            mode: if config.blocking_render {
+                "blocking"
+            } else {
+                "pipelined"
+            }
+            .into(),
+            frames_in_flight: config.frames_in_flight,
+            size: [config.size.0, config.size.1],
+            frame_over_passes_p50: if pm.p50 > 0.0 { fm.p50 / pm.p50 } else { 0.0 },
+            frame_ms: fm,
+            passes_ms: pm,
+            update_ms: later(&updates),
+        });
+    }
     if let Some(dir) = &config.out_dir {
         for p in &policies {
             if let Some((_, frame, w3, pic)) = &p.worst {

@@ -313,6 +313,30 @@ pub struct RunSummary {
     pub validation_messages: u64,
     /// Wall time of the run, seconds.
     pub seconds: f64,
+    /// Frame timing when frames were rendered on the frame path (`RunConfig::render_every`).
+    pub frame_timing: Option<FrameTiming>,
+}
+
+/// Wall time per frame against the GPU time of its render passes, over the frames rendered on
+/// the frame path (`RunConfig::render_every`), after the first tenth of the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameTiming {
+    /// "pipelined" (one submission per frame, no wait per pass) or "blocking" (wait for the
+    /// frame, then three passes each submitted and waited for).
+    pub mode: String,
+    /// Frames in flight of the pipelined mode.
+    pub frames_in_flight: u32,
+    /// Rendered image size.
+    pub size: [u32; 2],
+    /// Wall time of a frame (streaming, every policy's update and recording, rendering).
+    pub frame_ms: Summary,
+    /// The three passes' time: GPU timestamps (pipelined) or submit-to-completion wall time of
+    /// each pass (blocking).
+    pub passes_ms: Summary,
+    /// The first policy's `update` (CPU, recording included).
+    pub update_ms: Summary,
+    /// Median frame time over median pass time (1.0: the frame costs what its passes cost).
+    pub frame_over_passes_p50: f64,
 }
 
 /// Rows and summary of a run, and the files written.
@@ -436,6 +460,7 @@ impl RunReport {
                 policies: summaries,
                 validation_messages,
                 seconds,
+                frame_timing: None,
             },
             rows: Vec::new(),
             files: Vec::new(),
