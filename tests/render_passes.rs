@@ -324,3 +324,50 @@ fn skinned_silhouette_follows_the_pose_and_matches_cpu_skinning() {
     drop(renderer);
     common::assert_no_validation_messages(&ctx);
 }
+
+/// The pipelined renderer (`Renderer::record` into a `FrameLoop`'s command buffers, three
+/// frames in flight, read back with `take`) renders what the blocking one renders, on both
+/// paths, with GPU pass times; a fourth-newest frame's resources are not reused before it is
+/// done.
+#[test]
+fn recorded_frames_equal_blocking_frames_on_both_paths() {
+    use rtstream::as_manager::backend::vulkan::FrameLoop;
+    let world = small_world();
+    let ctx = common::context();
+    let scene = TracedScene::reference(&ctx, &world.mesh_descs(), &world.instances).unwrap();
+    for path in [RenderPath::RayQuery, RenderPath::RayTracingPipeline] {
+        let mut r = Renderer::with_path(ctx.clone(), path).unwrap();
+        let mut frames = FrameLoop::new(&ctx, 3).unwrap();
+        let base = EvalWorld::demo_camera();
+        let desc_of = |f: u64| {
+            let mut c = base;
+            c.position += Vec3::new(0.2 * f as f32, 0.0, 0.0);
+            RenderDesc::new(W, H, c)
+        };
+        let mut recorded = Vec::new();
+        for f in 0..8u64 {
+            let cmd = frames.begin(f).unwrap();
+            while let Some(img) = r.take(recorded.len() as u64, cmd.completed()).unwrap() {
+                recorded.push(img);
+            }
+            r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc_of(f))
+                .unwrap();
+            frames.submit(cmd).unwrap();
+        }
+        frames.wait_all().unwrap();
+        while let Some(img) = r.take(recorded.len() as u64, Some(7)).unwrap() {
+            recorded.push(img);
+        }
+        assert_eq!(recorded.len(), 8, "{path:?}: every frame reads back");
+        for (f, img) in recorded.iter().enumerate() {
+            let blocking = scene.render(&mut r, &desc_of(f as u64)).unwrap();
+            assert_eq!(img.hits, blocking.hits, "{path:?} frame {f}");
+            assert_eq!(img.color, blocking.color, "{path:?} frame {f}");
+            assert!(img.passes.primary_ms > 0.0, "{path:?}: GPU pass times");
+        }
+        drop(frames);
+        drop(r);
+    }
+    scene.destroy(&ctx);
+    common::assert_no_validation_messages(&ctx);
+}
