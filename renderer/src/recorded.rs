@@ -200,6 +200,21 @@ impl Renderer {
         Ok(())
     }
 
+    /// The GPU times (ms) of the three passes of `frame`, once it has completed, without
+    /// reading the image back (an engine presents its image; it does not read it back). The
+    /// frame's image is dropped: a later [`take`](Self::take) of it returns `None`.
+    pub fn take_times(&mut self, frame: u64, completed: Option<u64>) -> Option<[f64; 3]> {
+        if completed.is_none_or(|c| c < frame) {
+            return None;
+        }
+        let slot = self
+            .slots
+            .iter_mut()
+            .find(|s| s.frame == Some(frame) && !s.taken)?;
+        slot.taken = true;
+        Some(pass_times(slot))
+    }
+
     /// The frame recorded for `frame`, once it has completed (`completed` is the latest frame
     /// whose submission completed, e.g. `FrameLoop::completed`); `None` while it is in flight,
     /// or when it was taken already or overwritten by a later frame. Pass times are GPU time
@@ -215,14 +230,18 @@ impl Renderer {
         else {
             return Ok(None);
         };
-        // The frame completed: its timestamps were copied into `times` on the GPU.
-        let t: &[u64] = bytemuck::cast_slice(slot.times.mapped().expect("readback is mapped"));
-        let ms = |a: usize, b: usize| slot.timer.ticks_to_ms(t[b].saturating_sub(t[a]));
-        let times = [ms(0, 1), ms(1, 2), ms(2, 3)];
+        let times = pass_times(slot);
         let (w, h) = slot.size;
         let o = &slot.outputs;
         let f = read_frame(w, h, [&o[0], &o[1], &o[2], &o[3]], times);
         slot.taken = true;
         Ok(Some(f))
     }
+}
+
+/// The passes' GPU times of a completed slot: its timestamps were copied into `times` on the GPU.
+fn pass_times(slot: &RenderSlot) -> [f64; 3] {
+    let t: &[u64] = bytemuck::cast_slice(slot.times.mapped().expect("readback is mapped"));
+    let ms = |a: usize, b: usize| slot.timer.ticks_to_ms(t[b].saturating_sub(t[a]));
+    [ms(0, 1), ms(1, 2), ms(2, 3)]
 }
