@@ -51,6 +51,9 @@ impl Hasher for CellHasher {
 
 const LARGE: u32 = u32::MAX;
 
+/// Coarse cells per side of a block of [`GridIndex::query_tall`]'s index.
+const TALL_BLOCK: i32 = 8;
+
 /// The grid. See the module docs.
 #[derive(Debug)]
 pub struct GridIndex<T = ()> {
@@ -75,6 +78,9 @@ pub struct GridIndex<T = ()> {
     tall_len: usize,
     /// Largest tall radius ever indexed (a bound on how far a landmark can be seen).
     tall_max_radius: f32,
+    /// Blocks of `TALL_BLOCK` x `TALL_BLOCK` coarse cells: the largest radius ever indexed in
+    /// each (never lowered, so a bound), to skip whole blocks too far for their largest entry.
+    tall_blocks: HashMap<u64, f32, BuildHasherDefault<CellHasher>>,
     tall_scratch: Vec<u32>,
 }
 
@@ -103,6 +109,7 @@ impl<T: Copy> GridIndex<T> {
             tall_cells: HashMap::default(),
             tall_len: 0,
             tall_max_radius: 0.0,
+            tall_blocks: HashMap::default(),
             tall_scratch: Vec::new(),
         }
     }
@@ -116,6 +123,7 @@ impl<T: Copy> GridIndex<T> {
         self.tall_inv_cell = 1.0 / cell_size;
         self.tall_cell = cell_size;
         self.tall_cells.clear();
+        self.tall_blocks.clear();
         self.tall_len = 0;
         let all: Vec<([f32; 3], f32, u32)> = self
             .cell_entries
@@ -134,11 +142,21 @@ impl<T: Copy> GridIndex<T> {
         key(k(c[0]), k(c[2]))
     }
 
+    fn tall_block_key(&self, c: [f32; 3]) -> u64 {
+        let k = |v: f32| {
+            ((v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32).div_euclid(TALL_BLOCK)
+        };
+        key(k(c[0]), k(c[2]))
+    }
+
     fn track_tall(&mut self, center: [f32; 3], radius: f32, slot: u32) {
         if radius < self.tall_radius {
             return;
         }
         self.tall_max_radius = self.tall_max_radius.max(radius);
+        let block = self.tall_block_key(center);
+        let b = self.tall_blocks.entry(block).or_insert(0.0);
+        *b = b.max(radius);
         let v = self.tall_cells.entry(self.tall_key(center)).or_default();
         // Largest first, so a query stops at the first entry too small for its cell.
         let at = v.partition_point(|&(r, _)| r >= radius);
@@ -188,38 +206,60 @@ impl<T: Copy> GridIndex<T> {
         slots.clear();
         let cs = self.tall_cell;
         let k = |v: f32| (v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32;
+        let bs = cs * TALL_BLOCK as f32;
+        // Nearest camera to the XZ rectangle [x0, x1] x [z0, z1] (metres).
+        let nearest = |x0: f32, x1: f32, z0: f32, z1: f32| {
+            cameras
+                .iter()
+                .map(|c| {
+                    let dx = (x0 - c.x).max(c.x - x1).max(0.0);
+                    let dz = (z0 - c.z).max(c.z - z1).max(0.0);
+                    (dx * dx + dz * dz).sqrt()
+                })
+                .fold(f32::INFINITY, f32::min)
+        };
         for (ci, cam) in cameras.iter().enumerate() {
             let (x0, x1) = (k(cam.x - range), k(cam.x + range));
             let (z0, z1) = (k(cam.z - range), k(cam.z + range));
-            for x in x0..=x1 {
-                for z in z0..=z1 {
-                    let Some(v) = self.tall_cells.get(&key(x, z)) else {
+            let (bx0, bx1) = (x0.div_euclid(TALL_BLOCK), x1.div_euclid(TALL_BLOCK));
+            let (bz0, bz1) = (z0.div_euclid(TALL_BLOCK), z1.div_euclid(TALL_BLOCK));
+            for bx in bx0..=bx1 {
+                for bz in bz0..=bz1 {
+                    // A block whose largest entry is too small for its distance: skip its cells.
+                    let Some(&max_r) = self.tall_blocks.get(&key(bx, bz)) else {
                         continue;
                     };
-                    // Nearest camera to the cell (XZ): an entry's centre is no nearer.
-                    let d = cameras
-                        .iter()
-                        .map(|c| {
-                            let dx = (x as f32 * cs - c.x).max(c.x - (x as f32 + 1.0) * cs);
-                            let dz = (z as f32 * cs - c.z).max(c.z - (z as f32 + 1.0) * cs);
-                            (dx.max(0.0) * dx.max(0.0) + dz.max(0.0) * dz.max(0.0)).sqrt()
-                        })
-                        .fold(f32::INFINITY, f32::min);
-                    // Visit a cell from the first camera whose range reaches it only.
-                    let first = cameras[..ci].iter().any(|c| {
-                        (c.x - range) <= (x as f32 + 1.0) * cs
-                            && (c.x + range) >= x as f32 * cs
-                            && (c.z - range) <= (z as f32 + 1.0) * cs
-                            && (c.z + range) >= z as f32 * cs
-                    });
-                    if first || d > range {
+                    let (fx, fz) = (bx as f32 * bs, bz as f32 * bs);
+                    if max_r <= tan * nearest(fx, fx + bs, fz, fz + bs) {
                         continue;
                     }
-                    for &(r, slot) in v {
-                        if r <= tan * d {
-                            break;
+                    let xs = (bx * TALL_BLOCK).max(x0)..=((bx + 1) * TALL_BLOCK - 1).min(x1);
+                    for x in xs {
+                        let zs = (bz * TALL_BLOCK).max(z0)..=((bz + 1) * TALL_BLOCK - 1).min(z1);
+                        for z in zs {
+                            let Some(v) = self.tall_cells.get(&key(x, z)) else {
+                                continue;
+                            };
+                            // Nearest camera to the cell (XZ): an entry's centre is no nearer.
+                            let (cx, cz) = (x as f32 * cs, z as f32 * cs);
+                            let d = nearest(cx, cx + cs, cz, cz + cs);
+                            // Visit a cell from the first camera whose range reaches it only.
+                            let first = cameras[..ci].iter().any(|c| {
+                                (c.x - range) <= cx + cs
+                                    && (c.x + range) >= cx
+                                    && (c.z - range) <= cz + cs
+                                    && (c.z + range) >= cz
+                            });
+                            if first || d > range {
+                                continue;
+                            }
+                            for &(r, slot) in v {
+                                if r <= tan * d {
+                                    break;
+                                }
+                                slots.push(slot);
+                            }
                         }
-                        slots.push(slot);
                     }
                 }
             }
