@@ -250,6 +250,30 @@ fn score_completed(
     Ok(())
 }
 
+impl PolicyRun {
+    /// What rendering this policy's last frame needs: its TLAS, the shading of its records
+    /// and `desc` with the TLAS's primitive bases; None when the TLAS is gone.
+    fn render_input(
+        &self,
+        desc: RenderDesc,
+    ) -> Option<(
+        rtstream_as_manager::backend::vulkan::ash::vk::AccelerationStructureKHR,
+        Vec<rtstream_renderer::InstanceShading>,
+        RenderDesc,
+    )> {
+        let backend = self.manager.backend();
+        let raw = backend.tlas(self.tlas)?;
+        let shading = self
+            .bridge
+            .shading(&self.records, |addr| backend.shading_geometry(addr));
+        let desc = RenderDesc {
+            primitive_bases: backend.primitive_bases(self.tlas),
+            ..desc
+        };
+        Some((raw, shading, desc))
+    }
+}
+
 struct PolicyRun {
     name: &'static str,
     manager: AsManager<VulkanBackend>,
@@ -546,16 +570,8 @@ pub fn run_cached(
             }
             let n = policies.len();
             for (pi, p) in policies.iter_mut().enumerate() {
-                let backend = p.manager.backend();
-                let Some(raw) = backend.tlas(p.tlas) else {
+                let Some((raw, shading, desc)) = p.render_input(desc) else {
                     continue;
-                };
-                let shading = p
-                    .bridge
-                    .shading(&p.records, |addr| backend.shading_geometry(addr));
-                let desc = RenderDesc {
-                    primitive_bases: backend.primitive_bases(p.tlas),
-                    ..desc
                 };
                 renderers[pi].record(&cmd, raw, &shading, &desc)?;
                 // The instance behind each customIndex now: the bridge reuses slots later.
@@ -581,16 +597,8 @@ pub fn run_cached(
         let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
         if render_now && !config.blocking_render {
             for (pi, p) in policies.iter().enumerate() {
-                let backend = p.manager.backend();
-                let Some(raw) = backend.tlas(p.tlas) else {
+                let Some((raw, shading, desc)) = p.render_input(render_desc) else {
                     continue;
-                };
-                let shading = p
-                    .bridge
-                    .shading(&p.records, |addr| backend.shading_geometry(addr));
-                let desc = RenderDesc {
-                    primitive_bases: backend.primitive_bases(p.tlas),
-                    ..render_desc
                 };
                 renderers[pi].record(&cmd, raw, &shading, &desc)?;
                 pending_renders.push((frame, pi));
@@ -601,16 +609,8 @@ pub fn run_cached(
             // The old path: wait for the frame, then three passes, each waited for.
             frames.wait(frame)?;
             for (pi, p) in policies.iter().enumerate() {
-                let backend = p.manager.backend();
-                let Some(raw) = backend.tlas(p.tlas) else {
+                let Some((raw, shading, desc)) = p.render_input(render_desc) else {
                     continue;
-                };
-                let shading = p
-                    .bridge
-                    .shading(&p.records, |addr| backend.shading_geometry(addr));
-                let desc = RenderDesc {
-                    primitive_bases: backend.primitive_bases(p.tlas),
-                    ..render_desc
                 };
                 let img = renderers[pi].render(raw, &shading, &desc)?;
                 if pi == 0 {

@@ -184,3 +184,101 @@ pub(crate) unsafe fn copy_timer(
         };
     }
 }
+
+/// How a pipeline records: what `record_passes` binds and which stage its shaders run in.
+pub(crate) struct Recorder {
+    pub(crate) bind_point: vk::PipelineBindPoint,
+    pub(crate) pipeline: vk::Pipeline,
+    pub(crate) layout: vk::PipelineLayout,
+    /// The shaders' pipeline stage (compute, or ray tracing).
+    pub(crate) stage: vk::PipelineStageFlags2,
+    /// Stages of the push-constant range.
+    pub(crate) push_stages: vk::ShaderStageFlags,
+    /// What the first pass reads besides storage buffers (the SBT for ray tracing).
+    pub(crate) reads: vk::AccessFlags2,
+}
+
+/// Checks a record call's bindings and push sizes against the pipeline's.
+pub(crate) fn check_record(
+    bound: &[Bound<'_>],
+    bindings: &[BindingKind],
+    passes: &[Pass<'_>],
+    push_size: u32,
+) -> VkResult<()> {
+    if bound.len() != bindings.len() || passes.iter().any(|p| p.push.len() as u32 != push_size) {
+        return Err(VulkanError::Unsupported(format!(
+            "record with {} bindings; the pipeline has {} bindings and {push_size} push bytes",
+            bound.len(),
+            bindings.len(),
+        )));
+    }
+    Ok(())
+}
+
+/// Records `passes` with `set` bound: ordered after earlier work on the queue, each pass after
+/// the one before, every write visible to the host once the frame completed, and the timer's
+/// timestamps around the passes. `dispatch` records one pass's grid.
+///
+/// # Safety
+/// `cmd` is recording outside a render pass; the recorder's pipeline, layout and `set` are
+/// valid and `set` is not in use by other pending work; the timer was checked (`check_timer`)
+/// and reset.
+pub(crate) unsafe fn record_passes(
+    ctx: &VulkanContext,
+    cmd: vk::CommandBuffer,
+    r: &Recorder,
+    set: vk::DescriptorSet,
+    passes: &[Pass<'_>],
+    timer: Option<PassTimer<'_>>,
+    mut dispatch: impl FnMut(vk::CommandBuffer, [u32; 3]),
+) {
+    let storage = vk::AccessFlags2::SHADER_STORAGE_READ | vk::AccessFlags2::SHADER_STORAGE_WRITE;
+    // Earlier frames on this queue (the slot's last use of the same buffers) before this
+    // frame's writes; the frame's AS builds are covered by the backend's own barrier.
+    let before = [vk::MemoryBarrier2::default()
+        .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+        .src_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+        .dst_stage_mask(r.stage)
+        .dst_access_mask(storage | vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR | r.reads)];
+    let between = [vk::MemoryBarrier2::default()
+        .src_stage_mask(r.stage)
+        .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+        .dst_stage_mask(r.stage)
+        .dst_access_mask(storage)];
+    let to_host = [vk::MemoryBarrier2::default()
+        .src_stage_mask(r.stage)
+        .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+        .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+        .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+    let dev = &ctx.device;
+    let barrier = |b: &[vk::MemoryBarrier2<'_>]| {
+        // SAFETY: guaranteed by the caller (cmd is recording).
+        unsafe { dev.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(b)) }
+    };
+    barrier(&before);
+    // SAFETY: guaranteed by the caller.
+    unsafe {
+        dev.cmd_bind_pipeline(cmd, r.bind_point, r.pipeline);
+        dev.cmd_bind_descriptor_sets(cmd, r.bind_point, r.layout, 0, &[set], &[]);
+        if let Some(t) = timer {
+            t.queries.cmd_timestamp(ctx, cmd, 0);
+        }
+    }
+    for (i, p) in passes.iter().enumerate() {
+        if i > 0 {
+            barrier(&between);
+        }
+        if !p.push.is_empty() {
+            // SAFETY: guaranteed by the caller; the push size was checked.
+            unsafe { dev.cmd_push_constants(cmd, r.layout, r.push_stages, 0, p.push) };
+        }
+        dispatch(cmd, p.grid);
+        if let Some(t) = timer {
+            // SAFETY: the timer has room for a timestamp after each pass (checked).
+            unsafe { t.queries.cmd_timestamp(ctx, cmd, i as u32 + 1) };
+        }
+    }
+    barrier(&to_host);
+    // SAFETY: guaranteed by the caller.
+    unsafe { copy_timer(ctx, cmd, timer, passes.len()) };
+}

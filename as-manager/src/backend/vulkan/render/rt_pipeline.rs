@@ -18,7 +18,9 @@ use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::vulkan::render::compute::{
     descriptor_type, write_descriptor_set, BindingKind, Bound,
 };
-use crate::backend::vulkan::render::ring::{check_timer, copy_timer, Pass, PassTimer, SetRing};
+use crate::backend::vulkan::render::ring::{
+    check_record, check_timer, record_passes, Pass, PassTimer, Recorder, SetRing,
+};
 
 /// SPIR-V of the three shaders (entry point `main` in each).
 #[derive(Debug, Clone, Copy)]
@@ -394,83 +396,31 @@ impl RayTracingPipeline {
                 "record without VK_KHR_ray_tracing_pipeline".into(),
             ));
         };
-        if bound.len() != self.bindings.len()
-            || passes.iter().any(|p| p.push.len() as u32 != self.push_size)
-        {
-            return Err(VulkanError::Unsupported(format!(
-                "record with {} bindings; the pipeline has {} bindings and {} push bytes",
-                bound.len(),
-                self.bindings.len(),
-                self.push_size
-            )));
-        }
+        let [raygen, miss, hit, callable] = &self.regions;
+        check_record(bound, &self.bindings, passes, self.push_size)?;
         check_timer(timer, passes.len())?;
         let set = self
             .sets
             .as_mut()
             .expect("a created pipeline has its sets")
             .acquire(ctx, cmd, &self.bindings, bound)?;
-        let dev = &ctx.device;
-        let c = cmd.raw();
-        let [raygen, miss, hit, callable] = &self.regions;
-        let reads = vk::AccessFlags2::SHADER_STORAGE_READ
-            | vk::AccessFlags2::SHADER_STORAGE_WRITE
-            | vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR
-            | vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR;
-        let before = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .src_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
-            .dst_access_mask(reads)];
-        let between = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
-            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
-            .dst_access_mask(
-                vk::AccessFlags2::SHADER_STORAGE_READ | vk::AccessFlags2::SHADER_STORAGE_WRITE,
-            )];
-        let to_host = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
-            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        let recorder = Recorder {
+            bind_point: vk::PipelineBindPoint::RAY_TRACING_KHR,
+            pipeline: self.raw,
+            layout: self.layout,
+            stage: vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR,
+            push_stages: STAGES,
+            reads: vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR,
+        };
+        let dispatch = |c: vk::CommandBuffer, g: [u32; 3]| {
+            // SAFETY: `c` is the frame's command buffer, recording outside a render pass, with
+            // this pipeline and its set bound by `record_passes`.
+            unsafe { rt.cmd_trace_rays(c, raygen, miss, hit, callable, g[0], g[1], g[2]) }
+        };
         // SAFETY: a FrameCmd is recording outside a render pass (its constructor's contract);
-        // pipeline, layout, set and SBT are valid, the set was written for this frame only; the
-        // timer has room for every timestamp (checked) and was reset by the caller.
-        unsafe {
-            dev.cmd_pipeline_barrier2(c, &vk::DependencyInfo::default().memory_barriers(&before));
-            dev.cmd_bind_pipeline(c, vk::PipelineBindPoint::RAY_TRACING_KHR, self.raw);
-            dev.cmd_bind_descriptor_sets(
-                c,
-                vk::PipelineBindPoint::RAY_TRACING_KHR,
-                self.layout,
-                0,
-                &[set],
-                &[],
-            );
-            if let Some(t) = timer {
-                t.queries.cmd_timestamp(ctx, c, 0);
-            }
-            for (i, p) in passes.iter().enumerate() {
-                if i > 0 {
-                    dev.cmd_pipeline_barrier2(
-                        c,
-                        &vk::DependencyInfo::default().memory_barriers(&between),
-                    );
-                }
-                if !p.push.is_empty() {
-                    dev.cmd_push_constants(c, self.layout, STAGES, 0, p.push);
-                }
-                rt.cmd_trace_rays(
-                    c, raygen, miss, hit, callable, p.grid[0], p.grid[1], p.grid[2],
-                );
-                if let Some(t) = timer {
-                    t.queries.cmd_timestamp(ctx, c, i as u32 + 1);
-                }
-            }
-            dev.cmd_pipeline_barrier2(c, &vk::DependencyInfo::default().memory_barriers(&to_host));
-            copy_timer(ctx, c, timer, passes.len());
-        }
+        // pipeline, layout and set are valid, the set was written for this frame only; the
+        // timer was checked, and reset by the caller.
+        unsafe { record_passes(ctx, cmd.raw(), &recorder, set, passes, timer, dispatch) };
         Ok(())
     }
 
