@@ -31,8 +31,8 @@
 //!   skinned refits oldest first, rebuilt when measured refit quality passes the bound) →
 //!   memory (budget counts built, compaction copies and freed-but-in-flight bytes; coarser
 //!   LOD first, then evict the farthest / least recently traced) → cull (distance and
-//!   projected angle, AND/OR, near distance, hysteresis) → assemble (64-byte records, crossbeam
-//!   scoped threads when many) → backend (one batched build, refits, TLAS).
+//!   projected angle, AND/OR, near distance, hysteresis) → assemble (64-byte records, on
+//!   rayon's pool when many) → backend (one batched build, refits, TLAS).
 //! - Backend OOM caps the budget at what fitted and evicts; device lost is returned.
 //! - Baselines `Naive` and `SeedR1R2` ([`PolicyKind`]) run behind the same API.
 //! - tracing: a span per frame phase (`apply`, `residency`, `schedule`, `cull`, `assemble`,

@@ -88,8 +88,8 @@ impl TlasInstance {
     }
 }
 
-/// Fills `out` with `n` records from `f(i)`, split over `threads` crossbeam scoped threads
-/// when `n >= parallel_threshold`.
+/// Fills `out` with `n` records from `f(i)`, split into `threads` chunks on rayon's pool
+/// (created once per process, not per frame) when `n >= parallel_threshold`.
 pub fn assemble<F>(
     n: usize,
     out: &mut Vec<TlasInstance>,
@@ -106,18 +106,15 @@ pub fn assemble<F>(
     }
     out.resize(n, TlasInstance::zeroed());
     let chunk = n.div_ceil(threads);
-    let f = &f;
-    crossbeam::scope(|s| {
-        for (c, slice) in out.chunks_mut(chunk).enumerate() {
-            s.spawn(move |_| {
-                let base = c * chunk;
-                for (i, r) in slice.iter_mut().enumerate() {
-                    *r = f(base + i);
-                }
-            });
-        }
-    })
-    .expect("assembly thread panicked");
+    use rayon::prelude::*;
+    out.par_chunks_mut(chunk)
+        .enumerate()
+        .for_each(|(c, slice)| {
+            let base = c * chunk;
+            for (i, r) in slice.iter_mut().enumerate() {
+                *r = f(base + i);
+            }
+        });
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
 //! CPU skinning with a [`Skeleton`] (see [`crate::skeleton`]). [`skin_positions`] deforms one LOD's
-//! vertices; [`skin_parallel`] spreads many instances over scoped threads, which is what the world
+//! vertices; [`skin_parallel`] spreads many instances over rayon's pool, which is what the world
 //! does each frame for its loaded skinned instances (the manager refits their BLASes from it).
 
 use glam::{Mat4, Vec3};
@@ -53,7 +53,8 @@ pub struct SkinJob<'a> {
     pub positions: Vec<[f32; 3]>,
 }
 
-/// Runs every job, spread over up to `threads` scoped threads.
+/// Runs every job, split into up to `threads` chunks on rayon's pool (created once per
+/// process, not per frame).
 ///
 /// ```
 /// use rtstream_streaming::{procedural, skin::{skin_parallel, SkinJob}};
@@ -68,19 +69,16 @@ pub fn skin_parallel(jobs: &mut [SkinJob<'_>], threads: usize) {
     let _span = tracing::trace_span!("skin", jobs = jobs.len()).entered();
     let threads = threads.max(1);
     let chunk = jobs.len().div_ceil(threads).max(1);
-    std::thread::scope(|s| {
-        for part in jobs.chunks_mut(chunk) {
-            s.spawn(move || {
-                for job in part {
-                    let m = job
-                        .geometry
-                        .skin
-                        .as_ref()
-                        .map(|sk| sk.skeleton.pose(job.time))
-                        .unwrap_or_default();
-                    skin_positions(job.geometry, &m, &mut job.positions);
-                }
-            });
+    use rayon::prelude::*;
+    jobs.par_chunks_mut(chunk).for_each(|part| {
+        for job in part {
+            let m = job
+                .geometry
+                .skin
+                .as_ref()
+                .map(|sk| sk.skeleton.pose(job.time))
+                .unwrap_or_default();
+            skin_positions(job.geometry, &m, &mut job.positions);
         }
     });
 }
