@@ -384,21 +384,24 @@ impl VulkanBackend {
         if e.parts.len() > 1 {
             self.split_parts.remove(&e.parts[0].address);
         }
-        for a in e.parts {
-            self.retiring
-                .push_back((last_used_frame, Retired::BlasAccel(a)));
-        }
-        for b in e.skinned.into_iter().flat_map(SkinnedInputs::buffers) {
-            self.retiring
-                .push_back((last_used_frame, Retired::BlasBuffer(b)));
-        }
+        let mut objects: Vec<Retired> = e.parts.into_iter().map(Retired::BlasAccel).collect();
+        objects.extend(
+            e.skinned
+                .into_iter()
+                .flat_map(SkinnedInputs::buffers)
+                .map(Retired::BlasBuffer),
+        );
         if let Some((vb, ib)) = e.static_inputs {
-            self.retiring
-                .push_back((last_used_frame, Retired::BlasBuffer(vb)));
-            self.retiring
-                .push_back((last_used_frame, Retired::BlasBuffer(ib)));
+            objects.push(Retired::BlasBuffer(vb));
+            objects.push(Retired::BlasBuffer(ib));
         }
-        // Keep the queue ordered by frame (frees of older frames may arrive late).
-        self.retiring.make_contiguous().sort_by_key(|(f, _)| *f);
+        // Keep the queue ordered by frame: frees of older frames may arrive late, and go in
+        // after the entries of their frame (no sort of the whole queue per free).
+        let at = self
+            .retiring
+            .partition_point(|(f, _)| *f <= last_used_frame);
+        for (k, o) in objects.into_iter().enumerate() {
+            self.retiring.insert(at + k, (last_used_frame, o));
+        }
     }
 }

@@ -264,6 +264,9 @@ pub struct VulkanBackend {
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
     engine_done: Option<u64>,
+    /// Sizes by (triangles, vertices, opaque, class): they depend on nothing else, and the
+    /// manager asks for every queued item every frame (one driver call each, before).
+    size_cache: std::cell::RefCell<HashMap<(u32, u32, bool, BlasClass), BlasSizes>>,
     /// Engine-recorded: the slot ended last and not yet handed to the engine's command buffer.
     to_record: Option<usize>,
 }
@@ -420,6 +423,7 @@ impl VulkanBackend {
             faults: Vec::new(),
             engine_done: None,
             to_record: None,
+            size_cache: Default::default(),
         })
     }
 
@@ -506,6 +510,10 @@ impl AsBackend for VulkanBackend {
     }
 
     fn blas_sizes(&self, g: &GeometryRef<'_>, class: BlasClass) -> BlasSizes {
+        let key = (g.triangle_count, g.vertex_count, g.opaque, class);
+        if let Some(s) = self.size_cache.borrow().get(&key) {
+            return *s;
+        }
         let geom = TriangleGeometry {
             vertex_address: 0,
             vertex_stride: 12,
@@ -515,11 +523,13 @@ impl AsBackend for VulkanBackend {
             opaque: g.opaque,
         };
         let s = self.ctx.blas_sizes(&[geom], class_flags(class));
-        BlasSizes {
+        let sizes = BlasSizes {
             as_bytes: s.storage,
             build_scratch: s.build_scratch,
             update_scratch: s.update_scratch,
-        }
+        };
+        self.size_cache.borrow_mut().insert(key, sizes);
+        sizes
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
