@@ -122,7 +122,8 @@ impl VulkanBackend {
                     };
                     let s = if parts == 1 {
                         crate::backend::vulkan::device::accel::AsSizes {
-                            storage: b.sizes.as_bytes,
+                            // One structure of the ring (`as_bytes` counts all of them).
+                            storage: b.sizes.as_bytes / self.ring_len(b.class),
                             build_scratch: b.sizes.build_scratch,
                             update_scratch: b.sizes.update_scratch,
                         }
@@ -223,6 +224,7 @@ impl VulkanBackend {
                 sizes: b.sizes,
                 skinned: p.skinned,
                 static_inputs: p.inputs,
+                spares: Vec::new(),
                 shading: p.shading,
                 compacted_size: None,
             });
@@ -292,6 +294,29 @@ impl VulkanBackend {
             total += align_up(scratch.max(1), align);
             plan.push((r, ib.address, *tris, *verts, e.parts[0].raw, scratch));
         }
+        // Separate refit targets: each refit writes a structure no frame in flight traces (a
+        // new one while the ring is short, else the oldest spare, current `frames_in_flight`
+        // refits ago); it becomes current once recorded.
+        let ring = self.ring_len(BlasClass::Skinned);
+        let mut targets = Vec::with_capacity(plan.len());
+        for (r, _, _, _, src, _) in &plan {
+            if ring == 1 {
+                targets.push(*src);
+                continue;
+            }
+            let slot = (r.blas.0 & 0xffff_ffff) as usize;
+            let (short, size) = {
+                let e = self.blases[slot].as_ref().expect("checked above");
+                ((e.spares.len() as u64) < ring - 1, e.parts[0].size)
+            };
+            if short {
+                let a = self.create_accel(size, "BLAS refit target")?;
+                self.by_address.insert(a.address, slot as u32);
+                let e = self.blases[slot].as_mut().expect("checked above");
+                e.spares.insert(0, a);
+            }
+            targets.push(self.blases[slot].as_ref().expect("checked above").spares[0].raw);
+        }
         self.ensure_scratch(total)?;
         let mut geoms = Vec::with_capacity(plan.len());
         for (r, iaddr, tris, verts, _, _) in &plan {
@@ -308,14 +333,14 @@ impl VulkanBackend {
         let mut raw = Vec::with_capacity(plan.len());
         let mut tris_total = 0u64;
         let flags = class_flags(BlasClass::Skinned);
-        for (i, (r, _, tris, _, dst, scratch)) in plan.iter().enumerate() {
+        for (i, (r, _, tris, _, src, scratch)) in plan.iter().enumerate() {
             let scratch_address = self.scratch_alloc((*scratch).max(1));
             tris_total += u64::from(*tris);
             raw.push(RawBuild {
                 geometries: std::slice::from_ref(&geoms[i]),
                 flags,
-                dst: *dst,
-                update_from: (!r.rebuild).then_some(*dst),
+                dst: targets[i],
+                update_from: (!r.rebuild).then_some(*src),
                 scratch_address,
             });
             if r.rebuild {
@@ -332,6 +357,17 @@ impl VulkanBackend {
             self.ctx.cmd_build_blases(cmd, &raw);
         }
         self.timestamp_end(t);
+        if ring > 1 {
+            // Recorded: the targets become current, the structures they replace the newest
+            // spares (frames in flight may still trace them).
+            for (r, ..) in &plan {
+                let slot = (r.blas.0 & 0xffff_ffff) as usize;
+                let e = self.blases[slot].as_mut().expect("checked above");
+                let target = e.spares.remove(0);
+                let old = std::mem::replace(&mut e.parts[0], target);
+                e.spares.push(old);
+            }
+        }
         Ok(())
     }
 
@@ -371,6 +407,7 @@ impl VulkanBackend {
             },
             skinned: None,
             static_inputs: inputs,
+            spares: Vec::new(),
             shading,
             compacted_size: Some(size),
         }))
@@ -384,7 +421,12 @@ impl VulkanBackend {
         if e.parts.len() > 1 {
             self.split_parts.remove(&e.parts[0].address);
         }
-        let mut objects: Vec<Retired> = e.parts.into_iter().map(Retired::BlasAccel).collect();
+        let mut objects: Vec<Retired> = e
+            .parts
+            .into_iter()
+            .chain(e.spares)
+            .map(Retired::BlasAccel)
+            .collect();
         objects.extend(
             e.skinned
                 .into_iter()

@@ -76,6 +76,12 @@ pub struct VulkanBackendDesc {
     pub recording: Recording,
     /// Frames in flight (>= 1; default 2).
     pub frames_in_flight: u32,
+    /// For an engine that traces on another queue (no barrier orders its traces against our
+    /// writes): each refit of a skinned BLAS writes one of `frames_in_flight` structures that
+    /// no frame in flight traces, instead of updating it in place. Costs `frames_in_flight`
+    /// times the skinned BLAS memory, which [`AsBackend::blas_sizes`] reports so that the
+    /// manager's budget counts it. The TLAS is already one per frame in flight. Off by default.
+    pub separate_refit_targets: bool,
     /// TLAS build flags (default PREFER_FAST_TRACE; see docs/GPU.md for the measurement).
     pub tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
     /// Split a mesh whose BLAS storage or scratch would exceed this many bytes (default 256 MiB).
@@ -122,6 +128,7 @@ impl Default for VulkanBackendDesc {
         Self {
             recording: Recording::OwnSubmit,
             frames_in_flight: 2,
+            separate_refit_targets: false,
             tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
             max_part_bytes: 256 << 20,
             memory_limit: None,
@@ -143,6 +150,9 @@ struct BlasEntry {
     skinned: Option<SkinnedInputs>,
     /// Static: the vertex and index buffers it was built from (kept for shading lookups).
     static_inputs: Option<(GpuBuffer, GpuBuffer)>,
+    /// Skinned with `separate_refit_targets`: the other structures of the ring (the current
+    /// one is `parts[0]`); a refit writes the oldest and makes it current.
+    spares: Vec<AccelStruct>,
     /// Device addresses of the positions and indices a shader should read for this BLAS
     /// (skinned: the last pose written to its ring).
     shading: (u64, u64),
@@ -472,7 +482,7 @@ impl VulkanBackend {
             .blases
             .iter()
             .flatten()
-            .flat_map(|e| &e.parts)
+            .flat_map(|e| e.parts.iter().chain(&e.spares))
             .map(|a| a.size)
             .sum();
         let retiring: u64 = self
@@ -489,6 +499,18 @@ impl VulkanBackend {
     /// Bytes of BLAS storage and BLAS input buffers (what `memory_limit` caps).
     pub fn blas_allocated_bytes(&self) -> u64 {
         self.blas_allocated
+    }
+}
+
+impl VulkanBackend {
+    /// Structures per BLAS of `class`: `frames_in_flight` for skinned ones with separate refit
+    /// targets, else 1. `BlasSizes::as_bytes` counts them all.
+    pub(super) fn ring_len(&self, class: BlasClass) -> u64 {
+        if self.desc.separate_refit_targets && class == BlasClass::Skinned {
+            u64::from(self.desc.frames_in_flight.max(2))
+        } else {
+            1
+        }
     }
 }
 
@@ -524,7 +546,7 @@ impl AsBackend for VulkanBackend {
         };
         let s = self.ctx.blas_sizes(&[geom], class_flags(class));
         let sizes = BlasSizes {
-            as_bytes: s.storage,
+            as_bytes: s.storage * self.ring_len(class),
             build_scratch: s.build_scratch,
             update_scratch: s.update_scratch,
         };
@@ -594,6 +616,7 @@ impl Drop for VulkanBackend {
         let mut objects: Vec<Retired> = self.retiring.drain(..).map(|(_, r)| r).collect();
         for e in self.blases.drain(..).flatten() {
             objects.extend(e.parts.into_iter().map(Retired::BlasAccel));
+            objects.extend(e.spares.into_iter().map(Retired::BlasAccel));
             objects.extend(
                 e.skinned
                     .into_iter()

@@ -24,10 +24,16 @@ impl VulkanBackend {
             })
     }
 
-    /// Whether the BLAS at `address` still exists on the device: live, or freed and waiting
-    /// for the frames that may use it (retiring), not yet destroyed.
+    /// Whether the BLAS at `address` still exists on the device: live, a skinned BLAS's earlier
+    /// refit target (separate refit targets), or freed and waiting for the frames that may use
+    /// it (retiring), not yet destroyed.
     pub fn is_blas_address_retained(&self, address: u64) -> bool {
         self.is_live_blas_address(address)
+            || self
+                .blases
+                .iter()
+                .flatten()
+                .any(|e| e.spares.iter().any(|a| a.address == address))
             || self
                 .retiring
                 .iter()
@@ -77,7 +83,9 @@ impl VulkanBackend {
         let slot = (h.0 & 0xffff_ffff) as usize;
         self.free_slots.push(slot as u32);
         let e = self.blases[slot].take()?;
-        self.by_address.remove(&e.parts[0].address);
+        for a in e.parts.iter().take(1).chain(&e.spares) {
+            self.by_address.remove(&a.address);
+        }
         Some(e)
     }
 
