@@ -30,6 +30,9 @@ use rtstream::renderer::{Camera as ViewCamera, InstanceShading, RenderDesc, Rend
 use rtstream::streaming::GltfScene;
 use rtstream::world_bounds;
 
+#[path = "support/cli.rs"]
+mod cli;
+
 const DEFAULT_MODEL: &str =
     "/usr/share/assimp/models/glTF2/2CylinderEngine-glTF-Binary/2CylinderEngine.glb";
 
@@ -47,21 +50,11 @@ struct Args {
     #[arg(long, default_value = "out/engine.png")]
     out: PathBuf,
     /// Image size, WxH.
-    #[arg(long, default_value = "1280x720", value_parser = parse_size)]
+    #[arg(long, default_value = "1280x720", value_parser = cli::parse_size)]
     size: (u32, u32),
     /// Also print a JSON line of the figures on stdout.
     #[arg(long)]
     json: bool,
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once('x').ok_or("expected WxH, e.g. 1280x720")?;
-    let w = w.parse::<u32>().map_err(|e| format!("width: {e}"))?;
-    let h = h.parse::<u32>().map_err(|e| format!("height: {e}"))?;
-    if w == 0 || h == 0 {
-        return Err("width and height must be positive".into());
-    }
-    Ok((w, h))
 }
 
 fn main() -> anyhow::Result<()> {
