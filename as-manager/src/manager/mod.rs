@@ -461,6 +461,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Checks internal consistency (for tests): byte accounting matches the built entries,
     /// every built entry has a handle, no two live entries hold the same static (mesh, LOD),
     /// every mesh's LOD table points at live entries of that mesh and LOD.
+    // Hidden: a test fixture (tests outside the crate call it every frame), not product API.
     #[doc(hidden)]
     pub fn check_invariants(&self) -> std::result::Result<(), String> {
         let mut bytes = 0;
