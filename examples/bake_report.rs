@@ -28,9 +28,8 @@ struct Cli {
     /// Seed.
     #[arg(long, default_value_t = 0x5EED)]
     seed: u64,
-    /// Directory of Debian's assimp-testmodels glTF2 models.
-    #[arg(long)]
-    asset_dir: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    assets: cli::AssetArgs,
     /// Output directory (default: out/world-<preset>-<seed>).
     #[arg(long)]
     out: Option<std::path::PathBuf>,
@@ -52,7 +51,7 @@ struct Depth {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let preset = cli::world_preset(cli.preset, cli.seed, cli.asset_dir.as_ref());
+    let preset = cli::world_preset(cli.preset, cli.seed, &cli.assets);
     let dir = cli
         .out
         .unwrap_or_else(|| format!("out/world-{}-{:x}", preset.name, preset.seed).into());

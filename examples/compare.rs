@@ -11,11 +11,13 @@
 //! ```text
 //! cargo run --release --example compare -- [--size WxH] [--angle DEG] [--out out/compare.png]
 //!     [--rows N] [--cols N] [--soft DEG] [--shadow-samples N] [--ao-samples N]
-//!     [--path rq|rt] [--json]
+//!     [--path rq|rt] [--asset-dir DIR] [--json]
 //! ```
 
 use std::path::PathBuf;
 use std::sync::Arc;
+
+use clap::Parser;
 
 use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
 use rtstream::eval::{cull_small_instances, DemoWorldDesc, EvalWorld};
@@ -23,6 +25,9 @@ use rtstream::renderer::{
     difference_image, save_rgba_png, Frame, FrameMetrics, PassStats, RenderDesc, RenderPath,
     Renderer, TracedScene,
 };
+
+#[path = "support/cli.rs"]
+mod cli;
 
 fn main() {
     tracing_subscriber::fmt()
@@ -50,52 +55,66 @@ fn passes_json(p: &PassStats) -> String {
     )
 }
 
-fn run() -> Result<(), Box<dyn std::error::Error>> {
-    let (mut width, mut height) = (640u32, 360u32);
-    let mut angle_deg = 1.0f32;
-    let mut out = PathBuf::from("out/compare.png");
-    let mut world_desc = DemoWorldDesc::default();
-    let mut json = false;
-    let mut path: Option<RenderPath> = None;
-    let mut soft_deg = 0.0f32;
-    let mut shadow_samples = 4u32;
-    let mut ao_samples = 1u32;
-    let mut args = std::env::args().skip(1);
-    while let Some(a) = args.next() {
-        let mut value = || args.next().ok_or(format!("{a} needs a value"));
-        match a.as_str() {
-            "--size" => {
-                let s = value()?;
-                let (w, h) = s.split_once('x').ok_or("--size needs WxH")?;
-                (width, height) = (w.parse()?, h.parse()?);
-            }
-            "--angle" => angle_deg = value()?.parse()?,
-            "--out" => out = value()?.into(),
-            "--rows" => world_desc.rows = value()?.parse()?,
-            "--cols" => world_desc.columns = value()?.parse()?,
-            "--soft" => soft_deg = value()?.parse()?,
-            "--shadow-samples" => shadow_samples = value()?.parse()?,
-            "--ao-samples" => ao_samples = value()?.parse()?,
-            "--path" => {
-                path = Some(match value()?.as_str() {
-                    "rq" => RenderPath::RayQuery,
-                    "rt" => RenderPath::RayTracingPipeline,
-                    other => return Err(format!("--path rq|rt, not {other:?}").into()),
-                })
-            }
-            "--json" => json = true,
-            "-h" | "--help" => {
-                println!(
-                    "usage: compare [--size WxH] [--angle DEG] [--out PNG] [--rows N] [--cols N] \
-                     [--soft DEG] [--shadow-samples N] [--ao-samples N] [--path rq|rt] [--json]"
-                );
-                return Ok(());
-            }
-            other => return Err(format!("unknown argument {other:?} (try --help)").into()),
-        }
-    }
+/// A managed frame next to its reference, with the difference image.
+#[derive(Debug, Parser)]
+#[command(name = "compare")]
+struct Args {
+    /// Image size, WxH.
+    #[arg(long, default_value = "640x360", value_parser = cli::parse_size)]
+    size: (u32, u32),
+    /// Projected-angle culling threshold of the managed frame, degrees.
+    #[arg(long, default_value_t = 1.0)]
+    angle: f32,
+    /// The PNG written (`<out>_ids.png` and `<out>_shadow.png` beside it).
+    #[arg(long, default_value = "out/compare.png")]
+    out: PathBuf,
+    /// Rows of models.
+    #[arg(long)]
+    rows: Option<u32>,
+    /// Models per row.
+    #[arg(long)]
+    cols: Option<u32>,
+    /// Angular radius of the sun (soft shadows), degrees.
+    #[arg(long, default_value_t = 0.0)]
+    soft: f32,
+    /// Shadow rays per pixel.
+    #[arg(long, default_value_t = 4)]
+    shadow_samples: u32,
+    /// Ambient-occlusion rays per pixel.
+    #[arg(long, default_value_t = 1)]
+    ao_samples: u32,
+    /// Render path: ray query (`rq`) or the ray-tracing pipeline (`rt`); default: the device's.
+    #[arg(long, value_parser = parse_path)]
+    path: Option<RenderPath>,
+    /// Print the figures as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    assets: cli::AssetArgs,
+}
 
-    let world = EvalWorld::demo(&world_desc)?;
+fn parse_path(s: &str) -> Result<RenderPath, String> {
+    match s {
+        "rq" => Ok(RenderPath::RayQuery),
+        "rt" => Ok(RenderPath::RayTracingPipeline),
+        other => Err(format!("rq or rt, not {other:?}")),
+    }
+}
+
+fn run() -> Result<(), Box<dyn std::error::Error>> {
+    let args = Args::parse();
+    let (width, height) = args.size;
+    let (angle_deg, out, json, path) = (args.angle, args.out, args.json, args.path);
+    let (soft_deg, shadow_samples, ao_samples) = (args.soft, args.shadow_samples, args.ao_samples);
+    let mut world_desc = DemoWorldDesc::default();
+    world_desc.rows = args.rows.unwrap_or(world_desc.rows);
+    world_desc.columns = args.cols.unwrap_or(world_desc.columns);
+    let asset_dir = args
+        .assets
+        .asset_dir
+        .unwrap_or_else(rtstream::eval::asset_dir);
+
+    let world = EvalWorld::demo_in(&asset_dir, &world_desc)?;
     let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
     let info = ctx.info().clone();
     eprintln!(

@@ -17,6 +17,11 @@
 //!   (same animation phase), so a refit never gets a pose of another vertex count.
 //! - Shading: [`WorldBridge::shading`] turns the frame's TLAS records into the renderer's
 //!   per-customIndex table; geometry addresses come from the backend per BLAS address.
+//!
+//! Why one file over 600 lines: `WorldBridge` is one state machine over streaming's events (meshes,
+//! instances, slots, proxies, skinned poses and the shading table share its slot and mesh maps),
+//! and each handler is short; splitting it by event would scatter that shared state's invariants
+//! across files.
 
 use std::collections::HashMap;
 use std::sync::Arc;

@@ -103,7 +103,12 @@ impl EvalWorld {
     /// A ground plane and rows of 2CylinderEngines, boxes and morph cubes at growing distances
     /// along -z (a camera at [`EvalWorld::demo_camera`] sees near and far models at once).
     pub fn demo(desc: &DemoWorldDesc) -> Result<Self> {
-        let dir = asset_dir();
+        Self::demo_in(&asset_dir(), desc)
+    }
+
+    /// [`EvalWorld::demo`] with the models read from `dir` (a copy of assimp-testmodels' glTF2
+    /// directory) instead of [`asset_dir`].
+    pub fn demo_in(dir: &std::path::Path, desc: &DemoWorldDesc) -> Result<Self> {
         let engine = load_gltf(dir.join("2CylinderEngine-glTF-Binary/2CylinderEngine.glb"))?;
         let cube = load_gltf(dir.join("BoxTextured-glTF/BoxTextured.gltf"))?;
         let morph = load_gltf(

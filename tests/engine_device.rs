@@ -10,6 +10,10 @@
 //! - a device without what rtstream needs is a typed error naming what is missing.
 //!
 //! The `unsafe` here is the engine's side: creating and driving its own Vulkan objects.
+//!
+//! Why one file over 600 lines: about half of it is the test's own minimal engine (`Engine`:
+//! instance, device, frames in flight, timeline semaphore, written with plain ash), which no other
+//! test uses; the three scenarios need it next to them to show what an engine does around rtstream.
 
 mod common;
 

@@ -61,6 +61,8 @@ mod mesh;
 pub mod quality;
 pub mod record;
 pub mod spatial;
+// Hidden: a fixture (synthetic worlds) for benches, tests and examples, not product API.
+#[doc(hidden)]
 pub mod synth;
 
 pub use config::{

@@ -57,9 +57,9 @@ pub struct RunArgs {
     /// World preset.
     #[arg(long, value_enum, default_value_t = Preset::Default)]
     pub preset: Preset,
-    /// Directory of Debian's assimp-testmodels glTF2 models the generator places.
-    #[arg(long)]
-    pub asset_dir: Option<PathBuf>,
+    /// The generator's asset directory.
+    #[command(flatten)]
+    pub assets: AssetArgs,
     /// Where the baked world is kept (default: out/world-<preset>-<seed>).
     #[arg(long)]
     pub world: Option<PathBuf>,
@@ -143,7 +143,8 @@ pub struct RunArgs {
     pub maps: u32,
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
+/// Parses `WxH` (both at least 1).
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once('x').ok_or("expected WxH, e.g. 320x180")?;
     let w: u32 = w.parse().map_err(|e| format!("width: {e}"))?;
     let h: u32 = h.parse().map_err(|e| format!("height: {e}"))?;
@@ -153,8 +154,27 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
+/// `--asset-dir`, for every example that generates a world (flattened into [`RunArgs`] and into
+/// the examples with a command line of their own).
+#[derive(Debug, Clone, Default, Args)]
+pub struct AssetArgs {
+    /// Directory of Debian's assimp-testmodels glTF2 models the world generator places
+    /// (default: the preset's, /usr/share/assimp/models/glTF2).
+    #[arg(long, value_name = "DIR")]
+    pub asset_dir: Option<PathBuf>,
+}
+
+impl AssetArgs {
+    /// Sets `preset`'s asset directory when `--asset-dir` was given.
+    pub fn apply(&self, preset: &mut WorldPreset) {
+        if let Some(dir) = &self.asset_dir {
+            preset.asset_dir = dir.clone();
+        }
+    }
+}
+
 /// A world preset with its seed and, optionally, another asset directory.
-pub fn world_preset(preset: Preset, seed: u64, asset_dir: Option<&PathBuf>) -> WorldPreset {
+pub fn world_preset(preset: Preset, seed: u64, assets: &AssetArgs) -> WorldPreset {
     let mut p = match preset {
         Preset::Default => WorldPreset::default_world(),
         Preset::Small => WorldPreset::small(16, seed),
@@ -163,9 +183,7 @@ pub fn world_preset(preset: Preset, seed: u64, asset_dir: Option<&PathBuf>) -> W
         Preset::Crowd => WorldPreset::crowd(600),
     };
     p.seed = seed;
-    if let Some(dir) = asset_dir {
-        p.asset_dir = dir.clone();
-    }
+    assets.apply(&mut p);
     p
 }
 
@@ -218,9 +236,7 @@ impl RunArgs {
             seed: self.seed,
             ..preset
         };
-        if let Some(dir) = &self.asset_dir {
-            preset.asset_dir = dir.clone();
-        }
+        self.assets.apply(&mut preset);
         config.world_dir = self.world.clone().unwrap_or_else(|| {
             PathBuf::from(format!("out/world-{}-{:x}", preset.name, preset.seed))
         });
@@ -229,7 +245,7 @@ impl RunArgs {
 
     /// The world preset.
     pub fn world_preset(&self) -> WorldPreset {
-        world_preset(self.preset, self.seed, self.asset_dir.as_ref())
+        world_preset(self.preset, self.seed, &self.assets)
     }
 
     /// The driver configuration.

@@ -1,25 +1,38 @@
 //! Generates a preset world, bakes it to a directory and streams a camera across it.
 //!
-//! `cargo run --release -p rtstream-streaming --example bake_world -- [default|large|small:N] [DIR]`
+//! `cargo run --release -p rtstream-streaming --example bake_world -- [default|large|small:N] [DIR]
+//! [--asset-dir DIR]`
 
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use clap::Parser;
 use glam::Vec3;
 use rtstream_streaming::{bake, generate, Camera, StreamConfig, World, WorldEvent, WorldPreset};
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let mut args = std::env::args().skip(1);
-    let preset = match args.next().as_deref() {
-        None | Some("default") => WorldPreset::default_world(),
-        Some("large") => WorldPreset::large_world(),
-        Some(s) => match s.strip_prefix("small:").and_then(|n| n.parse().ok()) {
-            Some(n) => WorldPreset::small(n, 1),
-            None => return Err(format!("unknown preset {s:?} (default, large, small:N)").into()),
-        },
-    };
+#[path = "support/world_args.rs"]
+mod world_args;
+
+/// Generates a preset world, bakes it and streams a camera across it.
+#[derive(Debug, Parser)]
+#[command(name = "bake_world")]
+struct Args {
+    /// `default`, `large` or `small:N` (an N x N corner of the default map).
+    #[arg(default_value = "default", value_parser = world_args::parse_preset)]
+    preset: WorldPreset,
+    /// Where to bake (default: <temp>/rtstream-world).
+    dir: Option<PathBuf>,
+    #[command(flatten)]
+    assets: world_args::AssetArgs,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let mut preset = args.preset;
+    args.assets.apply(&mut preset);
     let dir = args
-        .next()
-        .map_or_else(|| std::env::temp_dir().join("rtstream-world"), Into::into);
+        .dir
+        .unwrap_or_else(|| std::env::temp_dir().join("rtstream-world"));
 
     let t = Instant::now();
     let world = generate(&preset)?;

@@ -3,7 +3,7 @@
 //! one read each, the way the loader threads do), single-threaded, from a warm page cache.
 //!
 //! `cargo run --release -p rtstream-streaming --example format_load -- [--preset default|small:N]
-//! [--reps 5] [--dir DIR] [--json]`
+//! [--reps 5] [--dir DIR] [--asset-dir DIR] [--json]`
 //!
 //! The world is generated and baked into DIR (a temporary directory by default) first, so the
 //! files are in the format of the code being measured.
@@ -17,11 +17,13 @@ use anyhow::Context;
 use clap::Parser;
 use rtstream_streaming::{bake, format, generate, read_manifest, Aabb, WorldPreset};
 
+/// The baked format's figures: bytes per instance and the time to read a baked world.
 #[derive(Debug, Parser)]
+#[command(name = "format_load")]
 struct Args {
-    /// `default` or `small:N` (an N x N corner of the default map).
-    #[arg(long, default_value = "default")]
-    preset: String,
+    /// `default`, `large` or `small:N` (an N x N corner of the default map).
+    #[arg(long, default_value = "default", value_parser = world_args::parse_preset)]
+    preset: WorldPreset,
     /// Timed full reads (the median is reported).
     #[arg(long, default_value_t = 5)]
     reps: usize,
@@ -31,7 +33,12 @@ struct Args {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    assets: world_args::AssetArgs,
 }
+
+#[path = "support/world_args.rs"]
+mod world_args;
 
 /// One full read: (seconds for the level files, seconds for the mesh LODs, instances, LODs).
 fn read_all(dir: &Path) -> anyhow::Result<(f64, f64, usize, usize)> {
@@ -89,13 +96,8 @@ fn median(v: &mut [f64]) -> f64 {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let preset = match args.preset.as_str() {
-        "default" => WorldPreset::default_world(),
-        s => match s.strip_prefix("small:").and_then(|n| n.parse().ok()) {
-            Some(n) => WorldPreset::small(n, 1),
-            None => anyhow::bail!("unknown preset {s:?} (default, small:N)"),
-        },
-    };
+    let mut preset = args.preset.clone();
+    args.assets.apply(&mut preset);
     let dir = args
         .dir
         .unwrap_or_else(|| std::env::temp_dir().join("rtstream-format-load"));

@@ -9,6 +9,10 @@
 //! material decides). Skins (JOINTS_0/WEIGHTS_0, the skin's joints and inverse bind matrices) and
 //! the file's first animation become a [`Skeleton`] attached to the mesh as [`SkinWeights`];
 //! joints are re-ordered parent-before-child and every index and key is validated.
+//!
+//! Why one file over 600 lines: it is the one place that reads glTF documents, and its
+//! validation (header, JSON, accessors), mesh reading and skin/animation import share the checked
+//! document and the file name every error carries; the skeleton type itself lives in `skeleton.rs`.
 
 use std::path::{Path, PathBuf};
 

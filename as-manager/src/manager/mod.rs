@@ -1,4 +1,10 @@
 //! `AsManager`: the engine-facing API and the frame loop.
+//!
+//! Why one file over 600 lines: the frame's phases already live in the submodules below; what stays
+//! here is the public surface engines read together — the frame types (`FrameStats` alone is ~80
+//! lines of documented fields) and `AsManager`'s methods, most of them thin forwards to the
+//! registrar — plus `update`, which sequences the phases. Splitting the types from the loop that
+//! defines them would not make either shorter to read.
 
 mod apply;
 mod baseline;
@@ -461,6 +467,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Checks internal consistency (for tests): byte accounting matches the built entries,
     /// every built entry has a handle, no two live entries hold the same static (mesh, LOD),
     /// every mesh's LOD table points at live entries of that mesh and LOD.
+    // Hidden: a test fixture (tests outside the crate call it every frame), not product API.
     #[doc(hidden)]
     pub fn check_invariants(&self) -> std::result::Result<(), String> {
         let mut bytes = 0;

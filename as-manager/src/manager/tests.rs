@@ -1,4 +1,8 @@
 //! Scenario tests of the frame loop against the model backend.
+//!
+//! Why one file over 600 lines: sixteen scenario tests sharing one set of model-backend scene
+//! builders; the far-field and LOD-geometry scenarios already have files of their own
+//! (`far_tests.rs`, `lod_geometry_tests.rs`).
 
 use glam::{Affine3A, Vec3};
 

@@ -18,6 +18,11 @@
 //! Finer LODs admitted while levels were still loading can be overtaken by those levels'
 //! coarsest LODs: each update then sheds finer LODs, farthest first, until the total fits, so
 //! the budget can be exceeded only while finer loads admitted earlier are still in flight.
+//!
+//! Why one file over 600 lines: `World` owns all streaming state on one thread, and its residency,
+//! load completion and unload paths update the same level and mesh slots in an order the event
+//! guarantees above depend on, so they read best together; LOD streaming (`lod_stream.rs`), the
+//! public types (`types.rs`) and the loader threads (`loader.rs`) are already apart.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
