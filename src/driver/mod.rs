@@ -1,6 +1,11 @@
 //! The frame driver shared by the fly-through, the trade-off sweep and the stress examples:
 //! world, stream, policies, renders and scoring in one place.
 //!
+//! Why one file over 600 lines: `run_on` is the frame loop, and a frame's steps (stream, each
+//! policy's update and recording, the scored and timed renders, the submission, the maps) read
+//! in order in one function; the pieces that stand alone (path, truth, scoring, report, maps,
+//! stats) are submodules already.
+//!
 //! One run:
 //! - The world is generated from its preset and seed (deterministic), baked to disk once and
 //!   streamed from there by loader threads, as a raster engine would stream it

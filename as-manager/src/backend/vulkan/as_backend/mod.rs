@@ -1,5 +1,9 @@
 //! [`VulkanBackend`]: the manager's [`AsBackend`] on a real Vulkan device.
 //!
+//! Why one file over 600 lines: the backend's state (slots, entries, retirement), its creation
+//! and drop, and the `AsBackend` trait impl (thin forwards to `frame.rs`, `registry.rs`,
+//! `builds.rs`, `tlas.rs`) stay together; every phase's body lives in those files.
+//!
 //! - **Frames in flight.** `frames_in_flight` slots (default 2), each with its own command
 //!   buffer, TLAS, instance buffer, scratch buffer and query pools, so frame `n+1`
 //!   records and builds while frame `n`'s TLAS is traced. One timeline semaphore: frame `n`

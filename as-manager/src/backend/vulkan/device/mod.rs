@@ -8,3 +8,4 @@ pub(crate) mod context;
 pub(crate) mod external;
 pub(crate) mod frames;
 pub(crate) mod query;
+mod select;
