@@ -421,22 +421,7 @@ impl VulkanBackend {
         if e.parts.len() > 1 {
             self.split_parts.remove(&e.parts[0].address);
         }
-        let mut objects: Vec<Retired> = e
-            .parts
-            .into_iter()
-            .chain(e.spares)
-            .map(Retired::BlasAccel)
-            .collect();
-        objects.extend(
-            e.skinned
-                .into_iter()
-                .flat_map(SkinnedInputs::buffers)
-                .map(Retired::BlasBuffer),
-        );
-        if let Some((vb, ib)) = e.static_inputs {
-            objects.push(Retired::BlasBuffer(vb));
-            objects.push(Retired::BlasBuffer(ib));
-        }
+        let objects: Vec<Retired> = e.into_owned().collect();
         // Keep the queue ordered by frame: frees of older frames may arrive late, and go in
         // after the entries of their frame (no sort of the whole queue per free).
         let at = self

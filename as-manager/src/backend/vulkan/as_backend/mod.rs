@@ -177,6 +177,19 @@ struct SkinnedInputs {
     next: usize,
 }
 
+impl BlasEntry {
+    /// Everything the entry owns on the device: its structures (parts and refit spares) and
+    /// its input buffers, to retire or destroy.
+    fn into_owned(self) -> impl Iterator<Item = Retired> {
+        let accels = self.parts.into_iter().chain(self.spares);
+        let skinned = self.skinned.into_iter().flat_map(SkinnedInputs::buffers);
+        let statics = self.static_inputs.into_iter().flat_map(|(vb, ib)| [vb, ib]);
+        accels
+            .map(Retired::BlasAccel)
+            .chain(skinned.chain(statics).map(Retired::BlasBuffer))
+    }
+}
+
 impl SkinnedInputs {
     fn buffers(self) -> impl Iterator<Item = GpuBuffer> {
         std::iter::once(self.indices).chain(self.poses)
@@ -619,18 +632,7 @@ impl Drop for VulkanBackend {
         }
         let mut objects: Vec<Retired> = self.retiring.drain(..).map(|(_, r)| r).collect();
         for e in self.blases.drain(..).flatten() {
-            objects.extend(e.parts.into_iter().map(Retired::BlasAccel));
-            objects.extend(e.spares.into_iter().map(Retired::BlasAccel));
-            objects.extend(
-                e.skinned
-                    .into_iter()
-                    .flat_map(SkinnedInputs::buffers)
-                    .map(Retired::BlasBuffer),
-            );
-            if let Some((vb, ib)) = e.static_inputs {
-                objects.push(Retired::BlasBuffer(vb));
-                objects.push(Retired::BlasBuffer(ib));
-            }
+            objects.extend(e.into_owned());
         }
         for s in std::mem::take(&mut self.slots) {
             objects.extend(s.tlas.map(Retired::Accel));
