@@ -40,7 +40,7 @@ enum Knob {
     Budget,
     /// Far-field cut: proxy error in pixels (6, 12, 24, 48) or off.
     Far,
-    /// Far keep angle: landmarks beyond r2 keep their coarsest LOD (off, 0.5, 1, 2, 4 degrees).
+    /// Far keep angle: landmarks beyond r2 stay in the TLAS (off, 0.25, 0.5, 1, 2, 4 degrees).
     Keep,
 }
 
@@ -121,7 +121,7 @@ fn points(knob: Knob) -> Vec<Point> {
             v.push(p("off".into(), |c| c.far_field.enabled = false));
             v
         }
-        Knob::Keep => [0.0f32, 0.5, 1.0, 2.0, 4.0]
+        Knob::Keep => [0.0f32, 0.25, 0.5, 1.0, 2.0, 4.0]
             .into_iter()
             .map(|a| {
                 p(format!("{a}deg"), move |c| {

@@ -208,13 +208,14 @@ pub struct FarFieldConfig {
     /// Share of the BLAS memory budget proxies may hold; they never evict to get it.
     pub memory_share: f32,
     /// The "far keep angle" (radians, 0 = off): a static instance beyond r2 (and within
-    /// `far_radius`) whose bounding sphere subtends more than this keeps its coarsest LOD in
-    /// the TLAS beside the proxies — a tower 600 m away keeps its own silhouette instead of the
-    /// proxy's simplified one. Its BLAS is the mesh's shared coarsest LOD, so the cost is TLAS
-    /// instances, not memory. Candidates are indexed in coarse cells sorted by size, so the
-    /// per-frame cost follows the landmarks near enough to qualify, not the world's size.
-    /// Default 1° (the culling angle; `docs/RESULTS.md` charts 0.5–4°): on the default run it
-    /// takes the hit mismatch from 2.43 % to 1.47 % for +0.2 MB and ~2,200 TLAS instances.
+    /// `far_radius`) whose bounding sphere subtends more than this stays in the TLAS beside the
+    /// proxies as a **landmark** — a tower 600 m away keeps its own silhouette instead of the
+    /// proxy's simplified one. A landmark picks its LOD by projected error like the near field
+    /// and uses the mesh's shared BLAS for that LOD, so the cost is TLAS instances, not memory.
+    /// This angle alone decides landmarks (the culling angle is the near field's). Candidates
+    /// are indexed in coarse cells sorted by size, so the per-frame cost follows the landmarks
+    /// near enough to qualify, not the world's size.
+    /// Default 0.5° (`docs/RESULTS.md` charts 0.25–4°).
     pub keep_angle: f32,
 }
 
@@ -228,7 +229,7 @@ impl Default for FarFieldConfig {
             lookahead: 150.0,
             build_share: 0.5,
             memory_share: 0.5,
-            keep_angle: 1f32.to_radians(),
+            keep_angle: 0.5f32.to_radians(),
         }
     }
 }

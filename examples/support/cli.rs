@@ -129,7 +129,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub far_px: Option<f32>,
     /// Far keep angle in degrees (0: off): a static instance beyond r2 that subtends more
-    /// keeps its coarsest LOD beside the proxies.
+    /// stays in the TLAS beside the proxies (a landmark).
     #[arg(long)]
     pub far_keep_angle: Option<f32>,
     /// Skip the all-geometry reference (non-opaque as opaque).

@@ -285,7 +285,7 @@ fn group_registration_errors_are_typed() {
 }
 
 #[test]
-fn landmarks_beyond_r2_keep_their_coarsest_lod_beside_the_proxies() {
+fn landmarks_beyond_r2_keep_their_own_lod_beside_the_proxies() {
     const TOWER_CI: u32 = 50_000;
     // (x, z, radius): two towers that subtend more than 1 degree from (20, 20) beyond r2, and
     // one 5 m tower at 380 m (0.75 degrees, a candidate by size but too small there).
@@ -306,7 +306,9 @@ fn landmarks_beyond_r2_keep_their_coarsest_lod_beside_the_proxies() {
                     format!("tower{k}"),
                     MeshKind::Static,
                     r,
-                    counts_chain(4000, 3, 0.05),
+                    // Errors 0, 2, 4 m: at 650-950 m the LOD that projects under a pixel
+                    // is neither the finest nor the coarsest.
+                    counts_chain(4000, 3, 2.0),
                 ))
                 .unwrap();
             let leaf = (x / LEAF_M) as i32 * LEAVES + (z / LEAF_M) as i32;
@@ -347,9 +349,19 @@ fn landmarks_beyond_r2_keep_their_coarsest_lod_beside_the_proxies() {
         HashSet::from([TOWER_CI, TOWER_CI + 1]),
         "the two large far towers are kept, the small one is not"
     );
-    assert_eq!(
-        &lods[..2],
-        &[Some(2), Some(2)],
-        "kept at their coarsest LOD"
-    );
+    // A landmark picks its LOD by projected error like the near field (the coarsest LOD's
+    // silhouette was the far field's largest error).
+    let c = config();
+    let selector = crate::lod::LodSelector::new(&c.lod);
+    let errors = [0.0, 2.0, 4.0];
+    for (k, lod) in lods[..2].iter().enumerate() {
+        let (x, z, r) = towers[k];
+        let surface = (Vec3::new(x, r, z) - Vec3::new(20.0, 2.0, 20.0)).length() - r;
+        let want = selector.select(&errors, 1.0, surface, 2, 0);
+        assert_eq!(*lod, Some(want), "tower {k} at {surface} m");
+        assert!(
+            want < 2,
+            "tower {k}: the test needs a LOD finer than the coarsest"
+        );
+    }
 }

@@ -205,7 +205,11 @@ impl<B: AsBackend> AsManager<B> {
             } else {
                 (NONE, 0)
             };
-            let culled = if v.beyond_r2 {
+            // A landmark passed its own test (the far keep angle, with hysteresis) in the
+            // residency pass; the culling angle is the near field's.
+            let culled = if v.landmark {
+                false
+            } else if v.beyond_r2 {
                 self.culler.cull_small(radius, v.center_dist, h.culled)
             } else {
                 self.culler.cull(radius, v.center_dist, h.culled)
@@ -291,7 +295,7 @@ impl ResidencyPass<'_> {
         (d2, d2 > reach * reach)
     }
 
-    /// Picks the instance's LOD (its coarsest for a `landmark`), creates its entry, and marks
+    /// Picks the instance's LOD by projected error (a `landmark` too), creates its entry, and marks
     /// the entry requested (within r1, beyond r2) and kept.
     fn visit(
         &mut self,
@@ -323,17 +327,16 @@ impl ResidencyPass<'_> {
         } else {
             mesh.nlods as usize - 1
         };
-        let lodi = if landmark {
-            mesh.nlods as usize - 1
-        } else {
-            self.lod.select(
-                mesh.errors(),
-                h.scale,
-                surface_dist,
-                current,
-                mesh.lod_floor as usize,
-            )
-        };
+        // A landmark picks its LOD by projected error like the near field: its BLAS is still
+        // the mesh's shared one for that LOD (memory stays per mesh, not per instance), and
+        // the coarsest LOD's silhouette was the far field's largest error (docs/RESULTS.md).
+        let lodi = self.lod.select(
+            mesh.errors(),
+            h.scale,
+            surface_dist,
+            current,
+            mesh.lod_floor as usize,
+        );
         // A GPU builds only from resident data: the nearest LOD that has some.
         let built = |l: usize| {
             mesh.kind == MeshKind::Static
