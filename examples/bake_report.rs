@@ -59,7 +59,8 @@ fn main() -> anyhow::Result<()> {
     let world = generate(&preset).context("generating the world")?;
     let gen_s = t.elapsed().as_secs_f64();
     let report = bake(&world, &dir).context("baking")?;
-    let file = read_proxies(&dir, world.levels.len())?.context("no proxy file written")?;
+    let file = read_proxies(&dir, world.levels.len(), world.meshes.len())?
+        .context("no proxy file written")?;
     let mut depths: Vec<Depth> = Vec::new();
     for d in 1..=4u8 {
         let nodes: Vec<usize> = (0..file.tree.nodes.len())
@@ -105,7 +106,7 @@ fn main() -> anyhow::Result<()> {
         gen_s
     );
     println!(
-        "baked to {}: {} level files ({:.1} MB), mesh library {:.1} MB, proxies {:.1} MB ({} nodes, {} triangles, built in {:.2} s)",
+        "baked to {}: {} level files ({:.1} MB), mesh library {:.1} MB, proxies {:.1} MB ({} nodes, {} triangles, {} landmarks listed, built in {:.2} s)",
         dir.display(),
         report.level_files,
         report.level_bytes as f64 / 1e6,
@@ -113,6 +114,7 @@ fn main() -> anyhow::Result<()> {
         report.proxies.file_bytes as f64 / 1e6,
         report.proxies.nodes,
         report.proxies.triangles,
+        report.proxies.landmarks,
         report.proxies.build_us as f64 / 1e6
     );
     println!("depth  blocks  nodes  triangles  bytes/proxy mean  max  error m mean  max");
@@ -143,6 +145,7 @@ fn main() -> anyhow::Result<()> {
                 "proxy_file_bytes": report.proxies.file_bytes,
                 "proxy_nodes": report.proxies.nodes,
                 "proxy_triangles": report.proxies.triangles,
+                "proxy_landmarks": report.proxies.landmarks,
                 "proxy_build_ms": report.proxies.build_us as f64 / 1e3,
                 "depths": depths,
             })

@@ -11,6 +11,12 @@
 //! - `LevelLoaded`: every [`MaterialClass::Opaque`] instance gets a manager instance (others are
 //!   not BLAS-eligible: counted, skipped) whose customIndex is a stable slot handed out here
 //!   and recycled on `LevelUnloaded`. The slot indexes the shading table ([`ShadingSlot`]).
+//! - Far landmarks: a `ProxyLoaded` leaf lists its large static instances (see
+//!   `rtstream_streaming::proxy`). Those whose level is not loaded are placed at once (their
+//!   mesh registered, else as soon as it is), so the manager can keep them as far landmarks
+//!   beside the proxy. When the level loads, the same instance (same id) is already placed and
+//!   stays; when it unloads, the instance stays while its proxy is resident; `ProxyEvicted`
+//!   removes those no loaded level holds.
 //! - `LoadFailed`: logged (`tracing::warn!`) and counted; nothing to undo.
 //! - Skinned poses: [`WorldBridge::pose_skinned`] takes [`World::skin_frame`]'s positions when
 //!   they are of the LOD the manager builds the instance at, and otherwise skins that LOD itself
@@ -70,6 +76,8 @@ pub struct BridgeStats {
     pub lod_swaps: usize,
     /// Meshes unregistered because nothing of them was resident or placed any more.
     pub meshes_released: usize,
+    /// Instances placed now from a resident proxy's landmark list with their level not loaded.
+    pub far_landmarks: usize,
 }
 
 #[derive(Debug)]
@@ -93,6 +101,8 @@ struct Placed {
     skinned: bool,
     transform: glam::Mat4,
     center: Vec3,
+    /// Placed from a proxy's landmark list; no loaded level holds it.
+    far: bool,
 }
 
 /// Applies [`WorldEvent`]s to an [`AsManager`]; see the module docs.
@@ -112,6 +122,11 @@ pub struct WorldBridge {
     proxy_meshes: HashMap<ProxyId, rtstream_as_manager::MeshId>,
     proxy_errors: Vec<f32>,
     proxy_bounds: Vec<Aabb>,
+    /// Each resident leaf's landmark list, and each listed instance's leaf.
+    proxy_landmarks: HashMap<ProxyId, Arc<[(LevelId, Instance)]>>,
+    landmark_leaf: HashMap<InstanceId, ProxyId>,
+    /// Landmarks waiting for their mesh's registration (its first resident LOD).
+    pending_landmarks: HashMap<MeshId, Vec<InstanceId>>,
 }
 
 /// The base colour of far-field proxies (they merge terrain and buildings).
@@ -239,7 +254,64 @@ impl WorldBridge {
         }
     }
 
+    /// Places a resident leaf's landmarks whose level is not loaded (see the module docs).
+    fn landmarks_loaded<B: AsBackend>(
+        &mut self,
+        m: &AsManager<B>,
+        node: ProxyId,
+        landmarks: &Arc<[(LevelId, Instance)]>,
+    ) {
+        if landmarks.is_empty() || self.groups.get(node.0 as usize).is_none() {
+            return; // nothing listed, or no proxy tree registered
+        }
+        self.proxy_landmarks.insert(node, Arc::clone(landmarks));
+        for (level, inst) in landmarks.iter() {
+            self.landmark_leaf.insert(inst.id, node);
+            self.place_landmark(m, *level, inst);
+        }
+    }
+
+    fn place_landmark<B: AsBackend>(&mut self, m: &AsManager<B>, level: LevelId, inst: &Instance) {
+        if self.placed.contains_key(&inst.id) {
+            return; // its level is loaded: placed already
+        }
+        if !self.meshes.contains_key(&inst.mesh) {
+            self.pending_landmarks
+                .entry(inst.mesh)
+                .or_default()
+                .push(inst.id);
+            return;
+        }
+        self.place(m, level, inst, true);
+    }
+
+    /// Places the landmarks that waited for `mesh` (now registered) and are still listed.
+    fn place_pending_landmarks<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId) {
+        let Some(ids) = self.pending_landmarks.remove(&mesh) else {
+            return;
+        };
+        for id in ids {
+            let Some((level, inst)) = self
+                .landmark_leaf
+                .get(&id)
+                .and_then(|n| self.proxy_landmarks.get(n))
+                .and_then(|list| list.iter().find(|(_, i)| i.id == id).copied())
+            else {
+                continue; // its proxy left meanwhile
+            };
+            self.place_landmark(m, level, &inst);
+        }
+    }
+
     fn proxy_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, node: ProxyId) {
+        if let Some(list) = self.proxy_landmarks.remove(&node) {
+            for (_, inst) in list.iter() {
+                self.landmark_leaf.remove(&inst.id);
+                if self.placed.get(&inst.id).is_some_and(|p| p.far) {
+                    self.remove_placed(m, inst.id);
+                }
+            }
+        }
         let Some(mesh) = self.proxy_meshes.remove(&node) else {
             return;
         };
@@ -275,6 +347,7 @@ impl WorldBridge {
         BridgeStats {
             meshes: self.meshes.len(),
             instances: self.placed.len(),
+            far_landmarks: self.placed.values().filter(|p| p.far).count(),
             ..self.stats
         }
     }
@@ -319,7 +392,7 @@ impl WorldBridge {
                     level, instances, ..
                 } => {
                     for inst in instances.iter() {
-                        self.place(m, *level, inst);
+                        self.place(m, *level, inst, false);
                     }
                 }
                 WorldEvent::LevelUnloaded { instances, .. } => {
@@ -327,7 +400,14 @@ impl WorldBridge {
                         self.unplace(m, inst.id);
                     }
                 }
-                WorldEvent::ProxyLoaded { node, geometry } => self.proxy_loaded(m, *node, geometry),
+                WorldEvent::ProxyLoaded {
+                    node,
+                    geometry,
+                    landmarks,
+                } => {
+                    self.proxy_loaded(m, *node, geometry);
+                    self.landmarks_loaded(m, *node, landmarks);
+                }
                 WorldEvent::ProxyEvicted { node } => self.proxy_evicted(m, *node),
                 WorldEvent::LoadFailed {
                     level, mesh, error, ..
@@ -448,6 +528,7 @@ impl WorldBridge {
                         placed: 0,
                     },
                 );
+                self.place_pending_landmarks(m, mesh);
             }
             Err(e) => self.reject("mesh", e),
         }
@@ -482,12 +563,21 @@ impl WorldBridge {
         }
     }
 
-    fn place<B: AsBackend>(&mut self, m: &AsManager<B>, level: LevelId, inst: &Instance) {
+    /// Places `inst` of `level`; `far`: from a proxy's landmark list (no loaded level holds
+    /// it). A landmark placed earlier becomes its level's when the level loads.
+    fn place<B: AsBackend>(
+        &mut self,
+        m: &AsManager<B>,
+        level: LevelId,
+        inst: &Instance,
+        far: bool,
+    ) {
         if inst.material != MaterialClass::Opaque {
             self.stats.skipped_not_opaque += 1;
             return;
         }
-        if self.placed.contains_key(&inst.id) {
+        if let Some(p) = self.placed.get_mut(&inst.id) {
+            p.far &= far;
             return;
         }
         let Some(mesh) = self.meshes.get(&inst.mesh) else {
@@ -533,6 +623,7 @@ impl WorldBridge {
                         skinned: skinned && inst.motion == Motion::Skinned,
                         transform: inst.transform,
                         center: inst.sphere.center,
+                        far,
                     },
                 );
             }
@@ -543,7 +634,19 @@ impl WorldBridge {
         }
     }
 
+    /// Its level unloaded: removes the instance, unless a resident proxy lists it as a
+    /// landmark (then it stays, placed from the proxy).
     fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: InstanceId) {
+        if self.landmark_leaf.contains_key(&id) {
+            if let Some(p) = self.placed.get_mut(&id) {
+                p.far = true;
+                return;
+            }
+        }
+        self.remove_placed(m, id);
+    }
+
+    fn remove_placed<B: AsBackend>(&mut self, m: &AsManager<B>, id: InstanceId) {
         let Some(p) = self.placed.remove(&id) else {
             return;
         };

@@ -4,7 +4,8 @@
 //! - the triangle counts and errors guessed for LODs not yet seen (a world without a manifest)
 //!   are replaced when the real LOD arrives;
 //! - a mesh leaves the manager once no LOD of it is resident and no instance of it is placed,
-//!   and comes back when a LOD arrives again.
+//!   and comes back when a LOD arrives again;
+//! - far landmarks come and go with their proxy, one manager instance per world instance.
 
 use std::sync::Arc;
 
@@ -152,4 +153,106 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
 fn lods_of(m: &AsManager<ModelBackend>, bridge: &WorldBridge) -> Vec<(u32, f32)> {
     let id = bridge.manager_mesh(MeshId(0)).expect("registered");
     m.mesh_lods(id).expect("applied")
+}
+
+/// Far landmarks: a leaf's landmark list places its large instances while their level is not
+/// loaded (once their mesh is registered); the level's own copy of the instance (same id) is
+/// the same manager instance; after the level unloads the instance stays while its proxy is
+/// resident, and leaves with the proxy.
+#[test]
+fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
+    use rtstream::streaming::{ProxyId, ProxyNode, ProxyTree};
+    let mut backend = ModelBackend::lavapipe();
+    backend.require_geometry = true;
+    let mut m = AsManager::new(Config::default(), backend).unwrap();
+    let mut bridge = WorldBridge::new(None);
+    let g = grid(8);
+    let bounds = Aabb::from_points(&g.positions);
+    let tree = ProxyTree {
+        nodes: vec![ProxyNode {
+            id: ProxyId(0),
+            depth: 1,
+            cell: [0, 0],
+            bounds: Aabb {
+                min: Vec3::new(-100.0, 0.0, -100.0),
+                max: Vec3::new(100.0, 10.0, 100.0),
+            },
+            error: 1.0,
+            parent: None,
+            children: Vec::new(),
+            levels: vec![LevelId(0)],
+            triangles: g.triangle_count() as u32,
+            landmarks: Vec::new(),
+        }],
+        leaf_of_level: vec![Some(ProxyId(0))],
+    };
+    bridge.register_proxy_tree(&m, &tree);
+    let tower = Instance::new(
+        InstanceId(7),
+        MeshId(0),
+        Mat4::from_translation(Vec3::new(0.0, 0.0, 60.0)),
+        &bounds,
+        MaterialClass::Opaque,
+        Motion::Static,
+    );
+    let level_instances: Arc<[Instance]> = Arc::from(vec![tower]);
+
+    // The proxy arrives before any LOD of the tower's mesh: the landmark waits.
+    bridge.apply(
+        &m,
+        &[WorldEvent::ProxyLoaded {
+            node: ProxyId(0),
+            geometry: grid(2),
+            landmarks: Arc::from(vec![(LevelId(0), tower)]),
+        }],
+    );
+    frame(&mut m, 0);
+    assert_eq!(m.stats().instances, 0, "no mesh yet: nothing placed");
+    assert_eq!(bridge.stats().rejected, 0, "waiting is not a rejection");
+
+    // Its mesh registers: the landmark is placed, from the proxy.
+    bridge.apply(&m, &[loaded(0, 0.0, &g)]);
+    frame(&mut m, 1);
+    assert_eq!(m.stats().instances, 1);
+    assert_eq!(bridge.stats().far_landmarks, 1);
+    let id = bridge.manager_instance(InstanceId(7)).expect("placed");
+
+    // Its level loads: the same instance, not a second one.
+    let level = |loaded: bool| {
+        if loaded {
+            WorldEvent::LevelLoaded {
+                level: LevelId(0),
+                bounds,
+                instances: level_instances.clone(),
+            }
+        } else {
+            WorldEvent::LevelUnloaded {
+                level: LevelId(0),
+                instances: level_instances.clone(),
+            }
+        }
+    };
+    bridge.apply(&m, &[level(true)]);
+    frame(&mut m, 2);
+    assert_eq!(
+        m.stats().instances,
+        1,
+        "one manager instance per world instance"
+    );
+    assert_eq!(bridge.manager_instance(InstanceId(7)), Some(id));
+    assert_eq!(bridge.stats().far_landmarks, 0, "its level holds it now");
+
+    // The level unloads: the proxy still lists it, so it stays.
+    bridge.apply(&m, &[level(false)]);
+    frame(&mut m, 3);
+    assert_eq!(bridge.manager_instance(InstanceId(7)), Some(id));
+    assert_eq!(bridge.stats().far_landmarks, 1);
+
+    // The proxy leaves: so does the landmark.
+    bridge.apply(&m, &[WorldEvent::ProxyEvicted { node: ProxyId(0) }]);
+    frame(&mut m, 4);
+    assert_eq!(m.stats().instances, 0);
+    assert_eq!(bridge.manager_instance(InstanceId(7)), None);
+    assert_eq!(bridge.stats().rejected, 0);
+    m.check_invariants().unwrap();
 }

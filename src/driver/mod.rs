@@ -297,7 +297,7 @@ pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld>
     // The stamp names the baked format's version too: a bake of an older format is redone here
     // (reading it would be a `FormatError::Version`), never left for the user to delete.
     let stamp = format!(
-        "{} seed={} size={} grid={} instances={} proxies={}x{}/{} v2 format={}\n",
+        "{} seed={} size={} grid={} instances={} proxies={}x{}/{} landmarks={} v{} format={}\n",
         preset.name,
         preset.seed,
         preset.size_m,
@@ -306,6 +306,8 @@ pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld>
         proxies.max_depth,
         proxies.triangles,
         proxies.source_error,
+        proxies.landmark_radius,
+        rtstream_streaming::proxy::PROXY_INDEX_VERSION,
         rtstream_streaming::format::VERSION
     );
     let stamp_path = dir.join("preset.txt");

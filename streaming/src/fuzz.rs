@@ -42,7 +42,7 @@ pub fn mesh_lod(data: &[u8]) {
 
 /// The far-field proxy file (`proxies.bin`).
 pub fn proxies(data: &[u8]) {
-    let _ = crate::proxy::decode_proxies(data, Path::new("fuzz/proxies.bin"), 256);
+    let _ = crate::proxy::decode_proxies(data, Path::new("fuzz/proxies.bin"), 256, 256);
 }
 
 /// A glTF (JSON with embedded buffers) or GLB file.

@@ -7,8 +7,14 @@
 //! meshoptimizer; a parent merges its children's proxies and simplifies again, so errors only
 //! grow up the tree. Each node records its geometric error in metres.
 //!
-//! Proxies live in their own file (`proxies.bin`): a checksummed index, then one checksummed
-//! chunk per node, so one corrupt node loses only itself.
+//! A leaf also lists its **landmarks**: the static opaque instances whose bounding sphere is at
+//! least [`ProxyConfig::landmark_radius`]. Streaming loads levels only within its load radius;
+//! beyond it, the proxy's landmark list lets an engine place those instances anyway (the manager
+//! shows them as far landmarks beside the proxy, at the LOD their distance needs), so a tower
+//! 2 km away keeps its own silhouette although its level never loaded.
+//!
+//! Proxies live in their own file (`proxies.bin`): a checksummed index (with the landmark
+//! lists), then one checksummed chunk per node, so one corrupt node loses only itself.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -19,11 +25,28 @@ use crate::format::{self, frame, unframe, Reader, Writer};
 use crate::generate::GeneratedWorld;
 use crate::lod::compact;
 use crate::model::{Aabb, LevelId, LodGeometry, MaterialClass, MeshId, Motion};
+use glam::Mat4;
 
 /// The proxy file of a baked world.
 pub const PROXY_FILE: &str = "proxies.bin";
 /// Magic of the proxy index.
 pub const PROXY_INDEX_MAGIC: [u8; 4] = *b"RTSP";
+/// Version of the proxy index's layout (inside the framed payload; 2 added the landmark lists).
+pub const PROXY_INDEX_VERSION: u32 = 2;
+
+/// An instance a leaf lists as a landmark: what is needed to place it without loading its
+/// level (it is static and opaque by construction; bounds follow from its mesh's bounds).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProxyLandmark {
+    /// The instance (the same id its level gives it, so an engine can tell them apart).
+    pub instance: crate::model::InstanceId,
+    /// Its level.
+    pub level: LevelId,
+    /// Its mesh.
+    pub mesh: MeshId,
+    /// Local-to-world transform.
+    pub transform: Mat4,
+}
 
 /// A proxy node's id: its index in [`ProxyTree::nodes`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -51,6 +74,9 @@ pub struct ProxyNode {
     pub levels: Vec<LevelId>,
     /// Triangles of its geometry.
     pub triangles: u32,
+    /// Leaves: the static opaque instances of its levels with a bounding sphere of at least
+    /// [`ProxyConfig::landmark_radius`], in level then instance order (empty for parents).
+    pub landmarks: Vec<ProxyLandmark>,
 }
 
 /// The quadtree's structure.
@@ -88,6 +114,10 @@ pub struct ProxyConfig {
     pub triangles: u32,
     /// Leaves merge each instance's coarsest LOD whose error is at most this (metres).
     pub source_error: f32,
+    /// Leaves list the static opaque instances with a bounding sphere at least this large
+    /// (metres) as landmarks. 4 m subtends 0.5° (the manager's default far keep angle) out to
+    /// 460 m and 0.25° to 920 m: anything smaller is too small to keep beyond the load radius.
+    pub landmark_radius: f32,
     /// Worker threads.
     pub threads: usize,
 }
@@ -98,6 +128,7 @@ impl Default for ProxyConfig {
             max_depth: 4,
             triangles: 768,
             source_error: 1.0,
+            landmark_radius: 4.0,
             threads: std::thread::available_parallelism().map_or(2, |n| n.get()),
         }
     }
@@ -110,6 +141,8 @@ pub struct ProxyReport {
     pub nodes: u32,
     /// Triangles over all nodes.
     pub triangles: u64,
+    /// Landmarks listed over all leaves.
+    pub landmarks: u64,
     /// Bytes of the proxy file.
     pub file_bytes: u64,
     /// Largest node geometry in bytes (positions and indices).
@@ -198,52 +231,72 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
             break; // one node per block already: nothing coarser to add
         }
         let jobs: Vec<((i32, i32), Vec<u32>)> = blocks.into_iter().collect();
-        let built: Vec<(Aabb, LodGeometry)> = parallel_map(&jobs, cfg.threads, |(_, members)| {
-            if depth == 1 {
-                let mut parts = Vec::new();
-                let mut bounds = Aabb::EMPTY;
-                let mut err = 0.0f32;
-                for &l in members {
-                    for inst in &world.levels[l as usize].instances {
-                        if inst.material != MaterialClass::Opaque || inst.motion != Motion::Static {
-                            continue;
+        let built: Vec<(Aabb, LodGeometry, Vec<ProxyLandmark>)> =
+            parallel_map(&jobs, cfg.threads, |(_, members)| {
+                if depth == 1 {
+                    let mut parts = Vec::new();
+                    let mut landmarks = Vec::new();
+                    let mut bounds = Aabb::EMPTY;
+                    let mut err = 0.0f32;
+                    for &l in members {
+                        for inst in &world.levels[l as usize].instances {
+                            if inst.material != MaterialClass::Opaque
+                                || inst.motion != Motion::Static
+                            {
+                                continue;
+                            }
+                            if inst.sphere.radius >= cfg.landmark_radius {
+                                landmarks.push(ProxyLandmark {
+                                    instance: inst.id,
+                                    level: LevelId(l),
+                                    mesh: inst.mesh,
+                                    transform: inst.transform,
+                                });
+                            }
+                            let mesh = &world.meshes[inst.mesh.0 as usize];
+                            // The coarsest LOD still within the leaf's source error: the very
+                            // coarsest LODs of tall buildings are pyramids, not what a skyline is.
+                            let scale = inst.max_scale();
+                            let Some(g) = mesh
+                                .lods
+                                .iter()
+                                .rev()
+                                .find(|g| g.error * scale <= cfg.source_error)
+                                .or(mesh.lods.first())
+                            else {
+                                continue;
+                            };
+                            parts.push((&**g, inst.transform));
+                            bounds = bounds.union(inst.aabb);
+                            err = err.max(g.error * inst.max_scale());
                         }
-                        let mesh = &world.meshes[inst.mesh.0 as usize];
-                        // The coarsest LOD still within the leaf's source error: the very
-                        // coarsest LODs of tall buildings are pyramids, not what a skyline is.
-                        let scale = inst.max_scale();
-                        let Some(g) = mesh
-                            .lods
-                            .iter()
-                            .rev()
-                            .find(|g| g.error * scale <= cfg.source_error)
-                            .or(mesh.lods.first())
-                        else {
-                            continue;
-                        };
-                        parts.push((&**g, inst.transform));
-                        bounds = bounds.union(inst.aabb);
-                        err = err.max(g.error * inst.max_scale());
                     }
+                    (
+                        bounds,
+                        simplify(merge(&parts), cfg.triangles, err),
+                        landmarks,
+                    )
+                } else {
+                    let parts: Vec<(&LodGeometry, glam::Mat4)> = members
+                        .iter()
+                        .map(|&c| (&*geometry[c as usize], glam::Mat4::IDENTITY))
+                        .collect();
+                    let bounds = members
+                        .iter()
+                        .fold(Aabb::EMPTY, |b, &c| b.union(nodes[c as usize].bounds));
+                    let err = members
+                        .iter()
+                        .map(|&c| nodes[c as usize].error)
+                        .fold(0.0f32, f32::max);
+                    (
+                        bounds,
+                        simplify(merge(&parts), cfg.triangles, err),
+                        Vec::new(),
+                    )
                 }
-                (bounds, simplify(merge(&parts), cfg.triangles, err))
-            } else {
-                let parts: Vec<(&LodGeometry, glam::Mat4)> = members
-                    .iter()
-                    .map(|&c| (&*geometry[c as usize], glam::Mat4::IDENTITY))
-                    .collect();
-                let bounds = members
-                    .iter()
-                    .fold(Aabb::EMPTY, |b, &c| b.union(nodes[c as usize].bounds));
-                let err = members
-                    .iter()
-                    .map(|&c| nodes[c as usize].error)
-                    .fold(0.0f32, f32::max);
-                (bounds, simplify(merge(&parts), cfg.triangles, err))
-            }
-        });
+            });
         let mut level_ids = Vec::new();
-        for (((bx, bz), members), (bounds, g)) in jobs.into_iter().zip(built) {
+        for (((bx, bz), members), (bounds, g, landmarks)) in jobs.into_iter().zip(built) {
             let id = ProxyId(nodes.len() as u32);
             let s = 1 << depth;
             let levels: Vec<LevelId> = if depth == 1 {
@@ -275,6 +328,7 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
                 children,
                 levels,
                 triangles: g.triangle_count() as u32,
+                landmarks,
             });
             geometry.push(Arc::new(g));
             level_ids.push(id.0);
@@ -284,6 +338,7 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
     let report = ProxyReport {
         nodes: nodes.len() as u32,
         triangles: geometry.iter().map(|g| g.triangle_count() as u64).sum(),
+        landmarks: nodes.iter().map(|n| n.landmarks.len() as u64).sum(),
         file_bytes: 0,
         max_node_bytes: geometry
             .iter()
@@ -331,6 +386,7 @@ pub fn encode_proxies(p: &Proxies) -> Vec<u8> {
         .map(|(i, g)| format::encode_lod(MeshId(i as u32), 0, g))
         .collect();
     let mut w = Writer::default();
+    w.u32(PROXY_INDEX_VERSION);
     w.u32(p.tree.nodes.len() as u32);
     let mut offset = 0u64;
     for (n, c) in p.tree.nodes.iter().zip(&chunks) {
@@ -345,6 +401,13 @@ pub fn encode_proxies(p: &Proxies) -> Vec<u8> {
         w.u32(n.levels.len() as u32);
         for l in &n.levels {
             w.u32(l.0);
+        }
+        w.u32(n.landmarks.len() as u32);
+        for l in &n.landmarks {
+            w.u32(l.instance.0);
+            w.u32(l.level.0);
+            w.u32(l.mesh.0);
+            w.f32s(&l.transform.to_cols_array());
         }
         w.u64(offset);
         w.u64(c.len() as u64);
@@ -369,9 +432,14 @@ pub struct ProxyFile {
     pub geometry: Vec<std::result::Result<Arc<LodGeometry>, Arc<StreamingError>>>,
 }
 
-/// Decodes a proxy file (`path` names errors). A corrupt index fails the whole file; a corrupt
-/// node chunk fails only that node.
-pub fn decode_proxies(bytes: &[u8], path: &Path, levels: usize) -> Result<ProxyFile> {
+/// Decodes a proxy file of a world with `levels` levels and `meshes` meshes (`path` names
+/// errors). A corrupt index fails the whole file; a corrupt node chunk fails only that node.
+pub fn decode_proxies(
+    bytes: &[u8],
+    path: &Path,
+    levels: usize,
+    meshes: usize,
+) -> Result<ProxyFile> {
     let fail = |reason: FormatError| StreamingError::Format {
         path: path.to_owned(),
         reason,
@@ -381,6 +449,13 @@ pub fn decode_proxies(bytes: &[u8], path: &Path, levels: usize) -> Result<ProxyF
     let index_bytes = head.bytes(index_len).map_err(fail)?;
     let chunks = &bytes[8 + index_len..];
     let mut r = Reader::new(unframe(PROXY_INDEX_MAGIC, index_bytes).map_err(fail)?);
+    let version = r.u32().map_err(fail)?;
+    if version != PROXY_INDEX_VERSION {
+        return Err(fail(FormatError::Version {
+            found: version,
+            supported: PROXY_INDEX_VERSION,
+        }));
+    }
     let n = r.count(4).map_err(fail)?;
     let mut nodes = Vec::with_capacity(n);
     let mut spans = Vec::with_capacity(n);
@@ -406,6 +481,33 @@ pub fn decode_proxies(bytes: &[u8], path: &Path, levels: usize) -> Result<ProxyF
             }
             lv.push(LevelId(l));
         }
+        let nm = r.count(76).map_err(fail)?;
+        let mut landmarks = Vec::with_capacity(nm);
+        for _ in 0..nm {
+            let (instance, level, mesh) = (
+                r.u32().map_err(fail)?,
+                r.u32().map_err(fail)?,
+                r.u32().map_err(fail)?,
+            );
+            let mut cols = [0f32; 16];
+            for c in &mut cols {
+                *c = r.f32().map_err(fail)?;
+            }
+            if !lv.contains(&LevelId(level)) || mesh as usize >= meshes {
+                return Err(inconsistent(format!(
+                    "node {i}: landmark {instance} names level {level} or mesh {mesh}"
+                )));
+            }
+            landmarks.push(ProxyLandmark {
+                instance: crate::model::InstanceId(instance),
+                level: LevelId(level),
+                mesh: MeshId(mesh),
+                transform: Mat4::from_cols_array(&cols),
+            });
+        }
+        if depth != 1 && !landmarks.is_empty() {
+            return Err(inconsistent(format!("node {i}: a parent lists landmarks")));
+        }
         let (off, len) = (r.u64().map_err(fail)?, r.u64().map_err(fail)?);
         if parent != u32::MAX && (parent as usize >= n || parent as usize <= i) {
             return Err(inconsistent(format!("node {i} has parent {parent}")));
@@ -426,6 +528,7 @@ pub fn decode_proxies(bytes: &[u8], path: &Path, levels: usize) -> Result<ProxyF
             children: Vec::new(),
             levels: lv,
             triangles,
+            landmarks,
         });
     }
     for i in 0..nodes.len() {
@@ -459,11 +562,12 @@ pub fn decode_proxies(bytes: &[u8], path: &Path, levels: usize) -> Result<ProxyF
     })
 }
 
-/// Reads `dir`'s proxy file; `Ok(None)` when the world has none (an older bake).
-pub fn read_proxies(dir: &Path, levels: usize) -> Result<Option<ProxyFile>> {
+/// Reads `dir`'s proxy file (of a world with `levels` levels and `meshes` meshes); `Ok(None)`
+/// when the world has none (an older bake).
+pub fn read_proxies(dir: &Path, levels: usize, meshes: usize) -> Result<Option<ProxyFile>> {
     let path = dir.join(PROXY_FILE);
     match std::fs::read(&path) {
-        Ok(bytes) => decode_proxies(&bytes, &path, levels).map(Some),
+        Ok(bytes) => decode_proxies(&bytes, &path, levels, meshes).map(Some),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(source) => Err(StreamingError::Io { path, source }),
     }

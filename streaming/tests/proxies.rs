@@ -27,7 +27,7 @@ fn stream(dir: &std::path::Path, config: StreamConfig, frames: u64) -> Vec<World
 #[test]
 fn bake_writes_proxies_and_reads_them_back() {
     let (world, dir) = common::baked_small("proxies-roundtrip", 8);
-    let file = read_proxies(&dir, world.levels.len())
+    let file = read_proxies(&dir, world.levels.len(), world.meshes.len())
         .expect("readable")
         .expect("a proxy file");
     let (built, report) = build_proxies(&world, &ProxyConfig::default());
@@ -72,6 +72,36 @@ fn bake_writes_proxies_and_reads_them_back() {
         }
         assert!(n.triangles > 0 && n.triangles <= ProxyConfig::default().triangles);
     }
+    // Each leaf lists exactly its levels' static opaque instances of at least the landmark
+    // radius; parents list none.
+    let radius = ProxyConfig::default().landmark_radius;
+    let mut listed = 0;
+    for n in &file.tree.nodes {
+        if n.depth != 1 {
+            assert!(n.landmarks.is_empty(), "a parent lists no landmarks");
+            continue;
+        }
+        let want: Vec<_> = n
+            .levels
+            .iter()
+            .flat_map(|l| &world.levels[l.0 as usize].instances)
+            .filter(|i| {
+                i.material == MaterialClass::Opaque
+                    && i.motion == Motion::Static
+                    && i.sphere.radius >= radius
+            })
+            .map(|i| (i.id, i.mesh, i.transform))
+            .collect();
+        let got: Vec<_> = n
+            .landmarks
+            .iter()
+            .map(|l| (l.instance, l.mesh, l.transform))
+            .collect();
+        assert_eq!(got, want, "node {:?}'s landmarks", n.id);
+        listed += got.len();
+    }
+    assert!(listed > 0, "the small world has landmarks to list");
+    assert_eq!(report.landmarks, listed as u64);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -138,7 +168,7 @@ fn a_corrupt_proxy_is_a_typed_error_and_the_levels_still_stream() {
     // A truncated file: the index fails as a whole (typed), the levels stream.
     std::fs::write(&path, &bytes[..10]).unwrap();
     assert!(matches!(
-        read_proxies(&dir, world.levels.len()),
+        read_proxies(&dir, world.levels.len(), world.meshes.len()),
         Err(StreamingError::Format { .. })
     ));
     let events = stream(&dir, StreamConfig::default(), 4);

@@ -33,7 +33,9 @@ use glam::Mat4;
 use crate::bake::{read_manifest, Manifest};
 use crate::error::Result;
 use crate::loader::{Done, Job, LevelSource, LoadedLevel, LoaderPool, LoaderShared};
-use crate::model::{Aabb, Instance, InstanceId, LevelId, LodGeometry, MeshId, Motion};
+use crate::model::{
+    Aabb, Instance, InstanceId, LevelId, LodGeometry, MaterialClass, MeshId, Motion,
+};
 use crate::skin::{skin_parallel, SkinJob};
 
 mod lod_stream;
@@ -200,7 +202,11 @@ impl World {
         let proxies = if dir.as_os_str().is_empty() {
             None
         } else {
-            match crate::proxy::read_proxies(&dir, shared.manifest.levels.len()) {
+            match crate::proxy::read_proxies(
+                &dir,
+                shared.manifest.levels.len(),
+                shared.manifest.meshes.len(),
+            ) {
                 Ok(p) => p.map(Ok),
                 Err(e) => Some(Err(Arc::new(e))),
             }
@@ -380,9 +386,29 @@ impl World {
                 ProxyState::Out if d <= far => match &file.geometry[i] {
                     Ok(g) => {
                         self.proxy_state[i] = ProxyState::Resident;
+                        let bounds = self.manifest.as_ref().map(|s| &s.mesh_bounds);
+                        let landmarks: Arc<[(LevelId, Instance)]> = node
+                            .landmarks
+                            .iter()
+                            .filter_map(|l| {
+                                let b = bounds?.get(l.mesh.0 as usize)?;
+                                Some((
+                                    l.level,
+                                    Instance::new(
+                                        l.instance,
+                                        l.mesh,
+                                        l.transform,
+                                        b,
+                                        MaterialClass::Opaque,
+                                        Motion::Static,
+                                    ),
+                                ))
+                            })
+                            .collect();
                         ev.push(WorldEvent::ProxyLoaded {
                             node: node.id,
                             geometry: Arc::clone(g),
+                            landmarks,
                         });
                     }
                     Err(e) => {

@@ -134,6 +134,11 @@ pub enum WorldEvent {
         node: ProxyId,
         /// World-space geometry (no transform to apply).
         geometry: Arc<LodGeometry>,
+        /// Its landmarks with their levels (leaves only; see [`crate::proxy`]): instances
+        /// large enough to keep their own silhouette far away, placeable without loading
+        /// their level. The same instance arrives again, with the same id, when its level
+        /// loads.
+        landmarks: Arc<[(LevelId, Instance)]>,
     },
     /// A proxy left the far radius: release what was built from it.
     ProxyEvicted {
