@@ -13,13 +13,13 @@ use std::sync::Arc;
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
-    ContextDesc, GpuGeometry, InstanceDesc as SceneInstance, MeshDesc, StaticScene,
-    TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
+    ContextDesc, GpuGeometry, SceneMesh, StaticInstance, StaticScene, TriangleGeometry, Validation,
+    VulkanBackend, VulkanBackendDesc, VulkanContext,
 };
 use rtstream::as_manager::backend::CostOp;
 use rtstream::as_manager::{
-    AsManager, Camera, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry,
-    MeshKind,
+    AsManager, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshKind,
+    Viewpoint,
 };
 
 type BoxResult<T> = Result<T, Box<dyn std::error::Error>>;
@@ -31,8 +31,8 @@ struct Mesh {
 }
 
 impl Mesh {
-    fn desc(&self) -> MeshDesc<'_> {
-        MeshDesc {
+    fn desc(&self) -> SceneMesh<'_> {
+        SceneMesh {
             name: &self.name,
             positions: &self.positions,
             indices: &self.indices,
@@ -353,7 +353,7 @@ fn main() -> BoxResult<()> {
             ))?;
         }
         let mut manager = manager;
-        let cams = [Camera::new(glam::Vec3::ZERO, glam::Vec3::Z)];
+        let cams = [Viewpoint::new(glam::Vec3::ZERO, glam::Vec3::Z)];
         let t0 = std::time::Instant::now();
         let out = manager.update(FrameInput {
             frame: 0,
@@ -400,9 +400,9 @@ fn main() -> BoxResult<()> {
     // 7. TLAS flags: trace time of the same scene with a FAST_TRACE vs a FAST_BUILD TLAS.
     if let Some((w, h)) = args.trace_size {
         let meshes_data: Vec<Mesh> = (0..4).map(|k| grid(1_000 << k, k as f32)).collect();
-        let descs: Vec<MeshDesc<'_>> = meshes_data.iter().map(Mesh::desc).collect();
+        let descs: Vec<SceneMesh<'_>> = meshes_data.iter().map(Mesh::desc).collect();
         let side = 316usize; // ~100k instances
-        let instances: Vec<SceneInstance> = (0..side * side)
+        let instances: Vec<StaticInstance> = (0..side * side)
             .map(|i| {
                 let (x, z) = ((i % side) as f32 * 30.0, (i / side) as f32 * 30.0);
                 let m = glam::Mat4::from_scale_rotation_translation(
@@ -410,7 +410,7 @@ fn main() -> BoxResult<()> {
                     glam::Quat::from_rotation_y(i as f32),
                     glam::Vec3::new(x, 0.0, z),
                 );
-                SceneInstance {
+                StaticInstance {
                     mesh: (i % 4) as u32,
                     transform: m.to_cols_array(),
                     custom_index: (i % 4) as u32,

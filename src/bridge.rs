@@ -30,25 +30,26 @@ use glam::{Affine3A, Vec3};
 use rtstream_as_manager::backend::AsBackend;
 use rtstream_as_manager::record::TlasInstance;
 use rtstream_as_manager::{
-    AsManager, InstanceDesc, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind,
+    AsManager, GroupId, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshData, MeshDesc, MeshId,
+    MeshKind,
 };
 use rtstream_renderer::InstanceShading;
 use rtstream_streaming::{
-    Aabb, Instance, InstanceId, LevelId, Manifest, MaterialClass, MeshId, Motion, ProxyId,
-    ProxyTree, World, WorldEvent,
+    Aabb, Instance, LevelId, Manifest, MaterialClass, MeshLod, Motion, ProxyId, ProxyTree, World,
+    WorldEvent, WorldInstanceId, WorldMeshId,
 };
 
 /// What the renderer needs of one customIndex.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShadingSlot {
     /// The streaming instance (for a far-field proxy: none, see `proxy`).
-    pub instance: InstanceId,
+    pub instance: WorldInstanceId,
     /// The far-field proxy node this slot shades, if it is one (it stands for many instances).
     pub proxy: Option<ProxyId>,
     /// Its level.
     pub level: LevelId,
     /// Its mesh.
-    pub mesh: MeshId,
+    pub mesh: WorldMeshId,
     /// Linear RGBA base colour.
     pub base_color: [f32; 4],
 }
@@ -74,10 +75,10 @@ pub struct BridgeStats {
 
 #[derive(Debug)]
 struct MeshSlot {
-    id: rtstream_as_manager::MeshId,
+    id: MeshId,
     skinned: bool,
     /// Resident streaming geometry per LOD.
-    resident: Vec<Option<Arc<rtstream_streaming::LodGeometry>>>,
+    resident: Vec<Option<Arc<MeshLod>>>,
     /// Counts per LOD (for eviction back to counts).
     counts: Vec<(u32, u32)>,
     color: [f32; 4],
@@ -87,9 +88,9 @@ struct MeshSlot {
 
 #[derive(Debug, Clone, Copy)]
 struct Placed {
-    id: rtstream_as_manager::InstanceId,
+    id: InstanceId,
     slot: u32,
-    mesh: MeshId,
+    mesh: WorldMeshId,
     skinned: bool,
     transform: glam::Mat4,
     center: Vec3,
@@ -99,17 +100,17 @@ struct Placed {
 #[derive(Debug, Default)]
 pub struct WorldBridge {
     manifest_meshes: Vec<rtstream_streaming::bake::MeshEntry>,
-    meshes: HashMap<MeshId, MeshSlot>,
-    placed: HashMap<InstanceId, Placed>,
+    meshes: HashMap<WorldMeshId, MeshSlot>,
+    placed: HashMap<WorldInstanceId, Placed>,
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
     stats: BridgeStats,
     counts_only: bool,
     /// Far field: the manager group of each proxy node, its level's leaf, and each node's
     /// proxy mesh while resident.
-    groups: Vec<Option<rtstream_as_manager::GroupId>>,
+    groups: Vec<Option<GroupId>>,
     level_leaf: Vec<Option<ProxyId>>,
-    proxy_meshes: HashMap<ProxyId, rtstream_as_manager::MeshId>,
+    proxy_meshes: HashMap<ProxyId, MeshId>,
     proxy_errors: Vec<f32>,
     proxy_bounds: Vec<Aabb>,
 }
@@ -119,7 +120,7 @@ pub const PROXY_COLOR: [f32; 4] = [0.42, 0.46, 0.38, 1.0];
 
 /// The base colour every image of a mesh uses (managed frames and the ground truth alike, so
 /// colour metrics compare like with like): terrain green, other meshes a stable muted colour.
-pub fn mesh_color(mesh: MeshId, name: &str) -> [f32; 4] {
+pub fn mesh_color(mesh: WorldMeshId, name: &str) -> [f32; 4] {
     let n = name.to_ascii_lowercase();
     if n.contains("terrain") || n.contains("ground") {
         return [0.32, 0.42, 0.22, 1.0];
@@ -138,7 +139,7 @@ pub fn mesh_color(mesh: MeshId, name: &str) -> [f32; 4] {
 /// A resident streamed LOD as the manager's mesh data: the same `Arc`, no copy, so CPU
 /// geometry is counted once (in streaming's budget) and freed when both let go.
 #[derive(Debug)]
-struct StreamedLod(Arc<rtstream_streaming::LodGeometry>);
+struct StreamedLod(Arc<MeshLod>);
 
 impl MeshData for StreamedLod {
     fn positions(&self) -> &[[f32; 3]] {
@@ -149,7 +150,7 @@ impl MeshData for StreamedLod {
     }
 }
 
-fn data_of(g: &Arc<rtstream_streaming::LodGeometry>) -> LodGeometry {
+fn data_of(g: &Arc<MeshLod>) -> LodGeometry {
     LodGeometry::Data(Arc::new(StreamedLod(Arc::clone(g))))
 }
 
@@ -189,10 +190,10 @@ impl WorldBridge {
                         self.slots.resize(slot as usize + 1, None);
                     }
                     self.slots[slot as usize] = Some(ShadingSlot {
-                        instance: InstanceId(u32::MAX),
+                        instance: WorldInstanceId(u32::MAX),
                         proxy: Some(n.id),
                         level: LevelId(u32::MAX),
-                        mesh: MeshId(u32::MAX),
+                        mesh: WorldMeshId(u32::MAX),
                         base_color: PROXY_COLOR,
                     });
                     self.groups[n.id.0 as usize] = Some(g);
@@ -205,12 +206,7 @@ impl WorldBridge {
         }
     }
 
-    fn proxy_loaded<B: AsBackend>(
-        &mut self,
-        m: &AsManager<B>,
-        node: ProxyId,
-        g: &Arc<rtstream_streaming::LodGeometry>,
-    ) {
+    fn proxy_loaded<B: AsBackend>(&mut self, m: &AsManager<B>, node: ProxyId, g: &Arc<MeshLod>) {
         let Some(Some(group)) = self.groups.get(node.0 as usize).copied() else {
             return; // no proxy tree registered: ignore
         };
@@ -259,7 +255,7 @@ impl WorldBridge {
         self
     }
 
-    fn geometry_of(&self, g: &Arc<rtstream_streaming::LodGeometry>) -> LodGeometry {
+    fn geometry_of(&self, g: &Arc<MeshLod>) -> LodGeometry {
         if self.counts_only {
             LodGeometry::Counts {
                 vertices: g.positions.len() as u32,
@@ -290,7 +286,7 @@ impl WorldBridge {
     }
 
     /// The manager instance of a streaming instance, if placed.
-    pub fn manager_instance(&self, id: InstanceId) -> Option<rtstream_as_manager::InstanceId> {
+    pub fn manager_instance(&self, id: WorldInstanceId) -> Option<InstanceId> {
         self.placed.get(&id).map(|p| p.id)
     }
 
@@ -347,11 +343,11 @@ impl WorldBridge {
     fn lod_loaded<B: AsBackend>(
         &mut self,
         m: &AsManager<B>,
-        mesh: MeshId,
+        mesh: WorldMeshId,
         lod: usize,
         lod_count: usize,
         error: f32,
-        g: &Arc<rtstream_streaming::LodGeometry>,
+        g: &Arc<MeshLod>,
     ) {
         if let Some(slot) = self.meshes.get_mut(&mesh) {
             if lod >= slot.resident.len() {
@@ -453,7 +449,7 @@ impl WorldBridge {
         }
     }
 
-    fn lod_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId, lod: usize) {
+    fn lod_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: WorldMeshId, lod: usize) {
         let Some(slot) = self.meshes.get_mut(&mesh) else {
             return;
         };
@@ -543,7 +539,7 @@ impl WorldBridge {
         }
     }
 
-    fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: InstanceId) {
+    fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: WorldInstanceId) {
         let Some(p) = self.placed.remove(&id) else {
             return;
         };
@@ -560,7 +556,7 @@ impl WorldBridge {
 
     /// Unregisters a mesh from the manager once no LOD of it is resident and no instance of
     /// it is placed (its BLASes go with it); the next `MeshLodLoaded` registers it again.
-    fn release_if_unused<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId) -> bool {
+    fn release_if_unused<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: WorldMeshId) -> bool {
         let unused = self
             .meshes
             .get(&mesh)
@@ -577,7 +573,7 @@ impl WorldBridge {
     }
 
     /// The manager's id of a streamed mesh, while registered.
-    pub fn manager_mesh(&self, mesh: MeshId) -> Option<rtstream_as_manager::MeshId> {
+    pub fn manager_mesh(&self, mesh: WorldMeshId) -> Option<MeshId> {
         self.meshes.get(&mesh).map(|s| s.id)
     }
 
@@ -661,7 +657,7 @@ impl WorldBridge {
 
     /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
     /// transform), for reference scenes.
-    pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, MeshId, glam::Mat4)> {
+    pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, WorldMeshId, glam::Mat4)> {
         let mut v: Vec<_> = self
             .placed
             .values()
@@ -673,7 +669,7 @@ impl WorldBridge {
     }
 
     /// The finest LOD of `mesh` resident now.
-    pub fn finest_resident(&self, mesh: MeshId) -> Option<Arc<rtstream_streaming::LodGeometry>> {
+    pub fn finest_resident(&self, mesh: WorldMeshId) -> Option<Arc<MeshLod>> {
         self.meshes
             .get(&mesh)?
             .resident

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use glam::{Mat4, Quat, Vec3};
-use rtstream_as_manager::backend::vulkan::MeshDesc;
+use rtstream_as_manager::backend::vulkan::SceneMesh;
 use rtstream_renderer::reference::ReferenceScene;
 use rtstream_renderer::{cpu_reference, Camera, SceneInstance};
 use rtstream_streaming::{load_gltf, GltfScene, TriMesh};
@@ -168,10 +168,10 @@ impl EvalWorld {
     }
 
     /// The meshes as upload descriptions (opaque).
-    pub fn mesh_descs(&self) -> Vec<MeshDesc<'_>> {
+    pub fn mesh_descs(&self) -> Vec<SceneMesh<'_>> {
         self.meshes
             .iter()
-            .map(|m| MeshDesc {
+            .map(|m| SceneMesh {
                 name: &m.name,
                 positions: &m.positions,
                 indices: &m.indices,

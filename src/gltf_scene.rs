@@ -3,7 +3,7 @@
 //! This is the "everything resident" path (the thin slice, and the reference for managed frames).
 
 use glam::Vec3;
-use rtstream_as_manager::backend::vulkan::{InstanceDesc, MeshDesc, StaticScene, VulkanContext};
+use rtstream_as_manager::backend::vulkan::{SceneMesh, StaticInstance, StaticScene, VulkanContext};
 use rtstream_renderer::reference::ReferenceScene;
 use rtstream_renderer::InstanceShading;
 use rtstream_streaming::GltfScene;
@@ -22,21 +22,21 @@ pub struct GpuGltfScene {
 impl GpuGltfScene {
     /// Uploads every mesh, builds one BLAS per mesh in one batched build, and a TLAS.
     pub fn build(ctx: &VulkanContext, scene: &GltfScene) -> Result<Self> {
-        let meshes: Vec<MeshDesc<'_>> = scene
+        let meshes: Vec<SceneMesh<'_>> = scene
             .meshes
             .iter()
-            .map(|m| MeshDesc {
+            .map(|m| SceneMesh {
                 name: &m.name,
                 positions: &m.positions,
                 indices: &m.indices,
                 opaque: true,
             })
             .collect();
-        let instances: Vec<InstanceDesc> = scene
+        let instances: Vec<StaticInstance> = scene
             .instances
             .iter()
             .enumerate()
-            .map(|(i, inst)| InstanceDesc {
+            .map(|(i, inst)| StaticInstance {
                 mesh: inst.mesh as u32,
                 transform: inst.transform.to_cols_array(),
                 custom_index: i as u32,

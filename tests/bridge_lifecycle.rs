@@ -10,14 +10,15 @@ use std::sync::Arc;
 
 use glam::{Mat4, Vec3};
 use rtstream::as_manager::backend::model::ModelBackend;
-use rtstream::as_manager::{AsManager, Camera, Config, FrameInput};
+use rtstream::as_manager::{AsManager, Config, FrameInput, Viewpoint};
 use rtstream::streaming::{
-    Aabb, Instance, InstanceId, LevelId, LodGeometry, MaterialClass, MeshId, Motion, WorldEvent,
+    Aabb, Instance, LevelId, MaterialClass, MeshLod, Motion, WorldEvent, WorldInstanceId,
+    WorldMeshId,
 };
 use rtstream::WorldBridge;
 
 /// An `n` x `n` quad grid of side 4 m.
-fn grid(n: u32) -> Arc<LodGeometry> {
+fn grid(n: u32) -> Arc<MeshLod> {
     let mut positions = Vec::new();
     for z in 0..=n {
         for x in 0..=n {
@@ -32,7 +33,7 @@ fn grid(n: u32) -> Arc<LodGeometry> {
             indices.extend_from_slice(&[i, i + w, i + 1, i + 1, i + w, i + w + 1]);
         }
     }
-    Arc::new(LodGeometry {
+    Arc::new(MeshLod {
         positions,
         indices,
         error: 0.0,
@@ -40,9 +41,9 @@ fn grid(n: u32) -> Arc<LodGeometry> {
     })
 }
 
-fn loaded(lod: u8, error: f32, g: &Arc<LodGeometry>) -> WorldEvent {
+fn loaded(lod: u8, error: f32, g: &Arc<MeshLod>) -> WorldEvent {
     WorldEvent::MeshLodLoaded {
-        mesh: MeshId(0),
+        mesh: WorldMeshId(0),
         lod,
         lod_count: 3,
         error,
@@ -51,7 +52,7 @@ fn loaded(lod: u8, error: f32, g: &Arc<LodGeometry>) -> WorldEvent {
 }
 
 fn frame(m: &mut AsManager<ModelBackend>, f: u64) {
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     m.update(FrameInput {
         frame: f,
         cameras: &cams,
@@ -95,8 +96,8 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
 
     // An instance, then its level leaves and both LODs are evicted: the mesh leaves too.
     let inst = Instance::new(
-        InstanceId(0),
-        MeshId(0),
+        WorldInstanceId(0),
+        WorldMeshId(0),
         Mat4::from_translation(Vec3::new(0.0, 0.0, 10.0)),
         &Aabb::from_points(&g0.positions),
         MaterialClass::Opaque,
@@ -117,7 +118,7 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
     assert_eq!(m.stats().instances, 1);
     assert!(m.stats().blas_count > 0);
     let evict = |lod| WorldEvent::MeshLodEvicted {
-        mesh: MeshId(0),
+        mesh: WorldMeshId(0),
         lod,
     };
     bridge.apply(&m, &[evict(0), evict(2)]);
@@ -150,6 +151,6 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
 
 /// The manager's view of the mesh: (triangles, error) per LOD.
 fn lods_of(m: &AsManager<ModelBackend>, bridge: &WorldBridge) -> Vec<(u32, f32)> {
-    let id = bridge.manager_mesh(MeshId(0)).expect("registered");
+    let id = bridge.manager_mesh(WorldMeshId(0)).expect("registered");
     m.mesh_lods(id).expect("applied")
 }

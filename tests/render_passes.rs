@@ -5,7 +5,7 @@
 mod common;
 
 use glam::{Mat4, Vec3};
-use rtstream::as_manager::backend::vulkan::MeshDesc;
+use rtstream::as_manager::backend::vulkan::SceneMesh;
 use rtstream::eval::{cull_small_instances, DemoWorldDesc, EvalWorld};
 use rtstream::renderer::reference::{CpuHit, ReferenceScene};
 use rtstream::renderer::skinning::linear_blend;
@@ -282,7 +282,7 @@ fn skinned_silhouette_follows_the_pose_and_matches_cpu_skinning() {
     let mut masks = Vec::new();
     for deg in [0.0f32, 60.0] {
         let posed = linear_blend(&bind, &joints, &weights, &bend(deg));
-        let meshes = [MeshDesc {
+        let meshes = [SceneMesh {
             name: "skinned cylinder",
             positions: &posed,
             indices: &idx,

@@ -15,7 +15,7 @@ use rstar::RTree;
 use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::spatial::GridIndex;
 use rtstream_as_manager::synth::{SynthParams, SynthWorld};
-use rtstream_as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
+use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
 
 /// Camera speed along the path: 0.5 m per frame (30 m/s at 60 fps).
 const SPEED: f32 = 0.5;
@@ -24,7 +24,7 @@ const WARMUP_FRAMES: u64 = 300;
 
 /// Four cameras: a squad around the lead camera (split-screen co-op / nearby probes), within
 /// 60 m of it. `n == 5` means four cameras spread ~1 km apart (informative: nothing shared).
-fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
+fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Viewpoint> {
     let lead = world.camera_on_path(frame, SPEED);
     if n == 5 {
         let spread = [
@@ -35,7 +35,7 @@ fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
         ];
         return spread
             .iter()
-            .map(|o| Camera::new(lead.position + *o, lead.forward))
+            .map(|o| Viewpoint::new(lead.position + *o, lead.forward))
             .collect();
     }
     let offsets = [
@@ -45,7 +45,7 @@ fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
         Vec3::new(-30.0, 0.0, -30.0),
     ];
     (0..n)
-        .map(|i| Camera::new(lead.position + offsets[i % 4], lead.forward))
+        .map(|i| Viewpoint::new(lead.position + offsets[i % 4], lead.forward))
         .collect()
 }
 

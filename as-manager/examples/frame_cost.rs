@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::synth::{SynthParams, SynthWorld};
-use rtstream_as_manager::{AsManager, Camera, Config, FrameInput};
+use rtstream_as_manager::{AsManager, Config, FrameInput, Viewpoint};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -28,7 +28,7 @@ fn main() {
     }
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
     world.populate(&m).unwrap();
-    let cameras = |f: u64| -> Vec<Camera> {
+    let cameras = |f: u64| -> Vec<Viewpoint> {
         let lead = world.camera_on_path(f, 0.5);
         let off = [
             glam::Vec3::ZERO,
@@ -37,7 +37,7 @@ fn main() {
             glam::Vec3::new(-30.0, 0.0, -30.0),
         ];
         (0..cams)
-            .map(|i| Camera::new(lead.position + off[i % 4], lead.forward))
+            .map(|i| Viewpoint::new(lead.position + off[i % 4], lead.forward))
             .collect()
     };
     for f in 0..300 {

@@ -41,8 +41,8 @@ use rtstream_as_manager::backend::vulkan::{
 };
 use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
-use rtstream_as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
-use rtstream_renderer::{side_by_side, Camera as ViewCamera, Frame, RenderDesc, Renderer};
+use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
+use rtstream_renderer::{side_by_side, Camera, Frame, RenderDesc, Renderer};
 use rtstream_streaming::{
     bake, generate, read_manifest, GeneratedWorld, StreamConfig, World, WorldPreset,
 };
@@ -191,7 +191,7 @@ struct PendingScore {
     frame: u64,
     policy: usize,
     row: usize,
-    view: ViewCamera,
+    view: Camera,
     /// customIndex -> instance id at the frame (None: a proxy, or nothing).
     ids: Vec<Option<u32>>,
 }
@@ -480,7 +480,7 @@ pub fn run_cached(
         let cam = path.at_fraction(a + (b - a) * t);
         let frame_start = Instant::now();
         trail.push(cam.position);
-        let cams = [rtstream_streaming::Camera::from(cam.position)];
+        let cams = [rtstream_streaming::StreamFocus::from(cam.position)];
         // Never waits on the loaders, except (deterministic mode) for the loads requested
         // `stream_delay_frames` frames ago.
         let events = world.update(frame, &cams);
@@ -488,7 +488,7 @@ pub fn run_cached(
             *l |= world.is_loaded(rtstream_streaming::LevelId(i as u32));
         }
         let time = frame as f32 / 30.0;
-        let mcams = [Camera::new(cam.position, cam.forward)];
+        let mcams = [Viewpoint::new(cam.position, cam.forward)];
         let policies_len = policies.len();
         let cmd = frames.begin(frame)?;
         // Read the renders of frames that completed.
@@ -554,8 +554,7 @@ pub fn run_cached(
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;
         if scored {
-            let view =
-                ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
+            let view = Camera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
             let desc = RenderDesc::new(config.size.0, config.size.1, view);
             let kinds: &[TruthKind] = if config.all_geometry_reference {
                 &[TruthKind::Opaque, TruthKind::AllGeometry]
@@ -598,7 +597,7 @@ pub fn run_cached(
             }
         }
         let render_now = config.render_every > 0 && frame % config.render_every == 0 && !scored;
-        let view = ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
+        let view = Camera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
         let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
         if render_now && !config.blocking_render {
             for (pi, p) in policies.iter().enumerate() {

@@ -63,10 +63,10 @@ pub use gltf_import::{load_gltf, load_gltf_slice, GltfScene, MeshInstance, TriMe
 pub use loader::LoadFault;
 pub use lod::{build_lod_chain, MAX_RATIO as LOD_MAX_RATIO};
 pub use model::{
-    Aabb, Instance, InstanceId, Level, LevelId, LodGeometry, MaterialClass, Mesh, MeshId, Motion,
-    SkinWeights, Sphere,
+    Aabb, Instance, Level, LevelId, MaterialClass, Mesh, MeshLod, Motion, SkinWeights, Sphere,
+    WorldInstanceId, WorldMeshId,
 };
 pub use proxy::{ProxyId, ProxyNode, ProxyTree};
 pub use world::{
-    Camera, SettleTimeout, SkinnedFrame, StreamConfig, StreamStats, World, WorldEvent,
+    SettleTimeout, SkinnedFrame, StreamConfig, StreamFocus, StreamStats, World, WorldEvent,
 };

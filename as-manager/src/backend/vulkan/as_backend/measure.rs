@@ -3,7 +3,9 @@
 
 use ash::vk;
 
-use crate::backend::vulkan::device::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::accel::{
+    align_up, AccelStruct, BlasBuildInput, BUILD_INPUT_USAGE,
+};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::VkResult;
@@ -51,7 +53,7 @@ pub fn build_blas_now(
     let blas = scopeguard::guard(blas, |b| ctx.destroy_accel(b));
     ctx.failpoint("build_blas_now.scratch")?;
     let (scratch, base) = ctx.create_scratch("build_blas_now scratch", s.build_scratch)?;
-    let b = BlasBuild {
+    let b = BlasBuildInput {
         geometries: std::slice::from_ref(&geom.geometry),
         flags,
         dst: blas.raw,
@@ -107,10 +109,10 @@ pub fn time_blas_builds(
     }
     let mut times = Vec::with_capacity(reps);
     if result.is_ok() {
-        let builds: Vec<BlasBuild<'_>> = accels
+        let builds: Vec<BlasBuildInput<'_>> = accels
             .iter()
             .enumerate()
-            .map(|(i, a)| BlasBuild {
+            .map(|(i, a)| BlasBuildInput {
                 geometries: std::slice::from_ref(&geoms[i].geometry),
                 flags,
                 dst: a.raw,
@@ -190,11 +192,11 @@ pub fn compaction_sizes(ctx: &VulkanContext, geoms: &[GpuGeometry]) -> VkResult<
         }
         let (buf, base) = ctx.create_scratch("compaction scratch", total)?;
         scratch = Some(buf);
-        let builds: Vec<BlasBuild<'_>> = geoms
+        let builds: Vec<BlasBuildInput<'_>> = geoms
             .iter()
             .zip(&accels)
             .zip(&offsets)
-            .map(|((g, a), o)| BlasBuild {
+            .map(|((g, a), o)| BlasBuildInput {
                 geometries: std::slice::from_ref(&g.geometry),
                 flags,
                 dst: a.raw,
@@ -267,7 +269,7 @@ pub fn time_refit_vs_rebuild(
     'outer: for rep in 0..=reps {
         for update in [true, false] {
             geom.write_positions(&pose(rep * 2 + usize::from(update)));
-            let b = BlasBuild {
+            let b = BlasBuildInput {
                 geometries: std::slice::from_ref(&geom.geometry),
                 flags,
                 dst: blas.raw,
