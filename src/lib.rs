@@ -18,7 +18,6 @@ pub use rtstream_streaming as streaming;
 pub mod bridge;
 pub mod driver;
 mod error;
-pub mod eval;
 mod gltf_scene;
 
 pub use bridge::{BridgeStats, ShadingSlot, WorldBridge};
