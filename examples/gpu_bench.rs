@@ -21,6 +21,7 @@ use rtstream::as_manager::{
     AsManager, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshKind,
     Viewpoint,
 };
+use rtstream::stats::{nearest_rank, Samples};
 
 type BoxResult<T> = Result<T, Box<dyn std::error::Error>>;
 
@@ -388,10 +389,7 @@ fn main() -> BoxResult<()> {
     for g in copies {
         g.destroy(ctx);
     }
-    let med = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
+    let med = |v: Vec<f64>| Samples::new(v).median();
     let (raw, mgr, wall) = (med(raw_ms), med(mgr_ms), med(mgr_wall));
     let tris = (mesh_tris * meshes_n) as f64;
     println!("{{\"kind\":\"manager_throughput\",\"blas\":{meshes_n},\"triangles\":{tris},\"raw_batched_gpu_ms\":{raw:.4},\"manager_gpu_ms\":{mgr:.4},\"manager_update_wall_ms\":{wall:.3},\"throughput_ratio\":{:.4}}}", raw / mgr);
@@ -452,7 +450,7 @@ fn main() -> BoxResult<()> {
                 frames.push(renderer.render(scene.tlas.raw, &shading, &desc)?);
             }
             frames.sort_by(|a, b| a.render_ms.total_cmp(&b.render_ms));
-            let f = &frames[frames.len() / 2];
+            let f = &frames[nearest_rank(frames.len(), 0.5)]; // the median frame
             let tlas_ms = time_tlas_build(
                 ctx,
                 &scene.meshes[0].blas,

@@ -16,6 +16,7 @@ use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::spatial::GridIndex;
 use rtstream_as_manager::synth::{SynthParams, SynthWorld};
 use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
+use rtstream_stats::Samples;
 
 /// Camera speed along the path: 0.5 m per frame (30 m/s at 60 fps).
 const SPEED: f32 = 0.5;
@@ -85,20 +86,16 @@ impl Run {
     /// Times `n` single frames and prints median / p90 / mean: criterion's figures are means
     /// of batches and on this shared 2-core machine include preemptions by other processes.
     fn per_frame(&mut self, label: &str, n: usize) {
-        let mut t: Vec<f64> = (0..n)
-            .map(|_| {
-                let s = std::time::Instant::now();
-                black_box(self.step());
-                s.elapsed().as_secs_f64() * 1e6
-            })
-            .collect();
-        t.sort_by(f64::total_cmp);
-        let mean = t.iter().sum::<f64>() / n as f64;
+        let t = Samples::new((0..n).map(|_| {
+            let s = std::time::Instant::now();
+            black_box(self.step());
+            s.elapsed().as_secs_f64() * 1e6
+        }));
         eprintln!(
             "[{label}] per-frame over {n} frames: median {:.1} us, p90 {:.1} us, mean {:.1} us",
-            t[n / 2],
-            t[n * 9 / 10],
-            mean
+            t.median(),
+            t.percentile(0.9),
+            t.mean()
         );
     }
 

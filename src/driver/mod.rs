@@ -3,8 +3,8 @@
 //!
 //! Why one file over 600 lines: `run_on` is the frame loop, and a frame's steps (stream, each
 //! policy's update and recording, the scored and timed renders, the submission, the maps) read
-//! in order in one function; the pieces that stand alone (path, truth, scoring, report, maps,
-//! stats) are submodules already.
+//! in order in one function; the pieces that stand alone (path, truth, scoring, report, maps)
+//! are submodules already, and percentiles come from `rtstream_stats`.
 //!
 //! One run:
 //! - The world is generated from its preset and seed (deterministic), baked to disk once and
@@ -27,7 +27,6 @@ pub mod map;
 pub mod path;
 pub mod report;
 pub mod score;
-pub mod stats;
 pub mod truth;
 
 use std::path::{Path, PathBuf};
@@ -43,6 +42,7 @@ use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
 use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
 use rtstream_renderer::{side_by_side, Camera, Frame, RenderDesc, Renderer};
+use rtstream_stats::Summary;
 use rtstream_streaming::{
     bake, generate, read_manifest, GeneratedWorld, StreamConfig, World, WorldPreset,
 };
@@ -688,7 +688,7 @@ pub fn run_cached(
             world_instances: truth.world_instances(),
             never_loaded_instances,
             full_world: true,
-            build_ms: stats::Summary::of(cache.build_ms.iter().copied()),
+            build_ms: Summary::of(cache.build_ms.iter().copied()),
         },
         validation_messages,
         &render_ms,
@@ -699,9 +699,8 @@ pub fn run_cached(
     if config.render_every > 0 {
         // Steady state: after the first tenth of the run.
         let from = config.frames / 10;
-        let later = |v: &[(u64, f64)]| {
-            stats::Summary::of(v.iter().filter(|(f, _)| *f >= from).map(|(_, x)| *x))
-        };
+        let later =
+            |v: &[(u64, f64)]| Summary::of(v.iter().filter(|(f, _)| *f >= from).map(|(_, x)| *x));
         let rendered: std::collections::HashSet<u64> = frame_ms.iter().map(|(f, _)| *f).collect();
         let updates: Vec<(u64, f64)> = update0_ms
             .into_iter()

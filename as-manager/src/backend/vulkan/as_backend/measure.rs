@@ -2,6 +2,7 @@
 //! functions over owned objects: every timing comes from GPU timestamps around the commands.
 
 use ash::vk;
+use rtstream_stats::Samples;
 
 use crate::backend::vulkan::device::accel::{
     align_up, AccelStruct, BlasBuildInput, BUILD_INPUT_USAGE,
@@ -11,11 +12,6 @@ use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::VkResult;
 use crate::backend::vulkan::render::geometry::GpuGeometry;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(0.0)
-}
 
 /// Runs `record` between two timestamps in one submit and returns the GPU milliseconds.
 fn timed(
@@ -149,7 +145,7 @@ pub fn time_blas_builds(
     }
     ctx.destroy_buffer(scratch);
     ts.destroy(ctx);
-    result.map(|()| (median(times), sizes.storage))
+    result.map(|()| (Samples::new(times).median(), sizes.storage))
 }
 
 /// Result of [`compaction_sizes`].
@@ -300,7 +296,12 @@ pub fn time_refit_vs_rebuild(
     ctx.destroy_accel(blas);
     ctx.destroy_buffer(scratch);
     ts.destroy(ctx);
-    result.map(|()| (median(refits), median(rebuilds)))
+    result.map(|()| {
+        (
+            Samples::new(refits).median(),
+            Samples::new(rebuilds).median(),
+        )
+    })
 }
 
 /// Builds a TLAS over one record per transform (all referencing `blas`) with `flags`, `reps`
@@ -357,7 +358,7 @@ pub fn time_tlas_build(
                 times.push(ms);
             }
         }
-        Ok((median(times), s.storage))
+        Ok((Samples::new(times).median(), s.storage))
     })();
     if let Some(t) = tlas {
         ctx.destroy_accel(t);
