@@ -25,4 +25,4 @@ mod gltf_scene;
 
 pub use bridge::{BridgeStats, ShadingSlot, WorldBridge};
 pub use error::{Error, Result};
-pub use gltf_scene::{reference_scene, world_bounds, GpuGltfScene};
+pub use gltf_scene::{reference_scene, scene_mesh, world_bounds, GpuGltfScene};

@@ -169,15 +169,7 @@ impl EvalWorld {
 
     /// The meshes as upload descriptions (opaque).
     pub fn mesh_descs(&self) -> Vec<SceneMesh<'_>> {
-        self.meshes
-            .iter()
-            .map(|m| SceneMesh {
-                name: &m.name,
-                positions: &m.positions,
-                indices: &m.indices,
-                opaque: true,
-            })
-            .collect()
+        self.meshes.iter().map(rtstream::scene_mesh).collect()
     }
 
     /// World-space bounding sphere (centre, radius) of every instance (of its mesh's local AABB).

@@ -11,6 +11,9 @@
 //!   opaque instances are BLAS-eligible.
 //! - The world model ([`model`]) keeps instances small (128 bytes: transform, bounds, ids,
 //!   material class, static/skinned) and mesh geometry apart behind `Arc`s shared by instances.
+//!   Its ids ([`WorldMeshId`], [`WorldInstanceId`]) index the world; a BLAS manager hands out
+//!   handles of its own. A mesh's LOD is a [`MeshLod`]; what drives loading is a
+//!   [`StreamFocus`] (a position), not a camera.
 //! - LOD chains come from meshoptimizer ([`build_lod_chain`]); errors are meshopt's, accumulated
 //!   along the chain in mesh-space metres, so they are monotone.
 //! - The generator ([`generate()`]) is deterministic per seed; presets match the shipped game's
