@@ -1,9 +1,9 @@
 //! A managed frame next to its reference, with the difference image: one PNG a person can look
 //! at, plus the accuracy metrics and per-pass timings.
 //!
-//! The "managed" frame traces only the instances that survive projected-angle culling (UE5's
-//! small-object test, `--angle` degrees); the reference traces every instance at the finest
-//! LOD. The picture is `managed | reference | difference` (red: the primary hit's instance
+//! The "managed" frame traces only the instances that the manager's culler keeps with its
+//! projected-angle test alone (UE5's small-object test, `--angle` degrees); the reference traces
+//! every instance at the finest LOD. The picture is `managed | reference | difference` (red: the primary hit's instance
 //! differs, yellow: only the shadow bit differs, elsewhere the colour difference x4). Beside it,
 //! `<out>_ids.png` (the reference's hit buffer, one colour per instance) and `<out>_shadow.png`
 //! (its shadow mask).
@@ -20,7 +20,6 @@ use std::sync::Arc;
 use clap::Parser;
 
 use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
-use rtstream::eval::{cull_small_instances, DemoWorldDesc, EvalWorld};
 use rtstream::renderer::{
     difference_image, save_rgba_png, Frame, FrameMetrics, PassStats, RenderDesc, RenderPath,
     Renderer, TracedScene,
@@ -28,6 +27,10 @@ use rtstream::renderer::{
 
 #[path = "support/cli.rs"]
 mod cli;
+#[path = "support/eval.rs"]
+mod eval;
+
+use eval::{kept_by_culler, DemoWorldDesc, EvalWorld};
 
 fn main() {
     tracing_subscriber::fmt()
@@ -109,10 +112,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let mut world_desc = DemoWorldDesc::default();
     world_desc.rows = args.rows.unwrap_or(world_desc.rows);
     world_desc.columns = args.cols.unwrap_or(world_desc.columns);
-    let asset_dir = args
-        .assets
-        .asset_dir
-        .unwrap_or_else(rtstream::eval::asset_dir);
+    let asset_dir = args.assets.asset_dir.unwrap_or_else(eval::asset_dir);
 
     let world = EvalWorld::demo_in(&asset_dir, &world_desc)?;
     let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
@@ -127,7 +127,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     };
     let camera = EvalWorld::demo_camera();
     let meshes = world.mesh_descs();
-    let keep = cull_small_instances(
+    let keep = kept_by_culler(
         camera.position,
         &world.bounding_spheres(),
         angle_deg.to_radians(),

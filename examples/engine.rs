@@ -23,10 +23,10 @@ use rtstream::as_manager::backend::vulkan::{
 };
 use rtstream::as_manager::backend::{AsBackend, BlasClass, GeometryRef};
 use rtstream::as_manager::{
-    AsManager, Camera, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry,
-    MeshDesc, MeshKind,
+    AsManager, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshDesc,
+    MeshKind, Viewpoint,
 };
-use rtstream::renderer::{Camera as ViewCamera, InstanceShading, RenderDesc, Renderer};
+use rtstream::renderer::{Camera, InstanceShading, RenderDesc, Renderer};
 use rtstream::streaming::GltfScene;
 use rtstream::world_bounds;
 
@@ -124,7 +124,7 @@ fn run(args: Args) -> anyhow::Result<()> {
     );
 
     let (lo, hi) = world_bounds(&scene);
-    let view = ViewCamera::framing(lo, hi, Vec3::new(0.7, 0.5, 1.0), 40f32.to_radians());
+    let view = Camera::framing(lo, hi, Vec3::new(0.7, 0.5, 1.0), 40f32.to_radians());
     let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default())?;
     let mut manager = AsManager::new(config(&scene, view.position, height, view.fov_y), backend)?;
 
@@ -166,7 +166,7 @@ fn run(args: Args) -> anyhow::Result<()> {
     }
 
     // Frames until nothing near the camera waits for a build.
-    let cameras = [Camera::new(view.position, view.forward)];
+    let cameras = [Viewpoint::new(view.position, view.forward)];
     let start = Instant::now();
     let mut frame = 0u64;
     let (tlas, records, stats) = loop {

@@ -22,8 +22,8 @@ use clap::{Parser, ValueEnum};
 use rtstream::as_manager::backend::model::ModelBackend;
 use rtstream::as_manager::synth::{SynthParams, SynthWorld};
 use rtstream::as_manager::{AsManager, Config, FrameInput, PolicyKind};
-use rtstream::driver::{self, stats::Summary as Stat};
 use rtstream::streaming::WorldPreset;
+use rtstream::{driver, stats};
 use serde::Serialize;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -69,7 +69,7 @@ struct Cli {
 struct WorldRun {
     world: String,
     instances: usize,
-    update_ms: Stat,
+    update_ms: stats::Summary,
 }
 
 /// Resident memory and open files along the stream part's path.
@@ -85,7 +85,7 @@ struct Sample {
 struct StreamRun {
     world: String,
     instances: usize,
-    update_ms: Stat,
+    update_ms: stats::Summary,
     /// Frames of the path, and the camera's mean speed along it (metres per frame).
     frames: u64,
     m_per_frame: f64,
@@ -206,8 +206,9 @@ fn main() -> anyhow::Result<()> {
 
 /// Medians of the pairs' p50 and p99 ratios.
 fn median_ratios(pairs: &[(f64, f64)]) -> (Option<f64>, Option<f64>) {
-    let median =
-        |f: fn(&(f64, f64)) -> f64| (!pairs.is_empty()).then(|| Stat::of(pairs.iter().map(f)).p50);
+    let median = |f: fn(&(f64, f64)) -> f64| {
+        (!pairs.is_empty()).then(|| stats::Summary::of(pairs.iter().map(f)).p50)
+    };
     (median(|p| p.0), median(|p| p.1))
 }
 
@@ -232,7 +233,7 @@ fn model_run(name: &str, params: SynthParams, frames: u64) -> anyhow::Result<Wor
     Ok(WorldRun {
         world: name.into(),
         instances: world.instances.len(),
-        update_ms: Stat::of(times),
+        update_ms: stats::Summary::of(times),
     })
 }
 
@@ -293,7 +294,7 @@ fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<
     Ok(StreamRun {
         world: c.preset.name.clone(),
         instances,
-        update_ms: Stat::of(times),
+        update_ms: stats::Summary::of(times),
         frames: c.frames,
         m_per_frame: travelled / c.frames.saturating_sub(1).max(1) as f64,
         rss_ratio: if rss_min > 0.0 {

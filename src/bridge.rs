@@ -36,25 +36,26 @@ use glam::{Affine3A, Vec3};
 use rtstream_as_manager::backend::AsBackend;
 use rtstream_as_manager::record::TlasInstance;
 use rtstream_as_manager::{
-    AsManager, InstanceDesc, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind,
+    AsManager, GroupId, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshData, MeshDesc, MeshId,
+    MeshKind,
 };
 use rtstream_renderer::InstanceShading;
 use rtstream_streaming::{
-    Aabb, Instance, InstanceId, LevelId, Manifest, MaterialClass, MeshId, Motion, ProxyId,
-    ProxyTree, World, WorldEvent,
+    Aabb, Instance, LevelId, Manifest, MaterialClass, MeshLod, Motion, ProxyId, ProxyTree, World,
+    WorldEvent, WorldInstanceId, WorldMeshId,
 };
 
 /// What the renderer needs of one customIndex.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ShadingSlot {
     /// The streaming instance (for a far-field proxy: none, see `proxy`).
-    pub instance: InstanceId,
+    pub instance: WorldInstanceId,
     /// The far-field proxy node this slot shades, if it is one (it stands for many instances).
     pub proxy: Option<ProxyId>,
     /// Its level.
     pub level: LevelId,
     /// Its mesh.
-    pub mesh: MeshId,
+    pub mesh: WorldMeshId,
     /// Linear RGBA base colour.
     pub base_color: [f32; 4],
 }
@@ -82,10 +83,10 @@ pub struct BridgeStats {
 
 #[derive(Debug)]
 struct MeshSlot {
-    id: rtstream_as_manager::MeshId,
+    id: MeshId,
     skinned: bool,
     /// Resident streaming geometry per LOD.
-    resident: Vec<Option<Arc<rtstream_streaming::LodGeometry>>>,
+    resident: Vec<Option<Arc<MeshLod>>>,
     /// Counts per LOD (for eviction back to counts).
     counts: Vec<(u32, u32)>,
     color: [f32; 4],
@@ -95,9 +96,9 @@ struct MeshSlot {
 
 #[derive(Debug, Clone, Copy)]
 struct Placed {
-    id: rtstream_as_manager::InstanceId,
+    id: InstanceId,
     slot: u32,
-    mesh: MeshId,
+    mesh: WorldMeshId,
     skinned: bool,
     transform: glam::Mat4,
     center: Vec3,
@@ -109,24 +110,24 @@ struct Placed {
 #[derive(Debug, Default)]
 pub struct WorldBridge {
     manifest_meshes: Vec<rtstream_streaming::bake::MeshEntry>,
-    meshes: HashMap<MeshId, MeshSlot>,
-    placed: HashMap<InstanceId, Placed>,
+    meshes: HashMap<WorldMeshId, MeshSlot>,
+    placed: HashMap<WorldInstanceId, Placed>,
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
     stats: BridgeStats,
     counts_only: bool,
     /// Far field: the manager group of each proxy node, its level's leaf, and each node's
     /// proxy mesh while resident.
-    groups: Vec<Option<rtstream_as_manager::GroupId>>,
+    groups: Vec<Option<GroupId>>,
     level_leaf: Vec<Option<ProxyId>>,
-    proxy_meshes: HashMap<ProxyId, rtstream_as_manager::MeshId>,
+    proxy_meshes: HashMap<ProxyId, MeshId>,
     proxy_errors: Vec<f32>,
     proxy_bounds: Vec<Aabb>,
     /// Each resident leaf's landmark list, and each listed instance's leaf.
     proxy_landmarks: HashMap<ProxyId, Arc<[(LevelId, Instance)]>>,
-    landmark_leaf: HashMap<InstanceId, ProxyId>,
+    landmark_leaf: HashMap<WorldInstanceId, ProxyId>,
     /// Landmarks waiting for their mesh's registration (its first resident LOD).
-    pending_landmarks: HashMap<MeshId, Vec<InstanceId>>,
+    pending_landmarks: HashMap<WorldMeshId, Vec<WorldInstanceId>>,
 }
 
 /// The base colour of far-field proxies (they merge terrain and buildings).
@@ -134,7 +135,7 @@ pub const PROXY_COLOR: [f32; 4] = [0.42, 0.46, 0.38, 1.0];
 
 /// The base colour every image of a mesh uses (managed frames and the ground truth alike, so
 /// colour metrics compare like with like): terrain green, other meshes a stable muted colour.
-pub fn mesh_color(mesh: MeshId, name: &str) -> [f32; 4] {
+pub fn mesh_color(mesh: WorldMeshId, name: &str) -> [f32; 4] {
     let n = name.to_ascii_lowercase();
     if n.contains("terrain") || n.contains("ground") {
         return [0.32, 0.42, 0.22, 1.0];
@@ -153,7 +154,7 @@ pub fn mesh_color(mesh: MeshId, name: &str) -> [f32; 4] {
 /// A resident streamed LOD as the manager's mesh data: the same `Arc`, no copy, so CPU
 /// geometry is counted once (in streaming's budget) and freed when both let go.
 #[derive(Debug)]
-struct StreamedLod(Arc<rtstream_streaming::LodGeometry>);
+struct StreamedLod(Arc<MeshLod>);
 
 impl MeshData for StreamedLod {
     fn positions(&self) -> &[[f32; 3]] {
@@ -164,7 +165,7 @@ impl MeshData for StreamedLod {
     }
 }
 
-fn data_of(g: &Arc<rtstream_streaming::LodGeometry>) -> LodGeometry {
+fn data_of(g: &Arc<MeshLod>) -> LodGeometry {
     LodGeometry::Data(Arc::new(StreamedLod(Arc::clone(g))))
 }
 
@@ -204,10 +205,10 @@ impl WorldBridge {
                         self.slots.resize(slot as usize + 1, None);
                     }
                     self.slots[slot as usize] = Some(ShadingSlot {
-                        instance: InstanceId(u32::MAX),
+                        instance: WorldInstanceId(u32::MAX),
                         proxy: Some(n.id),
                         level: LevelId(u32::MAX),
-                        mesh: MeshId(u32::MAX),
+                        mesh: WorldMeshId(u32::MAX),
                         base_color: PROXY_COLOR,
                     });
                     self.groups[n.id.0 as usize] = Some(g);
@@ -220,12 +221,7 @@ impl WorldBridge {
         }
     }
 
-    fn proxy_loaded<B: AsBackend>(
-        &mut self,
-        m: &AsManager<B>,
-        node: ProxyId,
-        g: &Arc<rtstream_streaming::LodGeometry>,
-    ) {
+    fn proxy_loaded<B: AsBackend>(&mut self, m: &AsManager<B>, node: ProxyId, g: &Arc<MeshLod>) {
         let Some(Some(group)) = self.groups.get(node.0 as usize).copied() else {
             return; // no proxy tree registered: ignore
         };
@@ -286,7 +282,7 @@ impl WorldBridge {
     }
 
     /// Places the landmarks that waited for `mesh` (now registered) and are still listed.
-    fn place_pending_landmarks<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId) {
+    fn place_pending_landmarks<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: WorldMeshId) {
         let Some(ids) = self.pending_landmarks.remove(&mesh) else {
             return;
         };
@@ -331,7 +327,7 @@ impl WorldBridge {
         self
     }
 
-    fn geometry_of(&self, g: &Arc<rtstream_streaming::LodGeometry>) -> LodGeometry {
+    fn geometry_of(&self, g: &Arc<MeshLod>) -> LodGeometry {
         if self.counts_only {
             LodGeometry::Counts {
                 vertices: g.positions.len() as u32,
@@ -363,7 +359,7 @@ impl WorldBridge {
     }
 
     /// The manager instance of a streaming instance, if placed.
-    pub fn manager_instance(&self, id: InstanceId) -> Option<rtstream_as_manager::InstanceId> {
+    pub fn manager_instance(&self, id: WorldInstanceId) -> Option<InstanceId> {
         self.placed.get(&id).map(|p| p.id)
     }
 
@@ -427,11 +423,11 @@ impl WorldBridge {
     fn lod_loaded<B: AsBackend>(
         &mut self,
         m: &AsManager<B>,
-        mesh: MeshId,
+        mesh: WorldMeshId,
         lod: usize,
         lod_count: usize,
         error: f32,
-        g: &Arc<rtstream_streaming::LodGeometry>,
+        g: &Arc<MeshLod>,
     ) {
         if let Some(slot) = self.meshes.get_mut(&mesh) {
             if lod >= slot.resident.len() {
@@ -534,7 +530,7 @@ impl WorldBridge {
         }
     }
 
-    fn lod_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId, lod: usize) {
+    fn lod_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: WorldMeshId, lod: usize) {
         let Some(slot) = self.meshes.get_mut(&mesh) else {
             return;
         };
@@ -636,7 +632,7 @@ impl WorldBridge {
 
     /// Its level unloaded: removes the instance, unless a resident proxy lists it as a
     /// landmark (then it stays, placed from the proxy).
-    fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: InstanceId) {
+    fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: WorldInstanceId) {
         if self.landmark_leaf.contains_key(&id) {
             if let Some(p) = self.placed.get_mut(&id) {
                 p.far = true;
@@ -646,7 +642,7 @@ impl WorldBridge {
         self.remove_placed(m, id);
     }
 
-    fn remove_placed<B: AsBackend>(&mut self, m: &AsManager<B>, id: InstanceId) {
+    fn remove_placed<B: AsBackend>(&mut self, m: &AsManager<B>, id: WorldInstanceId) {
         let Some(p) = self.placed.remove(&id) else {
             return;
         };
@@ -663,7 +659,7 @@ impl WorldBridge {
 
     /// Unregisters a mesh from the manager once no LOD of it is resident and no instance of
     /// it is placed (its BLASes go with it); the next `MeshLodLoaded` registers it again.
-    fn release_if_unused<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: MeshId) -> bool {
+    fn release_if_unused<B: AsBackend>(&mut self, m: &AsManager<B>, mesh: WorldMeshId) -> bool {
         let unused = self
             .meshes
             .get(&mesh)
@@ -680,7 +676,7 @@ impl WorldBridge {
     }
 
     /// The manager's id of a streamed mesh, while registered.
-    pub fn manager_mesh(&self, mesh: MeshId) -> Option<rtstream_as_manager::MeshId> {
+    pub fn manager_mesh(&self, mesh: WorldMeshId) -> Option<MeshId> {
         self.meshes.get(&mesh).map(|s| s.id)
     }
 
@@ -764,7 +760,7 @@ impl WorldBridge {
 
     /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
     /// transform), for reference scenes.
-    pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, MeshId, glam::Mat4)> {
+    pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, WorldMeshId, glam::Mat4)> {
         let mut v: Vec<_> = self
             .placed
             .values()
@@ -776,7 +772,7 @@ impl WorldBridge {
     }
 
     /// The finest LOD of `mesh` resident now.
-    pub fn finest_resident(&self, mesh: MeshId) -> Option<Arc<rtstream_streaming::LodGeometry>> {
+    pub fn finest_resident(&self, mesh: WorldMeshId) -> Option<Arc<MeshLod>> {
         self.meshes
             .get(&mesh)?
             .resident

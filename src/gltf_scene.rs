@@ -3,10 +3,10 @@
 //! This is the "everything resident" path (the thin slice, and the reference for managed frames).
 
 use glam::Vec3;
-use rtstream_as_manager::backend::vulkan::{InstanceDesc, MeshDesc, StaticScene, VulkanContext};
+use rtstream_as_manager::backend::vulkan::{SceneMesh, StaticInstance, StaticScene, VulkanContext};
 use rtstream_renderer::reference::ReferenceScene;
 use rtstream_renderer::InstanceShading;
-use rtstream_streaming::GltfScene;
+use rtstream_streaming::{GltfScene, TriMesh};
 
 use crate::error::Result;
 
@@ -22,21 +22,12 @@ pub struct GpuGltfScene {
 impl GpuGltfScene {
     /// Uploads every mesh, builds one BLAS per mesh in one batched build, and a TLAS.
     pub fn build(ctx: &VulkanContext, scene: &GltfScene) -> Result<Self> {
-        let meshes: Vec<MeshDesc<'_>> = scene
-            .meshes
-            .iter()
-            .map(|m| MeshDesc {
-                name: &m.name,
-                positions: &m.positions,
-                indices: &m.indices,
-                opaque: true,
-            })
-            .collect();
-        let instances: Vec<InstanceDesc> = scene
+        let meshes: Vec<SceneMesh<'_>> = scene.meshes.iter().map(scene_mesh).collect();
+        let instances: Vec<StaticInstance> = scene
             .instances
             .iter()
             .enumerate()
-            .map(|(i, inst)| InstanceDesc {
+            .map(|(i, inst)| StaticInstance {
                 mesh: inst.mesh as u32,
                 transform: inst.transform.to_cols_array(),
                 custom_index: i as u32,
@@ -62,6 +53,16 @@ impl GpuGltfScene {
     /// Destroys the GPU objects.
     pub fn destroy(self, ctx: &VulkanContext) {
         self.accel.destroy(ctx);
+    }
+}
+
+/// A glTF mesh as an opaque mesh of a static scene (borrowing its data).
+pub fn scene_mesh(m: &TriMesh) -> SceneMesh<'_> {
+    SceneMesh {
+        name: &m.name,
+        positions: &m.positions,
+        indices: &m.indices,
+        opaque: true,
     }
 }
 

@@ -11,14 +11,15 @@ use std::sync::Arc;
 
 use glam::{Mat4, Vec3};
 use rtstream::as_manager::backend::model::ModelBackend;
-use rtstream::as_manager::{AsManager, Camera, Config, FrameInput};
+use rtstream::as_manager::{AsManager, Config, FrameInput, Viewpoint};
 use rtstream::streaming::{
-    Aabb, Instance, InstanceId, LevelId, LodGeometry, MaterialClass, MeshId, Motion, WorldEvent,
+    Aabb, Instance, LevelId, MaterialClass, MeshLod, Motion, WorldEvent, WorldInstanceId,
+    WorldMeshId,
 };
 use rtstream::WorldBridge;
 
 /// An `n` x `n` quad grid of side 4 m.
-fn grid(n: u32) -> Arc<LodGeometry> {
+fn grid(n: u32) -> Arc<MeshLod> {
     let mut positions = Vec::new();
     for z in 0..=n {
         for x in 0..=n {
@@ -33,7 +34,7 @@ fn grid(n: u32) -> Arc<LodGeometry> {
             indices.extend_from_slice(&[i, i + w, i + 1, i + 1, i + w, i + w + 1]);
         }
     }
-    Arc::new(LodGeometry {
+    Arc::new(MeshLod {
         positions,
         indices,
         error: 0.0,
@@ -41,9 +42,9 @@ fn grid(n: u32) -> Arc<LodGeometry> {
     })
 }
 
-fn loaded(lod: u8, error: f32, g: &Arc<LodGeometry>) -> WorldEvent {
+fn loaded(lod: u8, error: f32, g: &Arc<MeshLod>) -> WorldEvent {
     WorldEvent::MeshLodLoaded {
-        mesh: MeshId(0),
+        mesh: WorldMeshId(0),
         lod,
         lod_count: 3,
         error,
@@ -52,7 +53,7 @@ fn loaded(lod: u8, error: f32, g: &Arc<LodGeometry>) -> WorldEvent {
 }
 
 fn frame(m: &mut AsManager<ModelBackend>, f: u64) {
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     m.update(FrameInput {
         frame: f,
         cameras: &cams,
@@ -96,8 +97,8 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
 
     // An instance, then its level leaves and both LODs are evicted: the mesh leaves too.
     let inst = Instance::new(
-        InstanceId(0),
-        MeshId(0),
+        WorldInstanceId(0),
+        WorldMeshId(0),
         Mat4::from_translation(Vec3::new(0.0, 0.0, 10.0)),
         &Aabb::from_points(&g0.positions),
         MaterialClass::Opaque,
@@ -118,7 +119,7 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
     assert_eq!(m.stats().instances, 1);
     assert!(m.stats().blas_count > 0);
     let evict = |lod| WorldEvent::MeshLodEvicted {
-        mesh: MeshId(0),
+        mesh: WorldMeshId(0),
         lod,
     };
     bridge.apply(&m, &[evict(0), evict(2)]);
@@ -151,7 +152,7 @@ fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
 
 /// The manager's view of the mesh: (triangles, error) per LOD.
 fn lods_of(m: &AsManager<ModelBackend>, bridge: &WorldBridge) -> Vec<(u32, f32)> {
-    let id = bridge.manager_mesh(MeshId(0)).expect("registered");
+    let id = bridge.manager_mesh(WorldMeshId(0)).expect("registered");
     m.mesh_lods(id).expect("applied")
 }
 
@@ -188,8 +189,8 @@ fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
     };
     bridge.register_proxy_tree(&m, &tree);
     let tower = Instance::new(
-        InstanceId(7),
-        MeshId(0),
+        WorldInstanceId(7),
+        WorldMeshId(0),
         Mat4::from_translation(Vec3::new(0.0, 0.0, 60.0)),
         &bounds,
         MaterialClass::Opaque,
@@ -215,7 +216,7 @@ fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
     frame(&mut m, 1);
     assert_eq!(m.stats().instances, 1);
     assert_eq!(bridge.stats().far_landmarks, 1);
-    let id = bridge.manager_instance(InstanceId(7)).expect("placed");
+    let id = bridge.manager_instance(WorldInstanceId(7)).expect("placed");
 
     // Its level loads: the same instance, not a second one.
     let level = |loaded: bool| {
@@ -239,20 +240,20 @@ fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
         1,
         "one manager instance per world instance"
     );
-    assert_eq!(bridge.manager_instance(InstanceId(7)), Some(id));
+    assert_eq!(bridge.manager_instance(WorldInstanceId(7)), Some(id));
     assert_eq!(bridge.stats().far_landmarks, 0, "its level holds it now");
 
     // The level unloads: the proxy still lists it, so it stays.
     bridge.apply(&m, &[level(false)]);
     frame(&mut m, 3);
-    assert_eq!(bridge.manager_instance(InstanceId(7)), Some(id));
+    assert_eq!(bridge.manager_instance(WorldInstanceId(7)), Some(id));
     assert_eq!(bridge.stats().far_landmarks, 1);
 
     // The proxy leaves: so does the landmark.
     bridge.apply(&m, &[WorldEvent::ProxyEvicted { node: ProxyId(0) }]);
     frame(&mut m, 4);
     assert_eq!(m.stats().instances, 0);
-    assert_eq!(bridge.manager_instance(InstanceId(7)), None);
+    assert_eq!(bridge.manager_instance(WorldInstanceId(7)), None);
     assert_eq!(bridge.stats().rejected, 0);
     m.check_invariants().unwrap();
 }

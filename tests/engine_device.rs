@@ -29,10 +29,10 @@ use rtstream::as_manager::backend::vulkan::{
 use rtstream::as_manager::backend::{BackendError, TlasHandle};
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
-    AsError, AsManager, Camera, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry,
-    MeshDesc, MeshKind,
+    AsError, AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry,
+    MeshDesc, MeshKind, Viewpoint,
 };
-use rtstream::renderer::{Camera as RenderCamera, RenderDesc, Renderer};
+use rtstream::renderer::{Camera, RenderDesc, Renderer};
 
 /// Validation warnings and errors the engine's messenger received.
 static MESSAGES: Mutex<Vec<String>> = Mutex::new(Vec::new());
@@ -425,8 +425,8 @@ fn scene_with(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> Scene {
 
 /// The camera of frame `frame`: along the rows at 2.5 m a frame, so BLASes are built ahead and
 /// freed behind while frames are in flight; `jump` metres further along (a teleport).
-fn camera(frame: u64, jump: f32) -> Camera {
-    Camera::new(
+fn camera(frame: u64, jump: f32) -> Viewpoint {
+    Viewpoint::new(
         Vec3::new(frame as f32 * 2.5 - 10.0 + jump, 3.0, 0.0),
         Vec3::new(0.3, -0.1, 1.0),
     )
@@ -457,7 +457,7 @@ fn render_desc(frame: u64) -> RenderDesc {
     RenderDesc::new(
         64,
         48,
-        RenderCamera::look_at(c.position, c.position + c.forward, 60f32.to_radians()),
+        Camera::look_at(c.position, c.position + c.forward, 60f32.to_radians()),
     )
 }
 

@@ -13,8 +13,8 @@ use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackend, VulkanBac
 use rtstream::as_manager::backend::BackendError;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
-    AsError, AsManager, Camera, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry,
-    MeshDesc, MeshKind,
+    AsError, AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry,
+    MeshDesc, MeshKind, Viewpoint,
 };
 
 struct Scene {
@@ -78,7 +78,7 @@ fn update(s: &mut Scene, frame: u64) -> Result<usize, AsError> {
         .map(|p| [p[0], (p[0] + frame as f32 * 0.3).sin() * 0.5, p[2]])
         .collect();
     s.m.set_skinned_pose(s.skinned, Arc::new(pose)).unwrap();
-    let cams = [Camera::new(
+    let cams = [Viewpoint::new(
         Vec3::new(frame as f32 * 0.8, 3.0, 0.0),
         Vec3::new(0.0, 0.0, 1.0),
     )];

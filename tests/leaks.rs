@@ -6,7 +6,7 @@
 mod common;
 
 use rtstream::as_manager::backend::vulkan::{
-    build_blas_now, class_flags, live_vulkan_handles, ContextDesc, GpuGeometry, MeshDesc,
+    build_blas_now, class_flags, live_vulkan_handles, ContextDesc, GpuGeometry, SceneMesh,
     Validation, VulkanBackend, VulkanBackendDesc, VulkanContext, VulkanError,
 };
 use rtstream::as_manager::backend::BlasClass;
@@ -59,7 +59,7 @@ fn every_failed_creation_frees_what_it_made() {
     let g = grid_geometry(8, 2.0);
     let geom = GpuGeometry::upload(
         &ctx,
-        &MeshDesc {
+        &SceneMesh {
             name: "grid",
             positions: &g.positions,
             indices: &g.indices,

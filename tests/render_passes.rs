@@ -3,10 +3,12 @@
 //! AO, skinned silhouettes, and metrics against the reference under growing culling.
 
 mod common;
+#[path = "../examples/support/eval.rs"]
+mod eval;
 
+use eval::{kept_by_culler, DemoWorldDesc, EvalWorld};
 use glam::{Mat4, Vec3};
-use rtstream::as_manager::backend::vulkan::MeshDesc;
-use rtstream::eval::{cull_small_instances, DemoWorldDesc, EvalWorld};
+use rtstream::as_manager::backend::vulkan::SceneMesh;
 use rtstream::renderer::reference::{CpuHit, ReferenceScene};
 use rtstream::renderer::skinning::linear_blend;
 use rtstream::renderer::{
@@ -172,7 +174,7 @@ fn metrics_are_zero_for_identical_frames_and_grow_with_the_culling_angle() {
     let spheres = world.bounding_spheres();
     let mut last: Option<(FrameMetrics, usize)> = None;
     for deg in [0.5f32, 1.0, 2.0, 4.0, 8.0] {
-        let keep = cull_small_instances(camera.position, &spheres, deg.to_radians());
+        let keep = kept_by_culler(camera.position, &spheres, deg.to_radians());
         let managed = TracedScene::subset(&ctx, &meshes, &world.instances, |i| keep[i]).unwrap();
         let frame = managed.render(&mut renderer, &desc).unwrap();
         let m = FrameMetrics::compare(&frame, &ref_frame).unwrap();
@@ -282,7 +284,7 @@ fn skinned_silhouette_follows_the_pose_and_matches_cpu_skinning() {
     let mut masks = Vec::new();
     for deg in [0.0f32, 60.0] {
         let posed = linear_blend(&bind, &joints, &weights, &bend(deg));
-        let meshes = [MeshDesc {
+        let meshes = [SceneMesh {
             name: "skinned cylinder",
             positions: &posed,
             indices: &idx,

@@ -16,11 +16,11 @@ use rtstream::as_manager::backend::TlasHandle;
 use rtstream::as_manager::record::TlasInstance;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
-    AsManager, Camera, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry,
-    MeshDesc, MeshKind,
+    AsManager, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshDesc,
+    MeshKind, Viewpoint,
 };
 use rtstream::renderer::reference::ReferenceScene;
-use rtstream::renderer::{Camera as ViewCamera, Frame, InstanceShading, RenderDesc, Renderer};
+use rtstream::renderer::{Camera, Frame, InstanceShading, RenderDesc, Renderer};
 
 /// A bumpy `n` x `n` grid of side `size`: every triangle has its own normal.
 fn bumpy(n: u32, size: f32, phase: f32) -> Arc<GeometryData> {
@@ -52,7 +52,7 @@ fn render(
     renderer: &mut Renderer,
     tlas: TlasHandle,
     records: &[TlasInstance],
-    cam: ViewCamera,
+    cam: Camera,
     size: u32,
 ) -> Frame {
     let backend = m.backend_mut();
@@ -85,7 +85,7 @@ fn render(
 fn agreement(
     frame: &Frame,
     reference: &ReferenceScene,
-    cam: &ViewCamera,
+    cam: &Camera,
     size: u32,
     normal_of: impl Fn(u32, u32) -> Vec3,
 ) -> (usize, usize, usize) {
@@ -134,7 +134,7 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
     }
     let pose_a = Arc::new(bumpy(16, 6.0, 1.7).positions.clone());
     m.set_skinned_pose(ids[0], pose_a.clone()).unwrap();
-    let cams = [Camera::new(Vec3::new(0.0, 6.0, 0.0), Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::new(0.0, 6.0, 0.0), Vec3::Z)];
     let mut last = None;
     let mut pose_b = Arc::new(Vec::new());
     for frame in 0..12u64 {
@@ -165,7 +165,7 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
     );
 
     let mut renderer = Renderer::new(ctx.clone()).unwrap();
-    let cam = ViewCamera::look_at(Vec3::new(0.0, 9.0, 2.0), Vec3::new(0.0, 0.0, 12.0), 0.9);
+    let cam = Camera::look_at(Vec3::new(0.0, 9.0, 2.0), Vec3::new(0.0, 0.0, 12.0), 0.9);
     let size = 96;
     let frame = render(&mut m, &mut renderer, tlas, &records, cam, size);
     let poses = [pose_a.clone(), pose_b.clone()];
@@ -228,7 +228,7 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
     let at = Vec3::new(0.0, 0.0, 20.0);
     m.add_instance(InstanceDesc::new(mesh, Affine3A::from_translation(at)))
         .unwrap();
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut last = None;
     for frame in 0..4 {
         let out = m
@@ -255,7 +255,7 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
 
     let mut renderer = Renderer::new(ctx.clone()).unwrap();
     // Straight down at the whole grid: every part is hit.
-    let cam = ViewCamera::look_at(
+    let cam = Camera::look_at(
         Vec3::new(0.0, 30.0, 20.0),
         Vec3::new(0.0, 0.0, 20.001),
         60f32.to_radians(),

@@ -13,8 +13,8 @@ use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{
     live_vulkan_handles, VulkanBackend, VulkanBackendDesc,
 };
-use rtstream::as_manager::{AsManager, Camera, Config, FrameInput};
-use rtstream::renderer::{Camera as ViewCamera, RenderDesc, Renderer};
+use rtstream::as_manager::{AsManager, Config, FrameInput, Viewpoint};
+use rtstream::renderer::{Camera, RenderDesc, Renderer};
 use rtstream::streaming::{bake, generate, StreamConfig, World, WorldPreset};
 use rtstream::WorldBridge;
 
@@ -91,7 +91,7 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
         let eye = place + Vec3::new((frame % 30) as f32 * 0.5, 0.0, 0.0);
         let events = world.update(frame, &[eye.into()]);
         bridge.apply(&m, &events);
-        let cams = [Camera::new(eye, Vec3::X)];
+        let cams = [Viewpoint::new(eye, Vec3::X)];
         let out = m
             .update(FrameInput {
                 frame,
@@ -109,7 +109,7 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
             let backend = m.backend();
             let table = bridge.shading(&records, |a| backend.shading_geometry(a));
             let raw = backend.tlas(tlas).expect("this frame's TLAS");
-            let cam = ViewCamera::look_at(eye, eye + Vec3::X * 10.0, 1.0);
+            let cam = Camera::look_at(eye, eye + Vec3::X * 10.0, 1.0);
             let desc = RenderDesc {
                 primitive_bases: backend.primitive_bases(tlas),
                 ..RenderDesc::new(32, 18, cam)

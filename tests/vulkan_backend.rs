@@ -12,10 +12,10 @@ use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc, Vu
 use rtstream::as_manager::backend::AsBackend;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
-    AsManager, Camera, Config, FrameInput, GeometryData, InstanceDesc, InstanceId, LodDesc,
-    LodGeometry, MeshDesc, MeshKind,
+    AsManager, Config, FrameInput, GeometryData, InstanceDesc, InstanceId, LodDesc, LodGeometry,
+    MeshDesc, MeshKind, Viewpoint,
 };
-use rtstream::renderer::{Camera as ViewCamera, InstanceShading, RenderDesc, Renderer};
+use rtstream::renderer::{Camera, InstanceShading, RenderDesc, Renderer};
 
 /// A 4-LOD chain of displaced grids (finest `n` x `n` quads).
 fn chain(n: u32, size: f32) -> Vec<LodDesc> {
@@ -161,7 +161,7 @@ fn render(
         };
     }
     let raw = backend.tlas(tlas).expect("TLAS of this frame");
-    let cam = ViewCamera::look_at(
+    let cam = Camera::look_at(
         eye + Vec3::new(0.0, 12.0, -30.0),
         eye + Vec3::new(0.0, 0.0, 20.0),
         60f32.to_radians(),
@@ -201,7 +201,7 @@ fn camera_path_creates_refits_evicts_and_destroys_with_every_frame_traced() {
                 .set_skinned_pose(*id, pose(base, frame as f32 * 0.2, amplitude))
                 .unwrap();
         }
-        let cams = [Camera::new(eye, Vec3::Z)];
+        let cams = [Viewpoint::new(eye, Vec3::Z)];
         let out = s
             .manager
             .update(FrameInput {
@@ -276,7 +276,7 @@ fn forced_out_of_memory_is_survived() {
             .manager
             .update(FrameInput {
                 frame,
-                cameras: &[Camera::new(eye, Vec3::Z)],
+                cameras: &[Viewpoint::new(eye, Vec3::Z)],
             })
             .expect("OOM never fails a frame");
         ooms += out.stats.oom_events;
@@ -340,14 +340,14 @@ fn streamed_camera_path_on_vulkan() {
         let out = m
             .update(FrameInput {
                 frame,
-                cameras: &[Camera::new(pos, fwd)],
+                cameras: &[Viewpoint::new(pos, fwd)],
             })
             .expect("update");
         let (tlas, records) = (out.tlas, out.instances.to_vec());
         m.backend_mut().wait_idle().expect("frame completes");
         let shading = bridge.shading(&records, |a| m.backend().shading_geometry(a));
         let raw = m.backend().tlas(tlas).expect("TLAS");
-        let cam = ViewCamera::look_at(pos, pos + fwd, 60f32.to_radians());
+        let cam = Camera::look_at(pos, pos + fwd, 60f32.to_radians());
         let f = renderer
             .render(raw, &shading, &RenderDesc::new(16, 12, cam))
             .expect("trace without device error");
@@ -389,7 +389,7 @@ fn a_stale_tlas_handle_resolves_to_nothing() {
         Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)),
     ))
     .unwrap();
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut handles = Vec::new();
     for frame in 0..6 {
         let tlas = m

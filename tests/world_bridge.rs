@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use glam::Vec3;
 use rtstream::as_manager::backend::model::ModelBackend;
-use rtstream::as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
+use rtstream::as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
 use rtstream::streaming::{bake, generate, StreamConfig, World, WorldPreset};
 use rtstream::WorldBridge;
 
@@ -66,7 +66,7 @@ fn run(dir: &PathBuf, size: f32, policy: PolicyKind, gpu_like: bool) -> RunResul
             .count();
         bridge.apply(&m, &events);
         bridge.pose_skinned(&m, &world, frame as f32 / 30.0, 1);
-        let cams = [Camera::new(pos, Vec3::new(1.0, 0.0, 1.0).normalize())];
+        let cams = [Viewpoint::new(pos, Vec3::new(1.0, 0.0, 1.0).normalize())];
         let out = m
             .update(FrameInput {
                 frame,

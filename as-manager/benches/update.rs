@@ -15,7 +15,8 @@ use rstar::RTree;
 use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::spatial::GridIndex;
 use rtstream_as_manager::synth::{SynthParams, SynthWorld};
-use rtstream_as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
+use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
+use rtstream_stats::Samples;
 
 /// Camera speed along the path: 0.5 m per frame (30 m/s at 60 fps).
 const SPEED: f32 = 0.5;
@@ -24,7 +25,7 @@ const WARMUP_FRAMES: u64 = 300;
 
 /// Four cameras: a squad around the lead camera (split-screen co-op / nearby probes), within
 /// 60 m of it. `n == 5` means four cameras spread ~1 km apart (informative: nothing shared).
-fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
+fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Viewpoint> {
     let lead = world.camera_on_path(frame, SPEED);
     if n == 5 {
         let spread = [
@@ -35,7 +36,7 @@ fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
         ];
         return spread
             .iter()
-            .map(|o| Camera::new(lead.position + *o, lead.forward))
+            .map(|o| Viewpoint::new(lead.position + *o, lead.forward))
             .collect();
     }
     let offsets = [
@@ -45,7 +46,7 @@ fn cameras(world: &SynthWorld, frame: u64, n: usize) -> Vec<Camera> {
         Vec3::new(-30.0, 0.0, -30.0),
     ];
     (0..n)
-        .map(|i| Camera::new(lead.position + offsets[i % 4], lead.forward))
+        .map(|i| Viewpoint::new(lead.position + offsets[i % 4], lead.forward))
         .collect()
 }
 
@@ -85,20 +86,16 @@ impl Run {
     /// Times `n` single frames and prints median / p90 / mean: criterion's figures are means
     /// of batches and on this shared 2-core machine include preemptions by other processes.
     fn per_frame(&mut self, label: &str, n: usize) {
-        let mut t: Vec<f64> = (0..n)
-            .map(|_| {
-                let s = std::time::Instant::now();
-                black_box(self.step());
-                s.elapsed().as_secs_f64() * 1e6
-            })
-            .collect();
-        t.sort_by(f64::total_cmp);
-        let mean = t.iter().sum::<f64>() / n as f64;
+        let t = Samples::new((0..n).map(|_| {
+            let s = std::time::Instant::now();
+            black_box(self.step());
+            s.elapsed().as_secs_f64() * 1e6
+        }));
         eprintln!(
             "[{label}] per-frame over {n} frames: median {:.1} us, p90 {:.1} us, mean {:.1} us",
-            t[n / 2],
-            t[n * 9 / 10],
-            mean
+            t.median(),
+            t.percentile(0.9),
+            t.mean()
         );
     }
 

@@ -7,7 +7,8 @@ use std::time::Instant;
 
 use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::synth::{SynthParams, SynthWorld};
-use rtstream_as_manager::{AsManager, Camera, Config, FrameInput};
+use rtstream_as_manager::{AsManager, Config, FrameInput, Viewpoint};
+use rtstream_stats::Samples;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -28,7 +29,7 @@ fn main() {
     }
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
     world.populate(&m).unwrap();
-    let cameras = |f: u64| -> Vec<Camera> {
+    let cameras = |f: u64| -> Vec<Viewpoint> {
         let lead = world.camera_on_path(f, 0.5);
         let off = [
             glam::Vec3::ZERO,
@@ -37,7 +38,7 @@ fn main() {
             glam::Vec3::new(-30.0, 0.0, -30.0),
         ];
         (0..cams)
-            .map(|i| Camera::new(lead.position + off[i % 4], lead.forward))
+            .map(|i| Viewpoint::new(lead.position + off[i % 4], lead.forward))
             .collect()
     };
     for f in 0..300 {
@@ -58,17 +59,15 @@ fn main() {
         .unwrap();
         times.push(t.elapsed().as_secs_f64() * 1e6);
     }
-    times.sort_by(f64::total_cmp);
-    let mean = times.iter().sum::<f64>() / times.len() as f64;
-    let p = |q: f64| times[((times.len() - 1) as f64 * q) as usize];
+    let t = Samples::new(times);
     println!(
         "median {:.1} us, mean {:.1} us, p10 {:.1} p90 {:.1} p99 {:.1} max {:.1} us",
-        p(0.5),
-        mean,
-        p(0.1),
-        p(0.9),
-        p(0.99),
-        p(1.0)
+        t.median(),
+        t.mean(),
+        t.percentile(0.1),
+        t.percentile(0.9),
+        t.percentile(0.99),
+        t.max()
     );
     println!("{:?}", m.stats());
 }

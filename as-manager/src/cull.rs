@@ -108,4 +108,25 @@ mod tests {
         assert!(!and.cull(50.0, 400.0, false), "far but big");
         assert!(and.cull(1.0, 400.0, false));
     }
+
+    /// The projected-angle test alone (what `compare` measures): keeps big and near spheres and
+    /// one that contains the eye, and culls more as the angle grows.
+    #[test]
+    fn small_mode_culls_more_as_the_angle_grows() {
+        let small = |deg: f32| {
+            InstanceCuller::new(&CullConfig {
+                mode: CullMode::Small,
+                min_angle: deg.to_radians(),
+                near_distance: 0.0,
+                hysteresis: 0.0,
+                ..CullConfig::default()
+            })
+        };
+        // (radius, centre distance): ~5.7 degrees, ~0.57 degrees, a sphere around the eye.
+        let spheres = [(1.0, 10.0), (1.0, 100.0), (0.5, 0.0)];
+        let keep = |deg: f32| spheres.map(|(r, d)| !small(deg).cull(r, d, false));
+        assert_eq!(keep(0.0), [true, true, true]);
+        assert_eq!(keep(1.0), [true, false, true]);
+        assert_eq!(keep(10.0), [false, false, true]);
+    }
 }

@@ -72,7 +72,7 @@ pub use config::{
 pub use error::{AsError, Result};
 pub use ids::{GroupId, InstanceId, MeshId};
 pub use manager::{
-    AsManager, Camera, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc,
-    Registrar,
+    AsManager, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc, Registrar,
+    Viewpoint,
 };
 pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind, MAX_LODS};

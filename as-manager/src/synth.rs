@@ -12,7 +12,7 @@ use rand_xoshiro::rand_core::{RngCore, SeedableRng};
 use rand_xoshiro::SplitMix64;
 
 use crate::mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind};
-use crate::{AsManager, Camera, InstanceDesc, InstanceId, MeshId, Result};
+use crate::{AsManager, InstanceDesc, InstanceId, MeshId, Result, Viewpoint};
 
 /// The placement's random source: [`rand_xoshiro::SplitMix64`] (its raw `next_u64` is
 /// value-stable across versions) with the helpers placement needs on top of `next_u64`, so a
@@ -296,19 +296,19 @@ impl SynthWorld {
     }
 
     /// A camera on a closed path through the world at `speed` m per frame, looking ahead.
-    pub fn camera_on_path(&self, frame: u64, speed: f32) -> Camera {
+    pub fn camera_on_path(&self, frame: u64, speed: f32) -> Viewpoint {
         path_camera(self.params.extent, frame, speed)
     }
 }
 
 /// A camera on a rounded loop of radius 0.3 x `extent` (Lissajous-like), height 2 m.
-pub fn path_camera(extent: f32, frame: u64, speed: f32) -> Camera {
+pub fn path_camera(extent: f32, frame: u64, speed: f32) -> Viewpoint {
     let r = 0.3 * extent;
     let len = std::f32::consts::TAU * r;
     let t = ((frame as f64 * speed as f64) % len as f64) as f32 / r;
     let pos = Vec3::new(r * t.cos(), 2.0, r * (2.0 * t).sin() * 0.5);
     let ahead = Vec3::new(-r * t.sin(), 0.0, r * (2.0 * t).cos());
-    Camera::new(pos, ahead.normalize_or_zero())
+    Viewpoint::new(pos, ahead.normalize_or_zero())
 }
 
 #[cfg(test)]

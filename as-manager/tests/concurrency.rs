@@ -79,7 +79,7 @@ fn config() -> Config {
 
 /// The settled TLAS: (customIndex, translation bits) of every record.
 fn settle(m: &mut AsManager<ModelBackend>, from: u64) -> BTreeSet<(u32, [u32; 3])> {
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut set = BTreeSet::new();
     for f in from..from + 12 {
         let out = m
@@ -125,7 +125,7 @@ fn threads_register_while_update_runs_and_the_result_is_the_serial_one() {
             })
         })
         .collect();
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut frame = 0;
     let watcher = {
         let done = done.clone();

@@ -66,7 +66,7 @@ proptest! {
         let frames = 240u64;
         for f in 0..frames {
             let d = 1.0 + r1 + if f % 2 == 0 { amp } else { -amp };
-            let cams = [Camera::new(Vec3::new(d, 0.0, 0.0), -Vec3::X)];
+            let cams = [Viewpoint::new(Vec3::new(d, 0.0, 0.0), -Vec3::X)];
             let s = m.update(FrameInput { frame: f, cameras: &cams }).unwrap().stats.clone();
             builds += s.builds as u64;
             releases += s.releases as u64;

@@ -35,7 +35,7 @@ fn oscillate(config: Config, frames: u64) -> (u64, u64) {
         } else {
             1.0 + r + if f % 2 == 0 { -0.5 } else { 0.5 }
         };
-        let cams = [Camera::new(Vec3::new(d, 0.0, 0.0), -Vec3::X)];
+        let cams = [Viewpoint::new(Vec3::new(d, 0.0, 0.0), -Vec3::X)];
         let s = m
             .update(FrameInput {
                 frame: f,
@@ -115,7 +115,7 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
             Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)),
         ))
         .unwrap();
-    let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut frame = 0;
     let mut step = |m: &mut AsManager<ModelBackend>| {
         let s = m

@@ -3,7 +3,7 @@
 //! frame can be compared with the same camera against it.
 
 use glam::Mat4;
-use rtstream_as_manager::backend::vulkan::{InstanceDesc, MeshDesc, StaticScene, VulkanContext};
+use rtstream_as_manager::backend::vulkan::{SceneMesh, StaticInstance, StaticScene, VulkanContext};
 
 use crate::error::Result;
 use crate::frame::Frame;
@@ -38,7 +38,7 @@ impl TracedScene {
     /// The reference: every instance, the meshes as given (the finest LOD), no culling.
     pub fn reference(
         ctx: &VulkanContext,
-        meshes: &[MeshDesc<'_>],
+        meshes: &[SceneMesh<'_>],
         instances: &[SceneInstance],
     ) -> Result<Self> {
         Self::subset(ctx, meshes, instances, |_| true)
@@ -47,16 +47,16 @@ impl TracedScene {
     /// A TLAS over the instances `keep` accepts (e.g. the survivors of a culler).
     pub fn subset(
         ctx: &VulkanContext,
-        meshes: &[MeshDesc<'_>],
+        meshes: &[SceneMesh<'_>],
         instances: &[SceneInstance],
         keep: impl Fn(usize) -> bool,
     ) -> Result<Self> {
         debug_assert!(instances.len() < 1 << 24, "customIndex has 24 bits");
-        let descs: Vec<InstanceDesc> = instances
+        let descs: Vec<StaticInstance> = instances
             .iter()
             .enumerate()
             .filter(|(i, _)| keep(*i))
-            .map(|(i, inst)| InstanceDesc {
+            .map(|(i, inst)| StaticInstance {
                 mesh: inst.mesh,
                 transform: inst.transform.to_cols_array(),
                 custom_index: i as u32,
@@ -94,7 +94,7 @@ impl TracedScene {
 }
 
 /// The CPU reference caster's BVH over the same meshes and instances (ids = instance indices).
-pub fn cpu_reference(meshes: &[MeshDesc<'_>], instances: &[SceneInstance]) -> ReferenceScene {
+pub fn cpu_reference(meshes: &[SceneMesh<'_>], instances: &[SceneInstance]) -> ReferenceScene {
     let m: Vec<(&[[f32; 3]], &[u32])> = meshes.iter().map(|m| (m.positions, m.indices)).collect();
     let i: Vec<(usize, Mat4, u32)> = instances
         .iter()

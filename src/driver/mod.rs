@@ -3,8 +3,8 @@
 //!
 //! Why one file over 600 lines: `run_on` is the frame loop, and a frame's steps (stream, each
 //! policy's update and recording, the scored and timed renders, the submission, the maps) read
-//! in order in one function; the pieces that stand alone (path, truth, scoring, report, maps,
-//! stats) are submodules already.
+//! in order in one function; the pieces that stand alone (path, truth, scoring, report, maps)
+//! are submodules already, and percentiles come from `rtstream_stats`.
 //!
 //! One run:
 //! - The world is generated from its preset and seed (deterministic), baked to disk once and
@@ -27,7 +27,6 @@ pub mod map;
 pub mod path;
 pub mod report;
 pub mod score;
-pub mod stats;
 pub mod truth;
 
 use std::path::{Path, PathBuf};
@@ -41,8 +40,9 @@ use rtstream_as_manager::backend::vulkan::{
 };
 use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
-use rtstream_as_manager::{AsManager, Camera, Config, FrameInput, PolicyKind};
-use rtstream_renderer::{side_by_side, Camera as ViewCamera, Frame, RenderDesc, Renderer};
+use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
+use rtstream_renderer::{side_by_side, Camera, Frame, RenderDesc, Renderer};
+use rtstream_stats::Summary;
 use rtstream_streaming::{
     bake, generate, read_manifest, GeneratedWorld, StreamConfig, World, WorldPreset,
 };
@@ -191,7 +191,7 @@ struct PendingScore {
     frame: u64,
     policy: usize,
     row: usize,
-    view: ViewCamera,
+    view: Camera,
     /// customIndex -> instance id at the frame (None: a proxy, or nothing).
     ids: Vec<Option<u32>>,
 }
@@ -482,7 +482,7 @@ pub fn run_cached(
         let cam = path.at_fraction(a + (b - a) * t);
         let frame_start = Instant::now();
         trail.push(cam.position);
-        let cams = [rtstream_streaming::Camera::from(cam.position)];
+        let cams = [rtstream_streaming::StreamFocus::from(cam.position)];
         // Never waits on the loaders, except (deterministic mode) for the loads requested
         // `stream_delay_frames` frames ago.
         let events = world.update(frame, &cams);
@@ -490,7 +490,7 @@ pub fn run_cached(
             *l |= world.is_loaded(rtstream_streaming::LevelId(i as u32));
         }
         let time = frame as f32 / 30.0;
-        let mcams = [Camera::new(cam.position, cam.forward)];
+        let mcams = [Viewpoint::new(cam.position, cam.forward)];
         let policies_len = policies.len();
         let cmd = frames.begin(frame)?;
         // Read the renders of frames that completed.
@@ -556,8 +556,7 @@ pub fn run_cached(
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;
         if scored {
-            let view =
-                ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
+            let view = Camera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
             let desc = RenderDesc::new(config.size.0, config.size.1, view);
             let kinds: &[TruthKind] = if config.all_geometry_reference {
                 &[TruthKind::Opaque, TruthKind::AllGeometry]
@@ -600,7 +599,7 @@ pub fn run_cached(
             }
         }
         let render_now = config.render_every > 0 && frame % config.render_every == 0 && !scored;
-        let view = ViewCamera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
+        let view = Camera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
         let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
         if render_now && !config.blocking_render {
             for (pi, p) in policies.iter().enumerate() {
@@ -691,7 +690,7 @@ pub fn run_cached(
             world_instances: truth.world_instances(),
             never_loaded_instances,
             full_world: true,
-            build_ms: stats::Summary::of(cache.build_ms.iter().copied()),
+            build_ms: Summary::of(cache.build_ms.iter().copied()),
         },
         validation_messages,
         &render_ms,
@@ -702,9 +701,8 @@ pub fn run_cached(
     if config.render_every > 0 {
         // Steady state: after the first tenth of the run.
         let from = config.frames / 10;
-        let later = |v: &[(u64, f64)]| {
-            stats::Summary::of(v.iter().filter(|(f, _)| *f >= from).map(|(_, x)| *x))
-        };
+        let later =
+            |v: &[(u64, f64)]| Summary::of(v.iter().filter(|(f, _)| *f >= from).map(|(_, x)| *x));
         let rendered: std::collections::HashSet<u64> = frame_ms.iter().map(|(f, _)| *f).collect();
         let updates: Vec<(u64, f64)> = update0_ms
             .into_iter()

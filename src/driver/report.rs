@@ -3,10 +3,10 @@
 use std::path::{Path, PathBuf};
 
 use rtstream_as_manager::FrameStats;
+use rtstream_stats::Summary;
 use serde::Serialize;
 
 use super::score::{BandEdges, FrameScore};
-use super::stats::Summary;
 use super::RunConfig;
 use crate::error::{Error, Result};
 

@@ -6,7 +6,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use rtstream_as_manager::backend::vulkan::{MeshDesc, VulkanContext};
+use rtstream_as_manager::backend::vulkan::{SceneMesh, VulkanContext};
 use rtstream_renderer::{SceneInstance, TracedScene};
 use rtstream_streaming::skin::{animation_time, skin_positions};
 use rtstream_streaming::{GeneratedWorld, Instance, MaterialClass, Motion};
@@ -112,7 +112,7 @@ impl GroundTruth {
         }
         // Scene meshes: each static mesh once (LOD 0), then one per skinned instance.
         let mut mesh_slot = vec![u32::MAX; self.world.meshes.len()];
-        let mut descs: Vec<MeshDesc<'_>> = Vec::new();
+        let mut descs: Vec<SceneMesh<'_>> = Vec::new();
         let mut instances = Vec::with_capacity(statics.len() + skinned.len());
         let mut ids = Vec::with_capacity(instances.capacity());
         let mut triangles = 0u64;
@@ -121,7 +121,7 @@ impl GroundTruth {
             let slot = &mut mesh_slot[inst.mesh.0 as usize];
             if *slot == u32::MAX {
                 *slot = descs.len() as u32;
-                descs.push(MeshDesc {
+                descs.push(SceneMesh {
                     name: &mesh.name,
                     positions: &mesh.lods[0].positions,
                     indices: &mesh.lods[0].indices,
@@ -143,7 +143,7 @@ impl GroundTruth {
                 transform: inst.transform,
                 base_color: mesh_color(mesh.id, &mesh.name),
             });
-            descs.push(MeshDesc {
+            descs.push(SceneMesh {
                 name: &mesh.name,
                 positions,
                 indices: &mesh.lods[0].indices,

@@ -8,7 +8,9 @@ use std::time::{Duration, Instant};
 
 use clap::Parser;
 use glam::Vec3;
-use rtstream_streaming::{bake, generate, Camera, StreamConfig, World, WorldEvent, WorldPreset};
+use rtstream_streaming::{
+    bake, generate, StreamConfig, StreamFocus, World, WorldEvent, WorldPreset,
+};
 
 #[path = "support/world_args.rs"]
 mod world_args;
@@ -64,7 +66,7 @@ fn main() -> anyhow::Result<()> {
         let k = f as f32 / frames as f32;
         let p = Vec3::new(lo.x + (hi.x - lo.x) * k, 2.0, lo.z + (hi.z - lo.z) * k);
         for e in w
-            .update_until_idle(f, &[Camera::from(p)], Duration::from_secs(10))
+            .update_until_idle(f, &[StreamFocus::from(p)], Duration::from_secs(10))
             .unwrap_or_else(|t| t.events)
         {
             match e {

@@ -15,6 +15,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Parser;
+use rtstream_stats::Samples;
 use rtstream_streaming::{bake, format, generate, read_manifest, Aabb, WorldPreset};
 
 /// The baked format's figures: bytes per instance and the time to read a baked world.
@@ -84,16 +85,6 @@ fn dir_bytes(dir: &Path) -> anyhow::Result<u64> {
     Ok(total)
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let mut preset = args.preset.clone();
@@ -131,9 +122,9 @@ fn main() -> anyhow::Result<()> {
         "level_bytes_per_instance": report.level_bytes as f64 / instances as f64,
         "reps": args.reps.max(1),
         "load_s_each": reps,
-        "load_s_median": median(&mut total_s),
-        "levels_s_median": median(&mut levels_s),
-        "mesh_lods_s_median": median(&mut lods_s),
+        "load_s_median": Samples::new(total_s).median(),
+        "levels_s_median": Samples::new(levels_s).median(),
+        "mesh_lods_s_median": Samples::new(lods_s).median(),
     });
     if args.json {
         println!("{out}");

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use crate::error::{FormatError, Result, StreamingError};
 use crate::format::{self, Reader, Writer, MANIFEST_MAGIC};
 use crate::generate::GeneratedWorld;
-use crate::model::{Aabb, LevelId, MeshId};
+use crate::model::{Aabb, LevelId, WorldMeshId};
 
 /// File name of the manifest inside a baked world directory.
 pub const MANIFEST_FILE: &str = "world.rtw";
@@ -39,7 +39,7 @@ pub struct LodEntry {
 #[derive(Debug, Clone, PartialEq)]
 pub struct MeshEntry {
     /// Its id.
-    pub id: MeshId,
+    pub id: WorldMeshId,
     /// Name.
     pub name: String,
     /// Mesh-space bounds.
@@ -231,7 +231,7 @@ pub(crate) fn decode_manifest(bytes: &[u8]) -> std::result::Result<Manifest, For
     let nm = r.count(4 + 4 + 24 + 4)?;
     let mut meshes = Vec::with_capacity(nm);
     for k in 0..nm {
-        let id = MeshId(r.u32()?);
+        let id = WorldMeshId(r.u32()?);
         if id.0 as usize != k {
             return Err(bad(format!("mesh {k} has id {}", id.0)));
         }

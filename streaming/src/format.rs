@@ -26,8 +26,8 @@ use xxhash_rust::xxh3::xxh3_64;
 
 use crate::error::FormatError;
 use crate::model::{
-    Aabb, Instance, InstanceId, Level, LevelId, LodGeometry, MaterialClass, MeshId, Motion,
-    SkinWeights,
+    Aabb, Instance, Level, LevelId, MaterialClass, MeshLod, Motion, SkinWeights, WorldInstanceId,
+    WorldMeshId,
 };
 use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
@@ -345,8 +345,8 @@ pub fn decode_level(bytes: &[u8], mesh_bounds: &[Aabb]) -> FResult<Level> {
         }
         c[15] = 1.0;
         instances.push(Instance::new(
-            InstanceId(ids[k]),
-            MeshId(mesh),
+            WorldInstanceId(ids[k]),
+            WorldMeshId(mesh),
             Mat4::from_cols_array(&c),
             mb,
             material,
@@ -439,7 +439,7 @@ fn read_skeleton(r: &mut Reader) -> FResult<Skeleton> {
 /// Encodes one LOD of one mesh as a framed chunk: a header of 4-byte fields (mesh, LOD, error,
 /// vertex count, index count, skinned flag), positions, indices, and for a skinned LOD the joint
 /// indices, weights and the skeleton.
-pub fn encode_lod(mesh: MeshId, lod: usize, g: &LodGeometry) -> Vec<u8> {
+pub fn encode_lod(mesh: WorldMeshId, lod: usize, g: &MeshLod) -> Vec<u8> {
     let mut w = Writer(Vec::with_capacity(24 + g.byte_size()));
     w.u32(mesh.0);
     w.u32(lod as u32);
@@ -458,7 +458,7 @@ pub fn encode_lod(mesh: MeshId, lod: usize, g: &LodGeometry) -> Vec<u8> {
 }
 
 /// Decodes and validates one mesh-LOD chunk; it must be `(mesh, lod)`.
-pub fn decode_lod(bytes: &[u8], mesh: MeshId, lod: usize) -> FResult<LodGeometry> {
+pub fn decode_lod(bytes: &[u8], mesh: WorldMeshId, lod: usize) -> FResult<MeshLod> {
     let mut r = Reader::new(unframe(LOD_MAGIC, bytes)?);
     let (m, l) = (r.u32()?, r.u32()?);
     if m != mesh.0 || l as usize != lod {
@@ -509,7 +509,7 @@ pub fn decode_lod(bytes: &[u8], mesh: MeshId, lod: usize) -> FResult<LodGeometry
             r.remaining()
         )));
     }
-    Ok(LodGeometry {
+    Ok(MeshLod {
         positions,
         indices,
         error,

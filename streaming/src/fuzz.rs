@@ -9,7 +9,7 @@
 use std::path::Path;
 
 use crate::format::{self, LEVEL_MAGIC, LOD_MAGIC, MANIFEST_MAGIC};
-use crate::model::{Aabb, MeshId};
+use crate::model::{Aabb, WorldMeshId};
 
 /// Mesh bounds a fuzzed level may reference (any id beyond them is an error to report).
 fn bounds() -> Vec<Aabb> {
@@ -36,8 +36,8 @@ pub fn manifest(data: &[u8]) {
 
 /// One LOD chunk of the mesh library (`meshes/*`).
 pub fn mesh_lod(data: &[u8]) {
-    let _ = format::decode_lod(data, MeshId(0), 0);
-    let _ = format::decode_lod(&format::frame(LOD_MAGIC, data), MeshId(0), 0);
+    let _ = format::decode_lod(data, WorldMeshId(0), 0);
+    let _ = format::decode_lod(&format::frame(LOD_MAGIC, data), WorldMeshId(0), 0);
 }
 
 /// The far-field proxy file (`proxies.bin`).

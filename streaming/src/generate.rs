@@ -24,7 +24,7 @@ use crate::error::{Result, StreamingError};
 use crate::gltf_import::load_gltf;
 use crate::lod::build_lod_chain;
 use crate::model::{
-    Aabb, Instance, InstanceId, Level, LevelId, MaterialClass, Mesh, MeshId, Motion,
+    Aabb, Instance, Level, LevelId, MaterialClass, Mesh, Motion, WorldInstanceId, WorldMeshId,
 };
 use crate::procedural::{self, Rng};
 
@@ -165,7 +165,7 @@ pub struct GeneratedWorld {
     pub preset: WorldPreset,
     /// Ground rectangle of the map (Y from the level bounds).
     pub extent: Aabb,
-    /// Every mesh, indexed by [`MeshId`].
+    /// Every mesh, indexed by [`WorldMeshId`].
     pub meshes: Vec<Mesh>,
     /// Every level, indexed by [`LevelId`].
     pub levels: Vec<Level>,
@@ -292,15 +292,15 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
     let (meshes, kinds) = build_meshes(preset)?;
     bar.inc(1);
     bar.set_message("levels");
-    let by_kind = |k: Kind| -> Vec<MeshId> {
+    let by_kind = |k: Kind| -> Vec<WorldMeshId> {
         kinds
             .iter()
             .enumerate()
             .filter(|(_, &x)| x == k)
-            .map(|(i, _)| MeshId(i as u32))
+            .map(|(i, _)| WorldMeshId(i as u32))
             .collect()
     };
-    let pools: Vec<(Kind, Vec<MeshId>)> = [
+    let pools: Vec<(Kind, Vec<WorldMeshId>)> = [
         Kind::Terrain,
         Kind::Rock,
         Kind::Building,
@@ -314,7 +314,7 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
     .into_iter()
     .map(|k| (k, by_kind(k)))
     .collect();
-    let pool = |k: Kind| -> &[MeshId] {
+    let pool = |k: Kind| -> &[WorldMeshId] {
         pools
             .iter()
             .find(|(x, _)| *x == k)
@@ -397,7 +397,7 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
             } else {
                 Motion::Static
             };
-            let id = InstanceId(*next);
+            let id = WorldInstanceId(*next);
             *next += 1;
             let m = &meshes[mesh.0 as usize];
             Some(Instance::new(
@@ -557,7 +557,7 @@ fn build_meshes(preset: &WorldPreset) -> Result<(Vec<Mesh>, Vec<Kind>)> {
                 path: PathBuf::new(),
                 reason: format!("mesh {i} was not built"),
             })??;
-        m.id = MeshId(i as u32);
+        m.id = WorldMeshId(i as u32);
         meshes.push(m);
     }
     Ok((meshes, specs.into_iter().map(|(k, _)| k).collect()))
@@ -580,7 +580,7 @@ fn build_one(spec: &Spec, cell: f32) -> Result<Mesh> {
         Spec::Gltf(ref path, size) => return gltf_mesh(path, size),
     };
     Ok(Mesh {
-        id: MeshId(0),
+        id: WorldMeshId(0),
         name,
         bounds: Aabb::from_points(&pos),
         lods: build_lod_chain(pos, idx, None)
@@ -639,7 +639,7 @@ pub(crate) fn gltf_mesh(path: &Path, size: f32) -> Result<Mesh> {
         sk.skeleton = Arc::new(skel);
     }
     Ok(Mesh {
-        id: MeshId(0),
+        id: WorldMeshId(0),
         name: format!("{name}@{size}m"),
         bounds: Aabb::from_points(&pos),
         lods: build_lod_chain(pos, idx, skin)

@@ -11,6 +11,9 @@
 //!   opaque instances are BLAS-eligible.
 //! - The world model ([`model`]) keeps instances small (128 bytes: transform, bounds, ids,
 //!   material class, static/skinned) and mesh geometry apart behind `Arc`s shared by instances.
+//!   Its ids ([`WorldMeshId`], [`WorldInstanceId`]) index the world; a BLAS manager hands out
+//!   handles of its own. A mesh's LOD is a [`MeshLod`]; what drives loading is a
+//!   [`StreamFocus`] (a position), not a camera.
 //! - LOD chains come from meshoptimizer ([`build_lod_chain`]); errors are meshopt's, accumulated
 //!   along the chain in mesh-space metres, so they are monotone.
 //! - The generator ([`generate()`]) is deterministic per seed; presets match the shipped game's
@@ -63,10 +66,10 @@ pub use gltf_import::{load_gltf, load_gltf_slice, GltfScene, MeshInstance, TriMe
 pub use loader::LoadFault;
 pub use lod::{build_lod_chain, MAX_RATIO as LOD_MAX_RATIO};
 pub use model::{
-    Aabb, Instance, InstanceId, Level, LevelId, LodGeometry, MaterialClass, Mesh, MeshId, Motion,
-    SkinWeights, Sphere,
+    Aabb, Instance, Level, LevelId, MaterialClass, Mesh, MeshLod, Motion, SkinWeights, Sphere,
+    WorldInstanceId, WorldMeshId,
 };
 pub use proxy::{ProxyId, ProxyNode, ProxyTree};
 pub use world::{
-    Camera, SettleTimeout, SkinnedFrame, StreamConfig, StreamStats, World, WorldEvent,
+    SettleTimeout, SkinnedFrame, StreamConfig, StreamFocus, StreamStats, World, WorldEvent,
 };

@@ -20,7 +20,7 @@ use crate::error::{Result, StreamingError};
 use crate::format;
 use crate::gltf_import::load_gltf;
 use crate::lod::build_lod_chain;
-use crate::model::{Aabb, Level, LevelId, LodGeometry, MaterialClass, MeshId, Motion};
+use crate::model::{Aabb, Level, LevelId, MaterialClass, MeshLod, Motion, WorldMeshId};
 
 /// Where a level's content comes from.
 #[derive(Debug, Clone)]
@@ -39,7 +39,7 @@ pub(crate) enum Job {
         source: LevelSource,
     },
     Lod {
-        mesh: MeshId,
+        mesh: WorldMeshId,
         lod: usize,
         ticket: u64,
     },
@@ -50,7 +50,7 @@ pub(crate) enum Job {
 pub(crate) struct GltfMesh {
     pub name: String,
     pub bounds: Aabb,
-    pub lods: Vec<Arc<LodGeometry>>,
+    pub lods: Vec<Arc<MeshLod>>,
 }
 
 /// An instance of a glTF level, before the world assigns ids.
@@ -67,7 +67,7 @@ pub(crate) enum LoadedLevel {
     Baked {
         level: Level,
         /// Coarsest LOD of every distinct mesh the level uses (or why it failed).
-        coarse: Vec<(MeshId, usize, Result<Arc<LodGeometry>>)>,
+        coarse: Vec<(WorldMeshId, usize, Result<Arc<MeshLod>>)>,
     },
     Gltf {
         meshes: Vec<GltfMesh>,
@@ -83,10 +83,10 @@ pub(crate) enum Done {
         result: Result<LoadedLevel>,
     },
     Lod {
-        mesh: MeshId,
+        mesh: WorldMeshId,
         lod: usize,
         ticket: u64,
-        result: Result<Arc<LodGeometry>>,
+        result: Result<Arc<MeshLod>>,
     },
 }
 
@@ -287,7 +287,7 @@ fn load_level(shared: &LoaderShared, level: LevelId, source: &LevelSource) -> Re
                     )),
                 });
             }
-            let mut ids: Vec<MeshId> = decoded.instances.iter().map(|i| i.mesh).collect();
+            let mut ids: Vec<WorldMeshId> = decoded.instances.iter().map(|i| i.mesh).collect();
             ids.sort_unstable();
             ids.dedup();
             let coarse = ids
@@ -347,7 +347,7 @@ fn load_gltf_level(path: &Path, placement: &Mat4) -> Result<LoadedLevel> {
 }
 
 /// Reads one LOD chunk from the mesh library.
-pub(crate) fn read_lod(shared: &LoaderShared, mesh: MeshId, lod: usize) -> Result<LodGeometry> {
+pub(crate) fn read_lod(shared: &LoaderShared, mesh: WorldMeshId, lod: usize) -> Result<MeshLod> {
     let path = shared.lib_path();
     let entry = shared
         .manifest
@@ -419,7 +419,7 @@ mod tests {
                 source: LevelSource::Baked(PathBuf::from(format!("missing{k}.rtl"))),
             });
             pool.submit(Job::Lod {
-                mesh: MeshId(k),
+                mesh: WorldMeshId(k),
                 lod: 0,
                 ticket: 0,
             });

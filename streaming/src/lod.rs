@@ -12,7 +12,7 @@ use std::sync::Arc;
 
 use meshopt::SimplifyOptions;
 
-use crate::model::{LodGeometry, SkinWeights};
+use crate::model::{MeshLod, SkinWeights};
 
 /// A LOD is kept only if it has at most this fraction of the previous LOD's triangles.
 pub const MAX_RATIO: f32 = 0.55;
@@ -39,7 +39,7 @@ pub fn build_lod_chain(
     positions: Vec<[f32; 3]>,
     indices: Vec<u32>,
     skin: Option<SkinWeights>,
-) -> Vec<LodGeometry> {
+) -> Vec<MeshLod> {
     let lod0 = compact(&positions, &indices, skin.as_ref(), 0.0);
     let mut chain = vec![lod0];
     while chain.len() < MAX_LODS {
@@ -88,7 +88,7 @@ pub(crate) fn compact(
     indices: &[u32],
     skin: Option<&SkinWeights>,
     error: f32,
-) -> LodGeometry {
+) -> MeshLod {
     let mut remap = vec![u32::MAX; positions.len()];
     let mut out_pos = Vec::new();
     let mut order = Vec::new();
@@ -107,7 +107,7 @@ pub(crate) fn compact(
         weights: order.iter().map(|&i| s.weights[i]).collect(),
         skeleton: Arc::clone(&s.skeleton),
     });
-    LodGeometry {
+    MeshLod {
         positions: out_pos,
         indices: out_idx,
         error,

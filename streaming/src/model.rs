@@ -13,7 +13,7 @@ use crate::skeleton::Skeleton;
 
 /// Identifies a mesh (a LOD chain) in the world's mesh library.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct MeshId(pub u32);
+pub struct WorldMeshId(pub u32);
 
 /// Identifies a streaming level.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -21,7 +21,7 @@ pub struct LevelId(pub u32);
 
 /// Identifies an instance; unique over the whole world (not only within its level).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct InstanceId(pub u32);
+pub struct WorldInstanceId(pub u32);
 
 /// Axis-aligned box, `min <= max` on every axis for a non-empty box.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -164,9 +164,9 @@ pub struct Instance {
     /// World-space bounding sphere.
     pub sphere: Sphere,
     /// World-unique id.
-    pub id: InstanceId,
+    pub id: WorldInstanceId,
     /// The mesh it places.
-    pub mesh: MeshId,
+    pub mesh: WorldMeshId,
     /// Material class (only opaque is BLAS-eligible).
     pub material: MaterialClass,
     /// Static or skinned.
@@ -176,8 +176,8 @@ pub struct Instance {
 impl Instance {
     /// Builds an instance and derives its world bounds from the mesh's local bounds.
     pub fn new(
-        id: InstanceId,
-        mesh: MeshId,
+        id: WorldInstanceId,
+        mesh: WorldMeshId,
         transform: Mat4,
         local_bounds: &Aabb,
         material: MaterialClass,
@@ -240,7 +240,7 @@ pub struct SkinWeights {
 
 /// One level of detail of a mesh: its own compact vertex and index buffers.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LodGeometry {
+pub struct MeshLod {
     /// Vertex positions in mesh space (metres).
     pub positions: Vec<[f32; 3]>,
     /// Triangle list; every index is `< positions.len()`.
@@ -252,7 +252,7 @@ pub struct LodGeometry {
     pub skin: Option<SkinWeights>,
 }
 
-impl LodGeometry {
+impl MeshLod {
     /// Number of triangles.
     pub fn triangle_count(&self) -> usize {
         self.indices.len() / 3
@@ -272,13 +272,13 @@ impl LodGeometry {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Mesh {
     /// Its id (index in the mesh library).
-    pub id: MeshId,
+    pub id: WorldMeshId,
     /// Human-readable name (source file and mesh name, or generator archetype).
     pub name: String,
     /// Mesh-space bounds of LOD0.
     pub bounds: Aabb,
     /// LOD0 first.
-    pub lods: Vec<Arc<LodGeometry>>,
+    pub lods: Vec<Arc<MeshLod>>,
 }
 
 impl Mesh {

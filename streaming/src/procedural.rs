@@ -13,7 +13,7 @@ use rand_xoshiro::rand_core::{RngCore, SeedableRng};
 use rand_xoshiro::SplitMix64;
 
 use crate::lod::build_lod_chain;
-use crate::model::{Aabb, Mesh, MeshId, SkinWeights};
+use crate::model::{Aabb, Mesh, SkinWeights, WorldMeshId};
 use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
 /// The generator's random source: [`rand_xoshiro::SplitMix64`] (its raw `next_u64` is
@@ -355,7 +355,7 @@ pub fn character(seed: u64) -> Mesh {
         skeleton,
     };
     Mesh {
-        id: MeshId(0),
+        id: WorldMeshId(0),
         name: format!("character{seed}"),
         bounds,
         lods: build_lod_chain(pos, idx, Some(skin))

@@ -24,7 +24,7 @@ use crate::error::{FormatError, Result, StreamingError};
 use crate::format::{self, frame, unframe, Reader, Writer};
 use crate::generate::GeneratedWorld;
 use crate::lod::compact;
-use crate::model::{Aabb, LevelId, LodGeometry, MaterialClass, MeshId, Motion};
+use crate::model::{Aabb, LevelId, MaterialClass, MeshLod, Motion, WorldMeshId};
 use glam::Mat4;
 
 /// The proxy file of a baked world.
@@ -39,11 +39,11 @@ pub const PROXY_INDEX_VERSION: u32 = 2;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProxyLandmark {
     /// The instance (the same id its level gives it, so an engine can tell them apart).
-    pub instance: crate::model::InstanceId,
+    pub instance: crate::model::WorldInstanceId,
     /// Its level.
     pub level: LevelId,
     /// Its mesh.
-    pub mesh: MeshId,
+    pub mesh: WorldMeshId,
     /// Local-to-world transform.
     pub transform: Mat4,
 }
@@ -157,10 +157,10 @@ pub struct Proxies {
     /// Structure.
     pub tree: ProxyTree,
     /// Geometry per node (world-space positions; no skin).
-    pub geometry: Vec<Arc<LodGeometry>>,
+    pub geometry: Vec<Arc<MeshLod>>,
 }
 
-fn merge(parts: &[(&LodGeometry, glam::Mat4)]) -> LodGeometry {
+fn merge(parts: &[(&MeshLod, glam::Mat4)]) -> MeshLod {
     let mut positions = Vec::new();
     let mut indices = Vec::new();
     for (g, t) in parts {
@@ -172,7 +172,7 @@ fn merge(parts: &[(&LodGeometry, glam::Mat4)]) -> LodGeometry {
         );
         indices.extend(g.indices.iter().map(|i| i + base));
     }
-    LodGeometry {
+    MeshLod {
         positions,
         indices,
         error: 0.0,
@@ -181,9 +181,9 @@ fn merge(parts: &[(&LodGeometry, glam::Mat4)]) -> LodGeometry {
 }
 
 /// Simplifies `g` to at most `triangles`; returns it with its error (metres) added.
-fn simplify(g: LodGeometry, triangles: u32, base_error: f32) -> LodGeometry {
+fn simplify(g: MeshLod, triangles: u32, base_error: f32) -> MeshLod {
     if g.triangle_count() <= triangles as usize || g.positions.is_empty() {
-        return LodGeometry {
+        return MeshLod {
             error: base_error,
             ..g
         };
@@ -204,7 +204,7 @@ fn simplify(g: LodGeometry, triangles: u32, base_error: f32) -> LodGeometry {
 pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, ProxyReport) {
     let started = Instant::now();
     let mut nodes: Vec<ProxyNode> = Vec::new();
-    let mut geometry: Vec<Arc<LodGeometry>> = Vec::new();
+    let mut geometry: Vec<Arc<MeshLod>> = Vec::new();
     let mut leaf_of_level = vec![None; world.levels.len()];
     // Depth 1 from the levels, then each depth from the one below.
     let mut below: Vec<u32> = Vec::new();
@@ -231,7 +231,7 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
             break; // one node per block already: nothing coarser to add
         }
         let jobs: Vec<((i32, i32), Vec<u32>)> = blocks.into_iter().collect();
-        let built: Vec<(Aabb, LodGeometry, Vec<ProxyLandmark>)> =
+        let built: Vec<(Aabb, MeshLod, Vec<ProxyLandmark>)> =
             parallel_map(&jobs, cfg.threads, |(_, members)| {
                 if depth == 1 {
                     let mut parts = Vec::new();
@@ -277,7 +277,7 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
                         landmarks,
                     )
                 } else {
-                    let parts: Vec<(&LodGeometry, glam::Mat4)> = members
+                    let parts: Vec<(&MeshLod, glam::Mat4)> = members
                         .iter()
                         .map(|&c| (&*geometry[c as usize], glam::Mat4::IDENTITY))
                         .collect();
@@ -383,7 +383,7 @@ pub fn encode_proxies(p: &Proxies) -> Vec<u8> {
         .geometry
         .iter()
         .enumerate()
-        .map(|(i, g)| format::encode_lod(MeshId(i as u32), 0, g))
+        .map(|(i, g)| format::encode_lod(WorldMeshId(i as u32), 0, g))
         .collect();
     let mut w = Writer::default();
     w.u32(PROXY_INDEX_VERSION);
@@ -429,7 +429,7 @@ pub struct ProxyFile {
     /// Structure (from the checksummed index).
     pub tree: ProxyTree,
     /// Per node: its geometry, or the typed error of its chunk.
-    pub geometry: Vec<std::result::Result<Arc<LodGeometry>, Arc<StreamingError>>>,
+    pub geometry: Vec<std::result::Result<Arc<MeshLod>, Arc<StreamingError>>>,
 }
 
 /// Decodes a proxy file of a world with `levels` levels and `meshes` meshes (`path` names
@@ -499,9 +499,9 @@ pub fn decode_proxies(
                 )));
             }
             landmarks.push(ProxyLandmark {
-                instance: crate::model::InstanceId(instance),
+                instance: crate::model::WorldInstanceId(instance),
                 level: LevelId(level),
-                mesh: MeshId(mesh),
+                mesh: WorldMeshId(mesh),
                 transform: Mat4::from_cols_array(&cols),
             });
         }
@@ -549,7 +549,7 @@ pub fn decode_proxies(
                     needed: len as usize,
                     available: chunks.len().saturating_sub(off as usize),
                 })
-                .and_then(|b| format::decode_lod(b, MeshId(i as u32), 0));
+                .and_then(|b| format::decode_lod(b, WorldMeshId(i as u32), 0));
             bytes.map(Arc::new).map_err(|reason| Arc::new(fail(reason)))
         })
         .collect();

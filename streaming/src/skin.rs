@@ -4,19 +4,19 @@
 
 use glam::{Mat4, Vec3};
 
-use crate::model::LodGeometry;
+use crate::model::MeshLod;
 pub use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
 /// The animation time of a skinned instance at world time `time` seconds: every instance gets
 /// its own phase, derived from its id, so a crowd does not move in lockstep. The streaming
 /// world, the facade's bridge and the ground-truth reference all pose with this.
-pub fn animation_time(instance: crate::model::InstanceId, time: f32) -> f32 {
+pub fn animation_time(instance: crate::model::WorldInstanceId, time: f32) -> f32 {
     time + (instance.0 % 97) as f32 * 0.037
 }
 
 /// Deforms one LOD's vertices with the given skinning matrices (from [`Skeleton::pose`]) into
 /// `out` (mesh space). Static geometry (no skin) is copied unchanged.
-pub fn skin_positions(geometry: &LodGeometry, matrices: &[Mat4], out: &mut Vec<[f32; 3]>) {
+pub fn skin_positions(geometry: &MeshLod, matrices: &[Mat4], out: &mut Vec<[f32; 3]>) {
     out.clear();
     let Some(skin) = &geometry.skin else {
         out.extend_from_slice(&geometry.positions);
@@ -46,7 +46,7 @@ pub fn skin_positions(geometry: &LodGeometry, matrices: &[Mat4], out: &mut Vec<[
 #[derive(Debug)]
 pub struct SkinJob<'a> {
     /// The geometry to deform (must carry [`crate::SkinWeights`] to move).
-    pub geometry: &'a LodGeometry,
+    pub geometry: &'a MeshLod,
     /// Animation time in seconds.
     pub time: f32,
     /// Output: deformed mesh-space positions, one per vertex of `geometry`.

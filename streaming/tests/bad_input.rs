@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use glam::{Mat4, Vec3};
 use rtstream_streaming::{
-    load_gltf, Camera, LevelId, StreamConfig, StreamingError, World, WorldEvent,
+    load_gltf, LevelId, StreamConfig, StreamFocus, StreamingError, World, WorldEvent,
 };
 
 /// The broken models under glTF2/ (each folder explored; every .gltf/.glb in it is broken).
@@ -101,7 +101,7 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
             )
         })
         .collect();
-    let cam = [Camera::from(Vec3::ZERO)];
+    let cam = [StreamFocus::from(Vec3::ZERO)];
     let events = w
         .update_until_idle(0, &cam, common::SETTLE)
         .expect("streaming settles");
@@ -137,7 +137,7 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
     assert_eq!(w.stats().loader_threads_alive, config.loader_threads);
 
     // The failed levels retry after leaving and re-entering; still failing, still no thread lost.
-    let away = [Camera::from(Vec3::new(500.0, 0.0, 0.0))];
+    let away = [StreamFocus::from(Vec3::new(500.0, 0.0, 0.0))];
     let _ = w
         .update_until_idle(1, &away, common::SETTLE)
         .expect("streaming settles");
@@ -185,7 +185,7 @@ fn corrupted_baked_files_fail_and_other_levels_keep_streaming() {
     };
     let mut w = World::open(&dir, config).expect("open");
     let events = w
-        .update_until_idle(0, &[Camera::from(Vec3::ZERO)], common::SETTLE)
+        .update_until_idle(0, &[StreamFocus::from(Vec3::ZERO)], common::SETTLE)
         .expect("streaming settles");
     for (i, reason) in &bad {
         let err = events
@@ -240,7 +240,7 @@ fn a_corrupt_mesh_chunk_fails_that_lod_only() {
         ..StreamConfig::default()
     };
     let mut w = World::open(&dir, config).expect("open");
-    let cam = [Camera::from(Vec3::ZERO)];
+    let cam = [StreamFocus::from(Vec3::ZERO)];
     let mut events = w
         .update_until_idle(0, &cam, common::SETTLE)
         .expect("streaming settles");

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use glam::Vec3;
 use rtstream_streaming::{
-    Camera, LevelId, LoadFault, StreamConfig, StreamingError, World, WorldEvent,
+    LevelId, LoadFault, StreamConfig, StreamFocus, StreamingError, World, WorldEvent,
 };
 
 #[test]
@@ -31,7 +31,7 @@ fn failed_loads_are_retried_with_backoff_and_the_rest_carries_on() {
     w.inject_load_fault(hopeless, LoadFault::ReadError, 100);
 
     let centre = (world.extent.min + world.extent.max) * 0.5;
-    let cams = [Camera::from(Vec3::new(centre.x, 2.0, centre.z))];
+    let cams = [StreamFocus::from(Vec3::new(centre.x, 2.0, centre.z))];
     let mut failed_at: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
     let mut loaded_at: BTreeMap<u32, u64> = BTreeMap::new();
     for f in 0..200 {
@@ -93,7 +93,7 @@ fn failed_loads_are_retried_with_backoff_and_the_rest_carries_on() {
 
     // Leaving the unload radius forgets the failure; coming back tries afresh (and the fault
     // still there fails it again: four more attempts).
-    let away = [Camera::from(Vec3::new(1.0e6, 2.0, 1.0e6))];
+    let away = [StreamFocus::from(Vec3::new(1.0e6, 2.0, 1.0e6))];
     let mut f = 200;
     while w.stats().loaded_levels > 0 {
         w.update(f, &away);

@@ -10,7 +10,7 @@ use rtstream_streaming::proxy::{
     build_proxies, encode_proxies, read_proxies, ProxyConfig, PROXY_FILE,
 };
 use rtstream_streaming::{
-    Camera, MaterialClass, Motion, ProxyId, StreamConfig, StreamingError, World, WorldEvent,
+    MaterialClass, Motion, ProxyId, StreamConfig, StreamFocus, StreamingError, World, WorldEvent,
 };
 
 /// Streams with deterministic application (no waiting on wall clock) until `frames` frames.
@@ -20,7 +20,7 @@ fn stream(dir: &std::path::Path, config: StreamConfig, frames: u64) -> Vec<World
         ..config
     };
     let mut w = World::open(dir, config).expect("open");
-    let cam = [Camera::from(Vec3::new(0.0, 2.0, 0.0))];
+    let cam = [StreamFocus::from(Vec3::new(0.0, 2.0, 0.0))];
     (0..frames).flat_map(|f| w.update(f, &cam)).collect()
 }
 

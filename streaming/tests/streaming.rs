@@ -5,7 +5,7 @@ mod common;
 use std::collections::{HashMap, HashSet};
 
 use glam::Vec3;
-use rtstream_streaming::{Camera, LevelId, MeshId, StreamConfig, World, WorldEvent};
+use rtstream_streaming::{LevelId, StreamConfig, StreamFocus, World, WorldEvent, WorldMeshId};
 
 /// Checks per-level order and mesh residency as a consumer would see it.
 #[derive(Default)]
@@ -13,7 +13,7 @@ struct Consumer {
     loaded: HashSet<LevelId>,
     loads: HashMap<LevelId, u32>,
     unloads: HashMap<LevelId, u32>,
-    resident: HashSet<(MeshId, u8)>,
+    resident: HashSet<(WorldMeshId, u8)>,
     fine_loads: usize,
     fine_evictions: usize,
 }
@@ -95,7 +95,7 @@ fn camera_path_streams_levels_with_hysteresis() {
         let t = f as f32 / steps as f32;
         let p = Vec3::new(lo.x + (hi.x - lo.x) * t, 2.0, lo.z + (hi.z - lo.z) * t);
         c.eat(
-            w.update_until_idle(f, &[Camera::from(p)], common::SETTLE)
+            w.update_until_idle(f, &[StreamFocus::from(p)], common::SETTLE)
                 .expect("streaming settles"),
         );
         let st = w.stats();
@@ -133,7 +133,7 @@ fn camera_path_streams_levels_with_hysteresis() {
         let x = if f % 2 == 0 { -amp } else { amp };
         let p = mid + Vec3::new(x, 0.0, 0.0);
         osc.eat(
-            w.update_until_idle(1000 + f, &[Camera::from(p)], common::SETTLE)
+            w.update_until_idle(1000 + f, &[StreamFocus::from(p)], common::SETTLE)
                 .expect("streaming settles"),
         );
     }
@@ -158,7 +158,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     };
     // Unlimited: everything near wants LOD0; measure what that takes.
     let mut w = World::open(&dir, big).expect("open");
-    let cam = [Camera::from(Vec3::ZERO)];
+    let cam = [StreamFocus::from(Vec3::ZERO)];
     let mut c = Consumer::default();
     c.eat(
         w.update_until_idle(0, &cam, common::SETTLE)
@@ -203,7 +203,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     );
 
     // Move away (levels stay loaded): finer LODs are evicted, coarsest ones stay.
-    let far = [Camera::from(Vec3::new(1100.0, 0.0, 0.0))];
+    let far = [StreamFocus::from(Vec3::new(1100.0, 0.0, 0.0))];
     let evicted_before = c.fine_evictions;
     let loaded_before = w.stats().loaded_levels;
     c.eat(
@@ -234,7 +234,7 @@ fn skinned_instances_deform_each_frame() {
         },
     )
     .expect("open");
-    let cam = [Camera::from(Vec3::ZERO)];
+    let cam = [StreamFocus::from(Vec3::ZERO)];
     let _ = w
         .update_until_idle(0, &cam, common::SETTLE)
         .expect("streaming settles");
@@ -270,8 +270,12 @@ fn two_cameras_keep_two_areas_loaded() {
     let b = Vec3::new(hi.x - 60.0, 0.0, hi.z - 60.0);
     let mut c = Consumer::default();
     c.eat(
-        w.update_until_idle(0, &[Camera::from(a), Camera::from(b)], common::SETTLE)
-            .expect("streaming settles"),
+        w.update_until_idle(
+            0,
+            &[StreamFocus::from(a), StreamFocus::from(b)],
+            common::SETTLE,
+        )
+        .expect("streaming settles"),
     );
     let near = |p: Vec3| {
         world
@@ -286,7 +290,7 @@ fn two_cameras_keep_two_areas_loaded() {
     }
     // Dropping camera b unloads its area only.
     c.eat(
-        w.update_until_idle(1, &[Camera::from(a)], common::SETTLE)
+        w.update_until_idle(1, &[StreamFocus::from(a)], common::SETTLE)
             .expect("streaming settles"),
     );
     for id in near(b) {

@@ -7,7 +7,7 @@
 mod common;
 
 use glam::{Mat4, Vec3};
-use rtstream_streaming::{generate, Aabb, GeneratedWorld, LodGeometry, WorldPreset};
+use rtstream_streaming::{generate, Aabb, GeneratedWorld, MeshLod, WorldPreset};
 use xxhash_rust::xxh3::xxh3_64;
 
 /// A canonical, little-endian encoding of what the generator produced (independent of the
@@ -50,7 +50,7 @@ impl Canon {
         self.len(s.len());
         self.0.extend_from_slice(s.as_bytes());
     }
-    fn lod(&mut self, g: &LodGeometry) {
+    fn lod(&mut self, g: &MeshLod) {
         self.f32(g.error);
         self.len(g.positions.len());
         for p in &g.positions {

@@ -6,7 +6,8 @@ use std::sync::Arc;
 
 use rtstream::as_manager::backend::vulkan::{ContextDesc, Validation, VulkanContext};
 
-pub const ASSETS: &str = "/usr/share/assimp/models/glTF2";
+/// Debian's assimp-testmodels glTF 2 directory (the world generator's default too).
+pub const ASSETS: &str = rtstream::streaming::ASSIMP_GLTF2_DIR;
 
 /// Path of a model in Debian's assimp-testmodels, with a clear failure when it is missing.
 pub fn asset(rel: &str) -> std::path::PathBuf {

@@ -124,7 +124,7 @@ fn a_slow_walk_across_r2_never_shows_a_group_twice_or_not_at_all() {
     for frame in 0..400u64 {
         // 1.5 m a frame from one corner towards the other.
         let eye = Vec3::new(20.0 + 1.5 * frame as f32, 2.0, 20.0 + 1.5 * frame as f32);
-        let cams = [Camera::new(eye, Vec3::new(1.0, 0.0, 1.0).normalize())];
+        let cams = [Viewpoint::new(eye, Vec3::new(1.0, 0.0, 1.0).normalize())];
         let out =
             w.m.update(FrameInput {
                 frame,
@@ -185,7 +185,7 @@ fn far_field_off_shows_no_proxy() {
     c.far_field.enabled = false;
     let mut w = world(c);
     for frame in 0..40u64 {
-        let cams = [Camera::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
+        let cams = [Viewpoint::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
         let out =
             w.m.update(FrameInput {
                 frame,
@@ -209,7 +209,7 @@ fn under_a_tight_budget_detail_is_evicted_before_proxies() {
     let (mut evictions, mut proxies_evicted) = (0, 0);
     for frame in 0..300u64 {
         let eye = Vec3::new(20.0 + 2.5 * frame as f32, 2.0, 400.0);
-        let cams = [Camera::new(eye, Vec3::X)];
+        let cams = [Viewpoint::new(eye, Vec3::X)];
         let s =
             w.m.update(FrameInput {
                 frame,
@@ -317,7 +317,7 @@ fn landmarks_beyond_r2_keep_their_own_lod_beside_the_proxies() {
             d.group = Some(w.leaf_ids[&(leaf as u32)]);
             ids.push(w.m.add_instance(d).unwrap());
         }
-        let cams = [Camera::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
+        let cams = [Viewpoint::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
         let mut shown = HashSet::new();
         for frame in 0..80u64 {
             let out =

@@ -18,7 +18,7 @@ fn data(n: u32) -> LodGeometry {
     LodGeometry::Data(grid_geometry(n, 1.0))
 }
 
-const CAM: [Camera; 1] = [Camera {
+const CAM: [Viewpoint; 1] = [Viewpoint {
     position: Vec3::ZERO,
     forward: Vec3::Z,
 }];
@@ -122,7 +122,7 @@ fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
         "finer missing: nearest coarser with data"
     );
     // Fly away until released, evict LOD 1, make LOD 0 resident, come back.
-    let far = [Camera::new(Vec3::new(10_000.0, 0.0, 0.0), Vec3::Z)];
+    let far = [Viewpoint::new(Vec3::new(10_000.0, 0.0, 0.0), Vec3::Z)];
     for frame in 4..80 {
         m.update(FrameInput {
             frame,

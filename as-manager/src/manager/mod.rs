@@ -31,18 +31,19 @@ use crate::record::TlasInstance;
 use crate::spatial::{GridIndex, GridLoc};
 use crate::{AsError, InstanceId, Result};
 
-/// A camera: residency, LOD and culling are measured from its position; `forward` (unit)
-/// only raises the build priority of what it looks at.
+/// Where the manager measures from: residency, LOD and culling use `position`; `forward` (unit)
+/// only raises the build priority of what it looks at. One per camera; the renderer's pinhole
+/// `Camera` carries more (up vector, field of view).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Camera {
+pub struct Viewpoint {
     /// World position.
     pub position: Vec3,
     /// View direction (unit length, or zero for "all around").
     pub forward: Vec3,
 }
 
-impl Camera {
-    /// A camera at `position` looking along `forward`.
+impl Viewpoint {
+    /// A viewpoint at `position` looking along `forward`.
     pub fn new(position: Vec3, forward: Vec3) -> Self {
         Self { position, forward }
     }
@@ -54,7 +55,7 @@ pub struct FrameInput<'a> {
     /// Frame number (the backend's timeline value).
     pub frame: u64,
     /// Cameras (any number; all share the one TLAS).
-    pub cameras: &'a [Camera],
+    pub cameras: &'a [Viewpoint],
 }
 
 /// What one `update` did.
@@ -205,7 +206,7 @@ fn landmark_radius(c: &Config) -> f32 {
 /// let mesh = m.register_mesh(MeshDesc::new("crate", MeshKind::Static, 1.0, vec![LodDesc {
 ///     geometry: LodGeometry::Counts { vertices: 24, triangles: 12 }, geometric_error: 0.0 }])).unwrap();
 /// m.add_instance(InstanceDesc::new(mesh, Affine3A::from_translation(Vec3::new(0.0, 0.0, 20.0)))).unwrap();
-/// let cam = [Camera::new(Vec3::ZERO, Vec3::Z)];
+/// let cam = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
 /// let mut n = 0;
 /// for frame in 0..4 {
 ///     n = m.update(FrameInput { frame, cameras: &cam }).unwrap().instances.len();

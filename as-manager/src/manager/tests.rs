@@ -18,8 +18,8 @@ fn at(x: f32, z: f32) -> Affine3A {
     Affine3A::from_translation(Vec3::new(x, 0.0, z))
 }
 
-fn cam(x: f32, z: f32) -> [Camera; 1] {
-    [Camera::new(Vec3::new(x, 0.0, z), Vec3::Z)]
+fn cam(x: f32, z: f32) -> [Viewpoint; 1] {
+    [Viewpoint::new(Vec3::new(x, 0.0, z), Vec3::Z)]
 }
 
 fn static_mesh(m: &AsManager<ModelBackend>, tris: u32, radius: f32) -> MeshId {
@@ -594,7 +594,7 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
             let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
             m.add_instance(InstanceDesc::new(mesh, t)).unwrap();
         }
-        let cams = [Camera::new(Vec3::ZERO, Vec3::Z)];
+        let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
         let mut frame = 0;
         loop {
             let s = m

@@ -279,7 +279,7 @@ impl<B: Probe> Harness<B> {
     }
 
     pub fn frame(&mut self) -> Result<(), TestCaseError> {
-        let cams = [Camera::new(self.cam, Vec3::Z)];
+        let cams = [Viewpoint::new(self.cam, Vec3::Z)];
         let f = self.frame;
         self.frame += 1;
         let cfg = self.m.config().clone();
@@ -474,7 +474,7 @@ impl<B: Probe> Harness<B> {
             }
             Op::RepeatFrame if self.frame > 0 && !self.lost => {
                 let before = self.m.stats().clone();
-                let cams = [Camera::new(self.cam, Vec3::Z)];
+                let cams = [Viewpoint::new(self.cam, Vec3::Z)];
                 let r = self.m.update(FrameInput {
                     frame: self.frame - 1,
                     cameras: &cams,

@@ -11,8 +11,8 @@ fn sample_level() -> (Level, Vec<Aabb>) {
     let instances = (0..5)
         .map(|k| {
             Instance::new(
-                InstanceId(100 + k),
-                MeshId(0),
+                WorldInstanceId(100 + k),
+                WorldMeshId(0),
                 Mat4::from_translation(Vec3::new(k as f32, 0.0, 2.0)),
                 &bounds[0],
                 MaterialClass::from_u8((k % 4) as u8).unwrap_or(MaterialClass::Opaque),
@@ -64,7 +64,7 @@ fn every_truncation_and_every_byte_flip_of_a_level_is_an_error() {
 #[test]
 fn unknown_mesh_and_non_finite_transform_are_rejected_even_with_a_valid_checksum() {
     let (mut level, bounds) = sample_level();
-    level.instances[2].mesh = MeshId(7);
+    level.instances[2].mesh = WorldMeshId(7);
     let err = decode_level(&encode_level(&level), &bounds).unwrap_err();
     assert!(
         matches!(err, FormatError::Inconsistent(ref s) if s.contains("mesh 7")),
@@ -83,20 +83,20 @@ fn unknown_mesh_and_non_finite_transform_are_rejected_even_with_a_valid_checksum
 fn skinned_lod_round_trips_and_rejects_corruption() {
     let mesh = procedural::character(3);
     let lod = mesh.lods.last().expect("lod");
-    let bytes = encode_lod(MeshId(4), mesh.lods.len() - 1, lod);
-    let back = decode_lod(&bytes, MeshId(4), mesh.lods.len() - 1).expect("decode");
+    let bytes = encode_lod(WorldMeshId(4), mesh.lods.len() - 1, lod);
+    let back = decode_lod(&bytes, WorldMeshId(4), mesh.lods.len() - 1).expect("decode");
     assert_eq!(&back, &**lod);
-    assert!(decode_lod(&bytes, MeshId(5), mesh.lods.len() - 1).is_err());
+    assert!(decode_lod(&bytes, WorldMeshId(5), mesh.lods.len() - 1).is_err());
     for i in (0..bytes.len()).step_by(7) {
         let mut b = bytes.clone();
         b[i] ^= 0x80;
         assert!(
-            decode_lod(&b, MeshId(4), mesh.lods.len() - 1).is_err(),
+            decode_lod(&b, WorldMeshId(4), mesh.lods.len() - 1).is_err(),
             "flip at {i} accepted"
         );
     }
     for n in (0..bytes.len()).step_by(5) {
-        assert!(decode_lod(&bytes[..n], MeshId(4), mesh.lods.len() - 1).is_err());
+        assert!(decode_lod(&bytes[..n], WorldMeshId(4), mesh.lods.len() - 1).is_err());
     }
 }
 
@@ -128,9 +128,9 @@ fn unaligned_buffers_decode_the_same() {
     let mesh = procedural::character(3);
     let lod = &mesh.lods[0];
     let mut buf = vec![0u8; 3];
-    buf.extend_from_slice(&encode_lod(MeshId(2), 0, lod));
+    buf.extend_from_slice(&encode_lod(WorldMeshId(2), 0, lod));
     assert_eq!(
-        &decode_lod(&buf[3..], MeshId(2), 0).expect("decode"),
+        &decode_lod(&buf[3..], WorldMeshId(2), 0).expect("decode"),
         &**lod
     );
 }
@@ -144,7 +144,7 @@ fn huge_counts_behind_a_valid_checksum_are_truncation_errors() {
     w.u32(u32::MAX);
     w.u32(0);
     w.u32(0);
-    let err = decode_lod(&frame(LOD_MAGIC, &w.0), MeshId(0), 0).unwrap_err();
+    let err = decode_lod(&frame(LOD_MAGIC, &w.0), WorldMeshId(0), 0).unwrap_err();
     assert!(matches!(err, FormatError::Truncated { .. }), "{err}");
     let mut w = Writer::default();
     w.u32(0);
@@ -163,13 +163,13 @@ fn huge_counts_behind_a_valid_checksum_are_truncation_errors() {
 fn out_of_range_index_is_rejected() {
     let (pos, mut idx) = procedural::glass_pane(1);
     idx[4] = pos.len() as u32;
-    let g = LodGeometry {
+    let g = MeshLod {
         positions: pos,
         indices: idx,
         error: 0.0,
         skin: None,
     };
-    let err = decode_lod(&encode_lod(MeshId(0), 0, &g), MeshId(0), 0).unwrap_err();
+    let err = decode_lod(&encode_lod(WorldMeshId(0), 0, &g), WorldMeshId(0), 0).unwrap_err();
     assert!(
         matches!(err, FormatError::Inconsistent(ref s) if s.contains("out of range")),
         "{err}"

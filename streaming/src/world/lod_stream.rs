@@ -2,18 +2,18 @@
 
 use std::collections::HashMap;
 
-use super::{Camera, LevelState, World, WorldEvent};
+use super::{LevelState, StreamFocus, World, WorldEvent};
 use crate::loader::Job;
-use crate::model::MeshId;
+use crate::model::WorldMeshId;
 
 impl World {
-    pub(super) fn stream_lods(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
+    pub(super) fn stream_lods(&mut self, cameras: &[StreamFocus], ev: &mut Vec<WorldEvent>) {
         let _span = tracing::trace_span!("lod_stream").entered();
         if cameras.is_empty() {
             return;
         }
         // Effective distance (distance / scale) of each streamed mesh's nearest loaded instance.
-        let mut eff: HashMap<MeshId, f32> = HashMap::new();
+        let mut eff: HashMap<WorldMeshId, f32> = HashMap::new();
         for l in &self.levels {
             let LevelState::Loaded { instances, .. } = &l.state else {
                 continue;
@@ -35,8 +35,8 @@ impl World {
         }
         self.shed_finer(&eff, ev);
         let angle = self.config.lod_error_angle;
-        let mut requests: Vec<(f32, MeshId, usize)> = Vec::new();
-        let mut ids: Vec<(&MeshId, &f32)> = eff.iter().collect();
+        let mut requests: Vec<(f32, WorldMeshId, usize)> = Vec::new();
+        let mut ids: Vec<(&WorldMeshId, &f32)> = eff.iter().collect();
         ids.sort_unstable_by_key(|(m, _)| **m);
         for (&m, &d) in ids {
             let slot = &mut self.meshes[m.0 as usize];
@@ -82,17 +82,17 @@ impl World {
     /// plus in-flight bytes over the budget (finer LODs admitted while those levels were still
     /// loading), finer LODs go, farthest mesh first, until the total fits again (or nothing
     /// finer is left: the budget is then below what the load radius holds).
-    fn shed_finer(&mut self, eff: &HashMap<MeshId, f32>, ev: &mut Vec<WorldEvent>) {
+    fn shed_finer(&mut self, eff: &HashMap<WorldMeshId, f32>, ev: &mut Vec<WorldEvent>) {
         let budget = self.config.mesh_budget_bytes;
         if self.mesh_bytes + self.in_flight_bytes <= budget {
             return;
         }
-        let mut victims: Vec<(f32, MeshId, usize)> = Vec::new();
+        let mut victims: Vec<(f32, WorldMeshId, usize)> = Vec::new();
         for (i, s) in self.meshes.iter().enumerate() {
             if !s.streamed {
                 continue;
             }
-            let m = MeshId(i as u32);
+            let m = WorldMeshId(i as u32);
             let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
             for k in 0..s.coarsest() {
                 if s.resident[k].is_some() {
@@ -122,19 +122,19 @@ impl World {
         &mut self,
         bytes: usize,
         d: f32,
-        eff: &HashMap<MeshId, f32>,
+        eff: &HashMap<WorldMeshId, f32>,
         ev: &mut Vec<WorldEvent>,
     ) -> bool {
         let budget = self.config.mesh_budget_bytes;
         if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
             return true;
         }
-        let mut victims: Vec<(f32, MeshId, usize)> = Vec::new();
+        let mut victims: Vec<(f32, WorldMeshId, usize)> = Vec::new();
         for (i, s) in self.meshes.iter().enumerate() {
             if !s.streamed {
                 continue;
             }
-            let m = MeshId(i as u32);
+            let m = WorldMeshId(i as u32);
             let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
             if md <= d {
                 continue;

@@ -34,14 +34,14 @@ use crate::bake::{read_manifest, Manifest};
 use crate::error::Result;
 use crate::loader::{Done, Job, LevelSource, LoadedLevel, LoaderPool, LoaderShared};
 use crate::model::{
-    Aabb, Instance, InstanceId, LevelId, LodGeometry, MaterialClass, MeshId, Motion,
+    Aabb, Instance, LevelId, MaterialClass, MeshLod, Motion, WorldInstanceId, WorldMeshId,
 };
 use crate::skin::{skin_parallel, SkinJob};
 
 mod lod_stream;
 mod types;
 
-pub use types::{Camera, SettleTimeout, SkinnedFrame, StreamConfig, StreamStats, WorldEvent};
+pub use types::{SettleTimeout, SkinnedFrame, StreamConfig, StreamFocus, StreamStats, WorldEvent};
 
 #[derive(Debug)]
 enum LevelState {
@@ -49,7 +49,7 @@ enum LevelState {
     Loading(u64),
     Loaded {
         instances: Arc<[Instance]>,
-        meshes: Vec<MeshId>,
+        meshes: Vec<WorldMeshId>,
     },
     /// The last load failed; after `attempts` loads it may be tried again at frame `retry_at`.
     Failed {
@@ -74,7 +74,7 @@ struct MeshSlot {
     /// Baked meshes stream their finer LODs; glTF-level meshes are all in memory.
     streamed: bool,
     refs: u32,
-    resident: Vec<Option<Arc<LodGeometry>>>,
+    resident: Vec<Option<Arc<MeshLod>>>,
     pending: Option<(usize, u64)>,
     failed: Vec<bool>,
 }
@@ -98,11 +98,11 @@ impl MeshSlot {
 /// The streaming world.
 ///
 /// ```no_run
-/// use rtstream_streaming::{bake, generate, Camera, StreamConfig, World, WorldEvent, WorldPreset};
+/// use rtstream_streaming::{bake, generate, StreamFocus, StreamConfig, World, WorldEvent, WorldPreset};
 /// let dir = std::env::temp_dir().join("rtstream-doc-world");
 /// bake(&generate(&WorldPreset::small(6, 1))?, &dir)?;
 /// let mut world = World::open(&dir, StreamConfig::default())?;
-/// let cams = [Camera::from(glam::Vec3::ZERO)];
+/// let cams = [StreamFocus::from(glam::Vec3::ZERO)];
 /// for frame in 0..10 {
 ///     for event in world.update(frame, &cams) {
 ///         if let WorldEvent::LevelLoaded { instances, .. } = event {
@@ -290,7 +290,7 @@ impl World {
     }
 
     /// The finest resident LOD of a mesh.
-    pub fn resident_lod(&self, mesh: MeshId) -> Option<(usize, Arc<LodGeometry>)> {
+    pub fn resident_lod(&self, mesh: WorldMeshId) -> Option<(usize, Arc<MeshLod>)> {
         let s = self.meshes.get(mesh.0 as usize)?;
         let i = s.finest_resident()?;
         s.resident[i].clone().map(|g| (i, g))
@@ -331,7 +331,7 @@ impl World {
 
     /// Advances streaming by one frame: takes finished loads, loads/unloads levels around the
     /// cameras, streams LODs, and returns the events in order. Never blocks on I/O.
-    pub fn update(&mut self, frame: u64, cameras: &[Camera]) -> Vec<WorldEvent> {
+    pub fn update(&mut self, frame: u64, cameras: &[StreamFocus]) -> Vec<WorldEvent> {
         let _span = tracing::debug_span!("world_update", frame).entered();
         self.frame = frame;
         let mut ev = Vec::new();
@@ -359,7 +359,7 @@ impl World {
 
     /// Proxies within the far radius become resident (geometry from memory: the file was read
     /// at open); beyond 1.1x it they leave. Failures are reported once.
-    fn stream_proxies(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
+    fn stream_proxies(&mut self, cameras: &[StreamFocus], ev: &mut Vec<WorldEvent>) {
         let Some(p) = &self.proxies else { return };
         let file = match p {
             Ok(f) => f,
@@ -481,7 +481,7 @@ impl World {
     pub fn update_until_idle(
         &mut self,
         frame: u64,
-        cameras: &[Camera],
+        cameras: &[StreamFocus],
         timeout: Duration,
     ) -> Result<Vec<WorldEvent>, SettleTimeout> {
         if self.config.apply_after_frames.is_some() {
@@ -591,7 +591,7 @@ impl World {
     }
 
     fn level_arrived(&mut self, level: LevelId, loaded: LoadedLevel, ev: &mut Vec<WorldEvent>) {
-        let (instances, meshes): (Vec<Instance>, Vec<MeshId>) = match loaded {
+        let (instances, meshes): (Vec<Instance>, Vec<WorldMeshId>) = match loaded {
             LoadedLevel::Baked { level: l, coarse } => {
                 for (m, lod, res) in coarse {
                     let slot = &mut self.meshes[m.0 as usize];
@@ -624,7 +624,7 @@ impl World {
                         s.resident[s.coarsest()].is_some()
                     })
                     .collect();
-                let mut ids: Vec<MeshId> = kept.iter().map(|i| i.mesh).collect();
+                let mut ids: Vec<WorldMeshId> = kept.iter().map(|i| i.mesh).collect();
                 ids.sort_unstable();
                 ids.dedup();
                 (kept, ids)
@@ -634,7 +634,7 @@ impl World {
                 let mut ids = Vec::with_capacity(meshes.len());
                 let mut bounds = Vec::with_capacity(meshes.len());
                 for (k, m) in meshes.into_iter().enumerate() {
-                    let id = MeshId(base + k as u32);
+                    let id = WorldMeshId(base + k as u32);
                     let n = m.lods.len() as u8;
                     // Coarsest first, as for baked levels.
                     for (lod, g) in m.lods.iter().enumerate().rev() {
@@ -656,7 +656,7 @@ impl World {
                 let inst = instances
                     .into_iter()
                     .map(|i| {
-                        let id = InstanceId(self.next_dynamic_instance);
+                        let id = WorldInstanceId(self.next_dynamic_instance);
                         self.next_dynamic_instance = self.next_dynamic_instance.wrapping_add(1);
                         Instance::new(
                             id,
@@ -691,7 +691,7 @@ impl World {
         slot.state = LevelState::Loaded { instances, meshes };
     }
 
-    fn residency(&mut self, cameras: &[Camera], ev: &mut Vec<WorldEvent>) {
+    fn residency(&mut self, cameras: &[StreamFocus], ev: &mut Vec<WorldEvent>) {
         let _span = tracing::trace_span!("residency").entered();
         let (load, unload) = (
             self.config.load_radius,
@@ -804,7 +804,7 @@ impl World {
     }
 }
 
-fn lod_loaded(mesh: MeshId, lod: usize, lod_count: u8, g: &Arc<LodGeometry>) -> WorldEvent {
+fn lod_loaded(mesh: WorldMeshId, lod: usize, lod_count: u8, g: &Arc<MeshLod>) -> WorldEvent {
     WorldEvent::MeshLodLoaded {
         mesh,
         lod: lod as u8,

@@ -1,23 +1,25 @@
-//! The world's public types: cameras, streaming parameters, events and counters.
+//! The world's public types: stream foci, streaming parameters, events and counters.
 
 use std::sync::Arc;
 
 use glam::Vec3;
 
 use crate::error::StreamingError;
-use crate::model::{Aabb, Instance, InstanceId, LevelId, LodGeometry, MeshId};
+use crate::model::{Aabb, Instance, LevelId, MeshLod, WorldInstanceId, WorldMeshId};
 use crate::proxy::ProxyId;
 
-/// A viewpoint that drives streaming.
+/// A point that drives streaming (usually a camera's position): levels, LODs and far-field
+/// proxies are loaded by their distance to the nearest focus. Not the manager's `Viewpoint` (which
+/// also carries a view direction) nor the renderer's `Camera` (a pinhole with a field of view).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Camera {
+pub struct StreamFocus {
     /// World position.
     pub position: Vec3,
 }
 
-impl From<Vec3> for Camera {
-    fn from(position: Vec3) -> Camera {
-        Camera { position }
+impl From<Vec3> for StreamFocus {
+    fn from(position: Vec3) -> StreamFocus {
+        StreamFocus { position }
     }
 }
 
@@ -110,7 +112,7 @@ pub enum WorldEvent {
     /// A mesh LOD's geometry is resident.
     MeshLodLoaded {
         /// The mesh.
-        mesh: MeshId,
+        mesh: WorldMeshId,
         /// LOD index (0 finest).
         lod: u8,
         /// LODs the mesh has.
@@ -118,12 +120,12 @@ pub enum WorldEvent {
         /// Geometric error in mesh-space metres (multiply by the instance's scale).
         error: f32,
         /// The geometry (shared; skinned meshes carry their weights and skeleton).
-        geometry: Arc<LodGeometry>,
+        geometry: Arc<MeshLod>,
     },
     /// A mesh LOD's geometry was dropped; release what was built from it.
     MeshLodEvicted {
         /// The mesh.
-        mesh: MeshId,
+        mesh: WorldMeshId,
         /// LOD index.
         lod: u8,
     },
@@ -133,7 +135,7 @@ pub enum WorldEvent {
         /// The node.
         node: ProxyId,
         /// World-space geometry (no transform to apply).
-        geometry: Arc<LodGeometry>,
+        geometry: Arc<MeshLod>,
         /// Its landmarks with their levels (leaves only; see [`crate::proxy`]): instances
         /// large enough to keep their own silhouette far away, placeable without loading
         /// their level. The same instance arrives again, with the same id, when its level
@@ -150,7 +152,7 @@ pub enum WorldEvent {
         /// The level being loaded, if any.
         level: Option<LevelId>,
         /// The mesh LOD being loaded, if any.
-        mesh: Option<(MeshId, u8)>,
+        mesh: Option<(WorldMeshId, u8)>,
         /// The proxy being loaded, if any (the proxy file as a whole when `level`, `mesh` and
         /// `proxy` are all None).
         proxy: Option<ProxyId>,
@@ -189,9 +191,9 @@ pub struct StreamStats {
 #[derive(Debug, Clone)]
 pub struct SkinnedFrame {
     /// The instance.
-    pub instance: InstanceId,
+    pub instance: WorldInstanceId,
     /// Its mesh.
-    pub mesh: MeshId,
+    pub mesh: WorldMeshId,
     /// The LOD that was deformed (the finest resident one).
     pub lod: u8,
     /// Mesh-space positions (apply the instance transform), one per vertex of that LOD.

@@ -20,7 +20,7 @@ pub use as_backend::measure::{
 };
 pub use as_backend::{class_flags, Recording, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use device::accel::{
-    align_up, AccelStruct, AsSizes, BlasBuild, TriangleGeometry, BUILD_INPUT_USAGE,
+    align_up, AccelStruct, AsSizes, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
 };
 pub use device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use device::context::{
@@ -32,9 +32,9 @@ pub use device::frames::{FrameCmd, FrameLoop};
 pub use device::query::{QueryKind, QueryPool};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
 pub use render::compute::{BindingKind, Bound, ComputePipeline};
-pub use render::geometry::{GpuGeometry, MeshDesc};
+pub use render::geometry::{GpuGeometry, SceneMesh};
 pub use render::ring::{Pass, PassTimer, RECORDED_SETS};
 pub use render::rt_pipeline::{RayTracingPipeline, RtShaders};
-pub use render::scene::{GpuMesh, InstanceDesc, SceneBuildStats, StaticScene};
+pub use render::scene::{GpuMesh, SceneBuildStats, StaticInstance, StaticScene};
 
 pub use ash;

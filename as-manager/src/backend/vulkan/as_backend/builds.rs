@@ -165,7 +165,7 @@ impl VulkanBackend {
         }
         for (g, dst, s) in addrs {
             let scratch_address = self.scratch_alloc(s);
-            raw_builds.push(RawBuild {
+            raw_builds.push(BlasBuildInput {
                 geometries: std::slice::from_ref(g),
                 flags: vk::BuildAccelerationStructureFlagsKHR::empty(),
                 dst,
@@ -336,7 +336,7 @@ impl VulkanBackend {
         for (i, (r, _, tris, _, src, scratch)) in plan.iter().enumerate() {
             let scratch_address = self.scratch_alloc((*scratch).max(1));
             tris_total += u64::from(*tris);
-            raw.push(RawBuild {
+            raw.push(BlasBuildInput {
                 geometries: std::slice::from_ref(&geoms[i]),
                 flags,
                 dst: targets[i],
@@ -382,7 +382,7 @@ impl VulkanBackend {
             .ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
         let (src, class, sizes, shading) = (e.parts[0].raw, e.class, e.sizes, e.shading);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
-        let t = self.timestamp_begin(CostOp::Compact, e_bytes(self.entry(blas)));
+        let t = self.timestamp_begin(CostOp::Compact, entry_storage_bytes(self.entry(blas)));
         // The compacted copy takes over the input buffers (shading reads them).
         let inputs = {
             let slot = (blas.0 & 0xffff_ffff) as usize;

@@ -2,18 +2,16 @@
 //! functions over owned objects: every timing comes from GPU timestamps around the commands.
 
 use ash::vk;
+use rtstream_stats::Samples;
 
-use crate::backend::vulkan::device::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::accel::{
+    align_up, AccelStruct, BlasBuildInput, BUILD_INPUT_USAGE,
+};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::VkResult;
 use crate::backend::vulkan::render::geometry::GpuGeometry;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(0.0)
-}
 
 /// Runs `record` between two timestamps in one submit and returns the GPU milliseconds.
 fn timed(
@@ -51,7 +49,7 @@ pub fn build_blas_now(
     let blas = scopeguard::guard(blas, |b| ctx.destroy_accel(b));
     ctx.failpoint("build_blas_now.scratch")?;
     let (scratch, base) = ctx.create_scratch("build_blas_now scratch", s.build_scratch)?;
-    let b = BlasBuild {
+    let b = BlasBuildInput {
         geometries: std::slice::from_ref(&geom.geometry),
         flags,
         dst: blas.raw,
@@ -107,10 +105,10 @@ pub fn time_blas_builds(
     }
     let mut times = Vec::with_capacity(reps);
     if result.is_ok() {
-        let builds: Vec<BlasBuild<'_>> = accels
+        let builds: Vec<BlasBuildInput<'_>> = accels
             .iter()
             .enumerate()
-            .map(|(i, a)| BlasBuild {
+            .map(|(i, a)| BlasBuildInput {
                 geometries: std::slice::from_ref(&geoms[i].geometry),
                 flags,
                 dst: a.raw,
@@ -147,7 +145,7 @@ pub fn time_blas_builds(
     }
     ctx.destroy_buffer(scratch);
     ts.destroy(ctx);
-    result.map(|()| (median(times), sizes.storage))
+    result.map(|()| (Samples::new(times).median(), sizes.storage))
 }
 
 /// Result of [`compaction_sizes`].
@@ -190,11 +188,11 @@ pub fn compaction_sizes(ctx: &VulkanContext, geoms: &[GpuGeometry]) -> VkResult<
         }
         let (buf, base) = ctx.create_scratch("compaction scratch", total)?;
         scratch = Some(buf);
-        let builds: Vec<BlasBuild<'_>> = geoms
+        let builds: Vec<BlasBuildInput<'_>> = geoms
             .iter()
             .zip(&accels)
             .zip(&offsets)
-            .map(|((g, a), o)| BlasBuild {
+            .map(|((g, a), o)| BlasBuildInput {
                 geometries: std::slice::from_ref(&g.geometry),
                 flags,
                 dst: a.raw,
@@ -267,7 +265,7 @@ pub fn time_refit_vs_rebuild(
     'outer: for rep in 0..=reps {
         for update in [true, false] {
             geom.write_positions(&pose(rep * 2 + usize::from(update)));
-            let b = BlasBuild {
+            let b = BlasBuildInput {
                 geometries: std::slice::from_ref(&geom.geometry),
                 flags,
                 dst: blas.raw,
@@ -298,7 +296,12 @@ pub fn time_refit_vs_rebuild(
     ctx.destroy_accel(blas);
     ctx.destroy_buffer(scratch);
     ts.destroy(ctx);
-    result.map(|()| (median(refits), median(rebuilds)))
+    result.map(|()| {
+        (
+            Samples::new(refits).median(),
+            Samples::new(rebuilds).median(),
+        )
+    })
 }
 
 /// Builds a TLAS over one record per transform (all referencing `blas`) with `flags`, `reps`
@@ -355,7 +358,7 @@ pub fn time_tlas_build(
                 times.push(ms);
             }
         }
-        Ok((median(times), s.storage))
+        Ok((Samples::new(times).median(), s.storage))
     })();
     if let Some(t) = tlas {
         ctx.destroy_accel(t);

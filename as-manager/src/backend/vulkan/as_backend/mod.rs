@@ -46,7 +46,7 @@ use std::sync::Arc;
 use ash::vk;
 
 use crate::backend::vulkan::device::accel::{
-    align_up, AccelStruct, BlasBuild as RawBuild, TriangleGeometry, BUILD_INPUT_USAGE,
+    align_up, AccelStruct, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
@@ -621,7 +621,8 @@ impl AsBackend for VulkanBackend {
     }
 }
 
-fn e_bytes(e: Option<&BlasEntry>) -> u64 {
+/// Acceleration-structure storage of a BLAS entry (all its parts); 0 for none.
+fn entry_storage_bytes(e: Option<&BlasEntry>) -> u64 {
     e.map_or(0, |e| e.parts.iter().map(|a| a.size).sum())
 }
 

@@ -93,9 +93,10 @@ fn instances_geometry(address: vk::DeviceAddress) -> vk::AccelerationStructureGe
         })
 }
 
-/// One BLAS build (or refit) to record.
+/// One BLAS build (or refit) to record at the device level: handles and addresses. The backend
+/// trait's [`crate::backend::BlasBuild`] is what the manager asks for; this is what gets recorded.
 #[derive(Debug, Clone, Copy)]
-pub struct BlasBuild<'a> {
+pub struct BlasBuildInput<'a> {
     /// The geometries (one BLAS can hold several).
     pub geometries: &'a [TriangleGeometry],
     /// Build flags.
@@ -217,7 +218,7 @@ impl VulkanContext {
     /// # Safety
     /// `cmd` is recording; every address and handle in `builds` is valid until the command
     /// completes, and the scratch ranges do not overlap.
-    pub unsafe fn cmd_build_blases(&self, cmd: vk::CommandBuffer, builds: &[BlasBuild<'_>]) {
+    pub unsafe fn cmd_build_blases(&self, cmd: vk::CommandBuffer, builds: &[BlasBuildInput<'_>]) {
         if builds.is_empty() {
             return;
         }

@@ -5,9 +5,10 @@ use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::error::{VkResult, VulkanError};
 
-/// A triangle mesh to upload.
+/// A triangle mesh to upload (borrowed data for [`GpuGeometry::upload`] and a static scene);
+/// not the manager's `MeshDesc`, which registers a LOD chain.
 #[derive(Debug, Clone, Copy)]
-pub struct MeshDesc<'a> {
+pub struct SceneMesh<'a> {
     /// Debug name.
     pub name: &'a str,
     /// Positions.
@@ -31,7 +32,7 @@ pub struct GpuGeometry {
 
 impl GpuGeometry {
     /// Validates (non-empty triangle list, indices in range, finite positions) and uploads.
-    pub fn upload(ctx: &VulkanContext, m: &MeshDesc<'_>) -> VkResult<Self> {
+    pub fn upload(ctx: &VulkanContext, m: &SceneMesh<'_>) -> VkResult<Self> {
         let bad = |why: String| {
             Err(VulkanError::Unsupported(format!(
                 "mesh {:?}: {why}",

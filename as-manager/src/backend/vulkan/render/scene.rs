@@ -8,17 +8,20 @@ use std::time::Instant;
 use ash::vk;
 
 use crate::backend::vulkan::as_backend::class_flags;
-use crate::backend::vulkan::device::accel::{align_up, AccelStruct, BlasBuild, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::accel::{
+    align_up, AccelStruct, BlasBuildInput, BUILD_INPUT_USAGE,
+};
 use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::error::{VkResult, VulkanError};
-use crate::backend::vulkan::render::geometry::{GpuGeometry, MeshDesc};
+use crate::backend::vulkan::render::geometry::{GpuGeometry, SceneMesh};
 use crate::backend::BlasClass;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 
-/// A placement of a mesh.
+/// A placement of a mesh in a [`StaticScene`] (its TLAS record); not the manager's
+/// `InstanceDesc`, which registers a managed instance.
 #[derive(Debug, Clone, Copy)]
-pub struct InstanceDesc {
+pub struct StaticInstance {
     /// Index into the scene's meshes.
     pub mesh: u32,
     /// Column-major object-to-world transform.
@@ -74,8 +77,8 @@ impl StaticScene {
     /// marked) and a TLAS over `instances` (opaque instances get FORCE_OPAQUE).
     pub fn build(
         ctx: &VulkanContext,
-        meshes: &[MeshDesc<'_>],
-        instances: &[InstanceDesc],
+        meshes: &[SceneMesh<'_>],
+        instances: &[StaticInstance],
     ) -> VkResult<Self> {
         Self::build_with_tlas_flags(
             ctx,
@@ -88,8 +91,8 @@ impl StaticScene {
     /// As [`StaticScene::build`], with the TLAS built with `tlas_flags`.
     pub fn build_with_tlas_flags(
         ctx: &VulkanContext,
-        meshes: &[MeshDesc<'_>],
-        instances: &[InstanceDesc],
+        meshes: &[SceneMesh<'_>],
+        instances: &[StaticInstance],
         tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
     ) -> VkResult<Self> {
         let start = Instant::now();
@@ -117,8 +120,8 @@ impl StaticScene {
 
     fn build_inner(
         ctx: &VulkanContext,
-        meshes: &[MeshDesc<'_>],
-        instances: &[InstanceDesc],
+        meshes: &[SceneMesh<'_>],
+        instances: &[StaticInstance],
         tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
         built: &mut Vec<GpuMesh>,
     ) -> VkResult<(AccelStruct, GpuBuffer, SceneBuildStats)> {
@@ -207,11 +210,11 @@ impl StaticScene {
                 return Err(e);
             }
         };
-        let builds: Vec<BlasBuild<'_>> = geoms
+        let builds: Vec<BlasBuildInput<'_>> = geoms
             .iter()
             .zip(built.iter())
             .zip(&scratch_offsets)
-            .map(|((g, m), off)| BlasBuild {
+            .map(|((g, m), off)| BlasBuildInput {
                 geometries: std::slice::from_ref(g),
                 flags,
                 dst: m.blas.raw,

@@ -1,26 +1,26 @@
-//! Evaluation scenes and helpers: a multi-instance world built from real assets (Debian's
-//! assimp-testmodels), and the simple projected-angle culling used to make "managed" frames
-//! until the manager's culler drives them.
+//! The evaluation scene of `compare` and `tests/render_passes.rs`: a multi-instance world built
+//! from real assets (Debian's assimp-testmodels), and the instances the manager's culler keeps.
+//! A test fixture, not rtstream's API: included with `#[path = "support/eval.rs"] mod eval;`
+//! (from `tests/`, `#[path = "../examples/support/eval.rs"]`); not every user uses every item.
+#![allow(dead_code)]
 
 use std::path::PathBuf;
 
 use glam::{Mat4, Quat, Vec3};
-use rtstream_as_manager::backend::vulkan::MeshDesc;
-use rtstream_renderer::reference::ReferenceScene;
-use rtstream_renderer::{cpu_reference, Camera, SceneInstance};
-use rtstream_streaming::{load_gltf, GltfScene, TriMesh};
-
-use crate::error::Result;
-
-/// Where Debian's assimp-testmodels keeps its glTF 2 models.
-pub const ASSET_DIR: &str = "/usr/share/assimp/models/glTF2";
+use rtstream::as_manager::backend::vulkan::SceneMesh;
+use rtstream::as_manager::config::{CullConfig, CullMode};
+use rtstream::as_manager::cull::InstanceCuller;
+use rtstream::renderer::reference::ReferenceScene;
+use rtstream::renderer::{cpu_reference, Camera, SceneInstance};
+use rtstream::streaming::{load_gltf, GltfScene, TriMesh, ASSIMP_GLTF2_DIR};
+use rtstream::Result;
 
 /// The asset directory: `RTSTREAM_ASSETS` when set (e.g. a copy carried to the GPU machine,
-/// which has no assimp-testmodels), else [`ASSET_DIR`].
+/// which has no assimp-testmodels), else Debian's ([`ASSIMP_GLTF2_DIR`]).
 pub fn asset_dir() -> PathBuf {
     std::env::var_os("RTSTREAM_ASSETS")
         .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(ASSET_DIR))
+        .unwrap_or_else(|| PathBuf::from(ASSIMP_GLTF2_DIR))
 }
 
 /// A world of meshes and instances (instance `i` has customIndex `i` when traced).
@@ -59,7 +59,7 @@ impl Default for DemoWorldDesc {
 /// The meshes of a glTF file, scaled so the whole model's largest extent is `size` and placed
 /// on the ground (min y = 0), centred on x/z. Returns (first mesh index, per-node instances).
 fn add_model(world: &mut EvalWorld, scene: &GltfScene, size: f32) -> (u32, Vec<(u32, Mat4)>) {
-    let (lo, hi) = crate::world_bounds(scene);
+    let (lo, hi) = rtstream::world_bounds(scene);
     let ext = (hi - lo).max_element().max(1e-6);
     let s = size / ext;
     let centre = Vec3::new((lo.x + hi.x) * 0.5, lo.y, (lo.z + hi.z) * 0.5);
@@ -168,16 +168,8 @@ impl EvalWorld {
     }
 
     /// The meshes as upload descriptions (opaque).
-    pub fn mesh_descs(&self) -> Vec<MeshDesc<'_>> {
-        self.meshes
-            .iter()
-            .map(|m| MeshDesc {
-                name: &m.name,
-                positions: &m.positions,
-                indices: &m.indices,
-                opaque: true,
-            })
-            .collect()
+    pub fn mesh_descs(&self) -> Vec<SceneMesh<'_>> {
+        self.meshes.iter().map(rtstream::scene_mesh).collect()
     }
 
     /// World-space bounding sphere (centre, radius) of every instance (of its mesh's local AABB).
@@ -207,34 +199,21 @@ impl EvalWorld {
     }
 }
 
-/// Projected-angle culling (UE5's "small" test): keeps an instance unless its bounding sphere,
-/// seen from `eye`, is smaller than `angle` (radians): `R^2 / |c - e|^2 < tan^2(angle)`. An
-/// instance whose sphere contains the eye is always kept. Returns the keep mask.
-pub fn cull_small_instances(eye: Vec3, spheres: &[(Vec3, f32)], angle: f32) -> Vec<bool> {
-    let t2 = angle.tan().powi(2);
+/// The instances the manager's culler ([`InstanceCuller`], the one `AsManager` runs) keeps when
+/// it tests projected angle only (`CullMode::Small`, UE5's small-object test
+/// `R^2 / |c - e|^2 < tan^2(angle)`) at `angle` radians from `eye`, for one frame: no near
+/// distance, no hysteresis. An instance whose sphere contains the eye is always kept. Returns
+/// the keep mask, one entry per `(centre, radius)` sphere.
+pub fn kept_by_culler(eye: Vec3, spheres: &[(Vec3, f32)], angle: f32) -> Vec<bool> {
+    let culler = InstanceCuller::new(&CullConfig {
+        mode: CullMode::Small,
+        min_angle: angle,
+        near_distance: 0.0,
+        hysteresis: 0.0,
+        ..CullConfig::default()
+    });
     spheres
         .iter()
-        .map(|&(c, r)| {
-            let d2 = (c - eye).length_squared();
-            d2 <= r * r || r * r >= t2 * d2
-        })
+        .map(|&(c, r)| !culler.cull(r, c.distance(eye), false))
         .collect()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn culling_keeps_big_and_near_and_grows_with_the_angle() {
-        let spheres = [
-            (Vec3::new(0.0, 0.0, -10.0), 1.0),  // ~5.7 degrees
-            (Vec3::new(0.0, 0.0, -100.0), 1.0), // ~0.57 degrees
-            (Vec3::ZERO, 0.5),                  // contains the eye
-        ];
-        let keep = |deg: f32| cull_small_instances(Vec3::ZERO, &spheres, deg.to_radians());
-        assert_eq!(keep(0.0), [true, true, true]);
-        assert_eq!(keep(1.0), [true, false, true]);
-        assert_eq!(keep(10.0), [false, false, true]);
-    }
 }
