@@ -184,6 +184,9 @@ enum Record<'a> {
         update_scratch: u64,
     },
     ManagerThroughput {
+        /// `own`: the backend on the context that created the device; `external`: on a
+        /// context imported with `VulkanContext::from_external` (the engine's path).
+        device_path: &'a str,
         blas: usize,
         triangles: u64,
         raw_batched_gpu_ms: f64,
@@ -461,89 +464,53 @@ fn main() -> anyhow::Result<()> {
         .map(|_| GpuGeometry::upload(ctx, &grid_mesh.desc()))
         .collect::<Result<_, _>>()?;
     let copy_refs: Vec<&GpuGeometry> = copies.iter().collect();
+    // The engine's path: a second context imported from this one's device, instance, queue and
+    // allocator (`from_external`), measured in the same runs as the context's own path.
+    let imported = Arc::new(VulkanContext::from_external(shared.as_external())?);
+    let paths = [("own", shared.clone()), ("external", imported.clone())];
     let mut raw_ms = Vec::new();
-    let mut mgr_ms = Vec::new();
-    let mut mgr_wall = Vec::new();
+    let mut mgr_ms = vec![Vec::new(); paths.len()];
+    let mut mgr_wall = vec![Vec::new(); paths.len()];
     let data = Arc::new(GeometryData {
         positions: grid_mesh.positions.clone(),
         indices: grid_mesh.indices.clone(),
     });
     for _ in 0..reps.max(3) {
         raw_ms.push(time_blas_builds(ctx, &copy_refs, fast_trace, true, 1)?.0);
-        let mut config = Config::default();
-        config.residency.create_threshold = 0;
-        config.residency.r1 = 5_000.0;
-        config.residency.r2 = 6_000.0;
-        config.cull.far_distance = 10_000.0;
-        config.build.max_primitives = u64::MAX / 4;
-        config.build.max_gpu_ms = 1e9;
-        config.memory.blas_bytes = 64 << 30;
-        let backend = VulkanBackend::new(shared.clone(), VulkanBackendDesc::default())?;
-        let manager = AsManager::new(config, backend)?;
-        for k in 0..meshes_n {
-            // Distinct meshes (same geometry): one BLAS each, as in the raw batch.
-            let mesh = manager.register_mesh(MeshDesc::new(
-                format!("m{k}"),
-                MeshKind::Static,
-                80.0,
-                vec![LodDesc {
-                    geometry: LodGeometry::Data(data.clone()),
-                    geometric_error: 0.0,
-                }],
-            ))?;
-            manager.add_instance(InstanceDesc::new(
-                mesh,
-                glam::Affine3A::from_translation(glam::Vec3::new(k as f32 * 10.0, 0.0, 50.0)),
-            ))?;
+        for (k, (_, path_ctx)) in paths.iter().enumerate() {
+            let (ms, wall) = manager_build_ms(path_ctx.clone(), &data, meshes_n)?;
+            mgr_ms[k].push(ms);
+            mgr_wall[k].push(wall);
         }
-        let mut manager = manager;
-        let cams = [Viewpoint::new(glam::Vec3::ZERO, glam::Vec3::Z)];
-        let t0 = std::time::Instant::now();
-        let out = manager.update(FrameInput {
-            frame: 0,
-            cameras: &cams,
-        })?;
-        let built = out.stats.builds;
-        manager.backend_mut().wait_idle()?;
-        mgr_wall.push(t0.elapsed().as_secs_f64() * 1e3);
-        // The next frame harvests frame 0's timestamps.
-        manager.update(FrameInput {
-            frame: 1,
-            cameras: &cams,
-        })?;
-        manager.update(FrameInput {
-            frame: 2,
-            cameras: &cams,
-        })?;
-        let ms: f64 = manager
-            .backend()
-            .measurement_log()
-            .filter(|m| m.op == CostOp::BuildStatic)
-            .map(|m| m.gpu_ms)
-            .sum();
-        ensure!(
-            built as usize == meshes_n,
-            "the manager admitted {built} of {meshes_n} builds in one frame"
-        );
-        mgr_ms.push(ms);
     }
     drop(copy_refs);
     for g in copies {
         g.destroy(ctx);
     }
-    let med = |v: Vec<f64>| Samples::new(v).median();
-    let (raw, mgr, wall) = (med(raw_ms), med(mgr_ms), med(mgr_wall));
+    let med = |v: &[f64]| Samples::new(v.to_vec()).median();
+    let raw = med(&raw_ms);
     let tris = (mesh_tris * meshes_n) as f64;
-    Record::ManagerThroughput {
-        blas: meshes_n,
-        triangles: (mesh_tris * meshes_n) as u64,
-        raw_batched_gpu_ms: round_to(raw, 4),
-        manager_gpu_ms: round_to(mgr, 4),
-        manager_update_wall_ms: round_to(wall, 3),
-        throughput_ratio: round_to(raw / mgr, 4),
+    md.push(format!("\n### Builds through the manager vs one raw batched build — {}\n\n{meshes_n} static BLASes of {mesh_tris} triangles (FAST_TRACE + ALLOW_COMPACTION), one frame, median of {} runs (wall: that `update`'s CPU time — residency, schedule, uploads, recording — plus submit and wait):\n\n| path | GPU ms | M tris/s | manager / raw | wall ms |\n|---|---:|---:|---:|---:|\n| raw batched build | {raw:.3} | {:.1} | | |", info.name, reps.max(3), tris / raw / 1e3));
+    for (k, (name, _)) in paths.iter().enumerate() {
+        let (mgr, wall) = (med(&mgr_ms[k]), med(&mgr_wall[k]));
+        Record::ManagerThroughput {
+            device_path: name,
+            blas: meshes_n,
+            triangles: (mesh_tris * meshes_n) as u64,
+            raw_batched_gpu_ms: round_to(raw, 4),
+            manager_gpu_ms: round_to(mgr, 4),
+            manager_update_wall_ms: round_to(wall, 3),
+            throughput_ratio: round_to(raw / mgr, 4),
+        }
+        .print()?;
+        md.push(format!(
+            "| through `AsManager::update`, {name} device | {mgr:.3} | {:.1} | **{:.3}** | {wall:.1} |",
+            tris / mgr / 1e3,
+            raw / mgr
+        ));
     }
-    .print()?;
-    md.push(format!("\n### Builds through the manager vs one raw batched build — {}\n\n{meshes_n} static BLASes of {mesh_tris} triangles (FAST_TRACE + ALLOW_COMPACTION), one frame, median of {} runs:\n\n| path | GPU ms | M tris/s |\n|---|---:|---:|\n| raw batched build | {raw:.3} | {:.1} |\n| through `AsManager::update` (VulkanBackend) | {mgr:.3} | {:.1} |\n\nManager / raw throughput: **{:.3}**. Wall time of that `update` (CPU: residency, schedule, uploads, recording; plus submit and wait): {wall:.1} ms.", info.name, reps.max(3), tris / raw / 1e3, tris / mgr / 1e3, raw / mgr));
+    drop(paths);
+    drop(imported);
 
     // 7. TLAS flags: trace time of the same scene with a FAST_TRACE vs a FAST_BUILD TLAS.
     if let Some((w, h)) = args.trace_size {
@@ -637,4 +604,67 @@ fn main() -> anyhow::Result<()> {
         eprintln!("\n{}", md.join("\n"));
     }
     Ok(())
+}
+
+/// One frame of `meshes_n` distinct static BLASes admitted through `AsManager::update` on a
+/// backend on `ctx`: (GPU ms of the builds from the backend's timestamps, wall ms of that
+/// `update` plus submit and wait).
+fn manager_build_ms(
+    ctx: Arc<VulkanContext>,
+    data: &Arc<GeometryData>,
+    meshes_n: usize,
+) -> anyhow::Result<(f64, f64)> {
+    let mut config = Config::default();
+    config.residency.create_threshold = 0;
+    config.residency.r1 = 5_000.0;
+    config.residency.r2 = 6_000.0;
+    config.cull.far_distance = 10_000.0;
+    config.build.max_primitives = u64::MAX / 4;
+    config.build.max_gpu_ms = 1e9;
+    config.memory.blas_bytes = 64 << 30;
+    let backend = VulkanBackend::new(ctx, VulkanBackendDesc::default())?;
+    let mut manager = AsManager::new(config, backend)?;
+    for k in 0..meshes_n {
+        // Distinct meshes (same geometry): one BLAS each, as in the raw batch.
+        let mesh = manager.register_mesh(MeshDesc::new(
+            format!("m{k}"),
+            MeshKind::Static,
+            80.0,
+            vec![LodDesc {
+                geometry: LodGeometry::Data(data.clone()),
+                geometric_error: 0.0,
+            }],
+        ))?;
+        manager.add_instance(InstanceDesc::new(
+            mesh,
+            glam::Affine3A::from_translation(glam::Vec3::new(k as f32 * 10.0, 0.0, 50.0)),
+        ))?;
+    }
+    let cams = [Viewpoint::new(glam::Vec3::ZERO, glam::Vec3::Z)];
+    let t0 = std::time::Instant::now();
+    let out = manager.update(FrameInput {
+        frame: 0,
+        cameras: &cams,
+    })?;
+    let built = out.stats.builds;
+    manager.backend_mut().wait_idle()?;
+    let wall = t0.elapsed().as_secs_f64() * 1e3;
+    // The next frames harvest frame 0's timestamps.
+    for frame in 1..3 {
+        manager.update(FrameInput {
+            frame,
+            cameras: &cams,
+        })?;
+    }
+    let ms: f64 = manager
+        .backend()
+        .measurement_log()
+        .filter(|m| m.op == CostOp::BuildStatic)
+        .map(|m| m.gpu_ms)
+        .sum();
+    ensure!(
+        built as usize == meshes_n,
+        "the manager admitted {built} of {meshes_n} builds in one frame"
+    );
+    Ok((ms, wall))
 }

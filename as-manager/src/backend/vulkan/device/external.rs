@@ -304,3 +304,47 @@ impl VulkanContext {
         handle_destroyed();
     }
 }
+
+impl VulkanContext {
+    /// Bench and test support: this context's device as an engine would hand it over (the
+    /// same instance, physical device, device, queue and allocator), for a second context made
+    /// with [`VulkanContext::from_external`]; `gpu_bench` measures the engine's path this way on
+    /// the same device. Drop the second context first. Each context locks the queue only for
+    /// itself, so the two must not submit from two threads at once.
+    #[doc(hidden)]
+    pub fn as_external(&self) -> ExternalDevice {
+        let mut enabled_extensions: Vec<CString> = REQUIRED_DEVICE_EXTENSIONS
+            .iter()
+            .map(|n| (*n).to_owned())
+            .collect();
+        let optional = [
+            (self.info.ray_query, khr::ray_query::NAME),
+            (
+                self.info.ray_tracing_pipeline,
+                khr::ray_tracing_pipeline::NAME,
+            ),
+            (self.info.memory_budget, ext::memory_budget::NAME),
+        ];
+        enabled_extensions.extend(
+            optional
+                .into_iter()
+                .filter(|(on, _)| *on)
+                .map(|(_, n)| n.to_owned()),
+        );
+        ExternalDevice {
+            instance: self.instance.clone(),
+            physical_device: self.physical_device,
+            device: self.device.clone(),
+            queue_family: self.queue_family,
+            queue: *self.queue.lock(),
+            enabled_extensions,
+            enabled_features: DeviceFeatures {
+                ray_query: self.info.ray_query,
+                ray_tracing_pipeline: self.info.ray_tracing_pipeline,
+                ..DeviceFeatures::REQUIRED
+            },
+            allocator: Some(Arc::clone(&self.allocator)),
+            debug_utils: self.debug_device.is_some(),
+        }
+    }
+}
