@@ -75,4 +75,7 @@ pub use manager::{
     AsManager, Camera, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc,
     Registrar,
 };
-pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind, MAX_LODS};
+pub use mesh::{
+    DeviceGeometry, DeviceGeometryError, DeviceIndices, DeviceVertices, GeometryData, IndexType,
+    LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind, VertexFormat, MAX_LODS,
+};

@@ -8,7 +8,8 @@
 //! use rtstream_as_manager::backend::{AsBackend, BlasClass, GeometryRef};
 //! use rtstream_as_manager::backend::model::ModelBackend;
 //! let b = ModelBackend::lavapipe();
-//! let g = GeometryRef { vertex_count: 600, triangle_count: 1000, positions: None, indices: None, opaque: true };
+//! let g = GeometryRef { vertex_count: 600, triangle_count: 1000, positions: None, indices: None,
+//!     device_vertices: None, device_indices: None, opaque: true };
 //! let s = b.blas_sizes(&g, BlasClass::Static);
 //! assert!(s.as_bytes >= 100_000);
 //! ```
@@ -415,6 +416,8 @@ mod tests {
             triangle_count: 10_000,
             positions: None,
             indices: None,
+            device_vertices: None,
+            device_indices: None,
             opaque: true,
         };
         let s = b.blas_sizes(&g, BlasClass::Static);
