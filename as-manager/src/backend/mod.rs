@@ -219,7 +219,8 @@ pub trait AsBackend: Send {
     fn completed_frame(&self) -> Option<u64>;
     /// Whether builds and refits need vertex/index data (`true` for a real GPU). When it does,
     /// the manager only targets LODs whose geometry is registered as [`crate::LodGeometry::Data`]
-    /// (see `Registrar::set_lod_geometry`), falling back to the nearest LOD that has data.
+    /// or [`crate::LodGeometry::Device`] (see `Registrar::set_lod_geometry`), falling back to
+    /// the nearest LOD that has data.
     fn needs_geometry(&self) -> bool {
         true
     }

@@ -239,7 +239,11 @@ impl AsBackend for ModelBackend {
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
         self.check(FaultPoint::BuildBlases)?;
-        if self.require_geometry && builds.iter().any(|b| b.geometry.indices.is_none()) {
+        // Indices as CPU slices or in the engine's GPU buffer (`LodGeometry::Device`).
+        let missing = |b: &BlasBuild<'_>| {
+            b.geometry.indices.is_none() && b.geometry.device_indices.is_none()
+        };
+        if self.require_geometry && builds.iter().any(missing) {
             return Err(BackendError::MissingGeometry);
         }
         let total: u64 = builds.iter().map(|b| b.sizes.as_bytes).sum();

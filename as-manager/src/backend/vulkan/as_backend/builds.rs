@@ -36,6 +36,7 @@ impl VulkanBackend {
             skinned: Option<SkinnedInputs>,
             inputs: Option<(GpuBuffer, GpuBuffer)>,
             shading: (u64, u64),
+            shading_plain: bool,
             /// Bytes of one index.
             index_bytes: u64,
             /// Built from the engine's positions: them, and the index address and type.
@@ -140,6 +141,9 @@ impl VulkanBackend {
                     skinned,
                     inputs,
                     shading: (vaddr, iaddr),
+                    shading_plain: format == VertexFormat::F32x3
+                        && stride == 12
+                        && itype == IndexType::U32,
                     index_bytes: itype.size(),
                     device: device_v.map(|v| (v, iaddr, itype)),
                 };
@@ -276,6 +280,7 @@ impl VulkanBackend {
                 static_inputs: p.inputs,
                 spares: Vec::new(),
                 shading: p.shading,
+                shading_plain: p.shading_plain,
                 compacted_size: None,
                 gpu_quality: measure.map(|_| GpuQuality {
                     build_gen: 1,
@@ -413,10 +418,17 @@ impl VulkanBackend {
                     let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
                     if let Some(e) = self.blases[slot].as_mut() {
                         e.shading.0 = v.address;
+                        e.shading_plain = v.format == VertexFormat::F32x3
+                            && v.stride == 12
+                            && p.index_type == IndexType::U32;
                     }
                     (v.address, v.stride, v.format)
                 }
                 None => {
+                    let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
+                    if let Some(e) = self.blases[slot].as_mut() {
+                        e.shading_plain = p.index_type == IndexType::U32;
+                    }
                     let pos = p.r.geometry.positions.expect("checked above");
                     (self.write_pose(p.r.blas, pos)?, 12, VertexFormat::F32x3)
                 }
@@ -517,7 +529,8 @@ impl VulkanBackend {
         let size = e
             .compacted_size
             .ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
-        let (src, class, sizes, shading) = (e.parts[0].raw, e.class, e.sizes, e.shading);
+        let (src, class, sizes, shading, shading_plain) =
+            (e.parts[0].raw, e.class, e.sizes, e.shading, e.shading_plain);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
         let t = self.timestamp_begin(CostOp::Compact, e_bytes(self.entry(blas)));
         // The compacted copy takes over the input buffers (shading reads them).
@@ -546,6 +559,7 @@ impl VulkanBackend {
             static_inputs: inputs,
             spares: Vec::new(),
             shading,
+            shading_plain,
             compacted_size: Some(size),
             gpu_quality: None,
         }))

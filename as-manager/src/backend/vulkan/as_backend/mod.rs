@@ -18,6 +18,15 @@
 //!   BLAS keeps its index buffer, which updates reuse, and a ring of `frames_in_flight + 1`
 //!   pose buffers: each build or refit writes the next one, so the shading reads the last pose
 //!   for as long as no refit replaces it, and no buffer is written while a frame may read it.
+//! - **The engine's own buffers** (`LodGeometry::Device`, `set_skinned_pose_device`): builds,
+//!   sizes and refits read the device addresses directly, in the engine's position format
+//!   (f32x3, f16x4, snorm16x4), stride and index type (u16, u32), with nothing uploaded or kept
+//!   (`VulkanCounters::{input_upload_bytes, pose_upload_bytes}` count what CPU slices cost).
+//!   Each frame starts with a barrier making earlier compute and transfer writes on the queue
+//!   (the engine's skinning) visible to build input reads, and ends with one ordering its
+//!   reads before the engine's next writes. A skinned BLAS posed on the GPU is judged by a
+//!   compute pass after its build and each refit (`gpu_quality.rs`), read back with the
+//!   frame's queries.
 //! - **Retirement.** A freed BLAS (and every buffer a slot outgrew) is queued against the last
 //!   frame that used it and destroyed once the timeline passes that frame.
 //! - **Compaction.** Static BLASes get a compacted-size query after their build; the size is
@@ -161,6 +170,9 @@ struct BlasEntry {
     /// Device addresses of the positions and indices a shader should read for this BLAS
     /// (skinned: the last pose written to its ring, or the engine's pose buffer).
     shading: (u64, u64),
+    /// Whether `shading` is `[f32; 3]` positions 12 bytes apart and `u32` indices, what
+    /// [`VulkanBackend::shading_geometry`] promises (not so for the engine's other formats).
+    shading_plain: bool,
     compacted_size: Option<u64>,
     /// Skinned BLAS built or refitted from the engine's GPU buffer: the GPU quality pass's
     /// bookkeeping (`gpu_quality.rs`).

@@ -206,11 +206,16 @@ impl VulkanBackend {
     /// Device addresses of the positions (`[f32; 3]`) and `u32` indices a shader should read
     /// for the BLAS whose (first-part) device address is `blas_address` — the address in a TLAS
     /// instance record. For a skinned BLAS the positions are this frame's pose. Valid while the
-    /// frame that recorded the record is in flight. For geometry in the engine's own buffers
-    /// (`LodGeometry::Device`, `set_skinned_pose_device`) these are the engine's addresses, in
-    /// the engine's position format and index type.
+    /// frame that recorded the record is in flight. Geometry in the engine's own buffers
+    /// (`LodGeometry::Device`, `set_skinned_pose_device`) is read there, at the engine's
+    /// addresses, when it is `f32x3` 12 bytes apart with `u32` indices; in any other format or
+    /// stride the answer is `None` (the engine shades from its own vertex data).
     pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
         let slot = *self.by_address.get(&blas_address)?;
-        self.blases.get(slot as usize)?.as_ref().map(|e| e.shading)
+        self.blases
+            .get(slot as usize)?
+            .as_ref()
+            .filter(|e| e.shading_plain)
+            .map(|e| e.shading)
     }
 }
