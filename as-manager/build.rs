@@ -14,22 +14,21 @@ fn main() {
     }
     let out = PathBuf::from(std::env::var_os("OUT_DIR").expect("cargo sets OUT_DIR"));
     let glslc = std::env::var("GLSLC").unwrap_or_else(|_| "glslc".into());
-    for name in ["refit_quality.comp"] {
-        let path = PathBuf::from("shaders").join(name);
-        let spv = out.join(format!("{name}.spv"));
-        let status = Command::new(&glslc)
-            .args(["--target-env=vulkan1.2", "-O", "-Werror"])
-            .arg(&path)
-            .arg("-o")
-            .arg(&spv)
-            .status();
-        match status {
-            Ok(s) if s.success() => {}
-            Ok(s) => panic!("glslc failed on {} ({s})", path.display()),
-            Err(e) => panic!(
-                "cannot run the shader compiler `{glslc}` ({e}): run scripts/setup.sh \
-                 (apt-get install glslc), or set GLSLC to a glslc binary"
-            ),
-        }
+    let name = "refit_quality.comp";
+    let path = PathBuf::from("shaders").join(name);
+    let spv = out.join(format!("{name}.spv"));
+    let status = Command::new(&glslc)
+        .args(["--target-env=vulkan1.2", "-O", "-Werror"])
+        .arg(&path)
+        .arg("-o")
+        .arg(&spv)
+        .status();
+    match status {
+        Ok(s) if s.success() => {}
+        Ok(s) => panic!("glslc failed on {} ({s})", path.display()),
+        Err(e) => panic!(
+            "cannot run the shader compiler `{glslc}` ({e}): run scripts/setup.sh \
+             (apt-get install glslc), or set GLSLC to a glslc binary"
+        ),
     }
 }

@@ -20,9 +20,9 @@ use rtstream::as_manager::backend::vulkan::{
     Pass, VulkanBackend, VulkanBackendDesc, VulkanContext, BUILD_INPUT_USAGE,
 };
 use rtstream::as_manager::{
-    AsError, AsManager, Camera, Config, DeviceGeometry, DeviceIndices, DeviceVertices,
-    FrameInput, GeometryData, IndexType, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshDesc,
-    MeshKind, VertexFormat,
+    AsError, AsManager, Camera, Config, DeviceGeometry, DeviceIndices, DeviceVertices, FrameInput,
+    GeometryData, IndexType, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshDesc, MeshKind,
+    VertexFormat,
 };
 use rtstream::renderer::{Camera as RenderCamera, Frame, RenderDesc, Renderer};
 
@@ -386,7 +386,10 @@ fn static_meshes_from_device_addresses_render_like_cpu_slices() {
             let (differ, worst) = compare(img, r);
             eprintln!("{format:?} stride {stride} {index_type:?} frame {f}: {differ} pixels differ, worst distance {worst:e}");
             assert_eq!(differ, 0, "{format:?}/{index_type:?} frame {f}");
-            assert!(worst <= 1e-5, "{format:?}/{index_type:?} frame {f}: {worst}");
+            assert!(
+                worst <= 1e-5,
+                "{format:?}/{index_type:?} frame {f}: {worst}"
+            );
         }
         if !snorm {
             // f32 and f16 (exact here) hold the very same triangles: the same image.
@@ -615,11 +618,17 @@ fn a_mesh_skinned_on_the_gpu_refits_without_upload_and_renders_like_cpu_poses() 
         let gpu = run_gpu_skinned(&ctx, &mut s, FRAMES, in_flight, |_| false).images;
         let c = s.m.backend().counters();
         eprintln!("GPU-skinned, {in_flight} in flight: {c:?}");
-        assert_eq!(c.pose_upload_bytes, 0, "no CPU copy of the positions: {c:?}");
+        assert_eq!(
+            c.pose_upload_bytes, 0,
+            "no CPU copy of the positions: {c:?}"
+        );
         assert_eq!(c.input_upload_bytes, 0, "{c:?}");
         assert!(c.refits >= FRAMES - 2, "refitted every frame: {c:?}");
         assert_eq!(c.rebuilds, 0, "a smooth wave never degrades: {c:?}");
-        assert!(c.gpu_quality_reports > 0, "quality measured on the GPU: {c:?}");
+        assert!(
+            c.gpu_quality_reports > 0,
+            "quality measured on the GPU: {c:?}"
+        );
 
         // The CPU-posed path with the same positions.
         let mut m = manager(&ctx, in_flight);
@@ -631,7 +640,11 @@ fn a_mesh_skinned_on_the_gpu_refits_without_upload_and_renders_like_cpu_poses() 
             .unwrap();
         let cpu = run(&ctx, &mut m, FRAMES, in_flight, |m, _, f| {
             let sc = wave_scale(f);
-            let pose: Vec<[f32; 3]> = grid.positions.iter().map(|p| [p[0], p[0] * sc, p[2]]).collect();
+            let pose: Vec<[f32; 3]> = grid
+                .positions
+                .iter()
+                .map(|p| [p[0], p[0] * sc, p[2]])
+                .collect();
             m.set_skinned_pose(id, Arc::new(pose)).unwrap();
         })
         .images;
@@ -640,7 +653,11 @@ fn a_mesh_skinned_on_the_gpu_refits_without_upload_and_renders_like_cpu_poses() 
         assert_eq!(cc.refits, c.refits);
         drop(m);
         for (f, (a, b)) in gpu.iter().zip(&cpu).enumerate() {
-            assert!(a.hit_fraction() > 0.2, "frame {f} shows the cloth: {}", a.hit_fraction());
+            assert!(
+                a.hit_fraction() > 0.2,
+                "frame {f} shows the cloth: {}",
+                a.hit_fraction()
+            );
             assert_eq!(a.hits, b.hits, "{in_flight} in flight, frame {f}");
         }
         // The poses differ frame to frame: the refits took effect.
@@ -662,7 +679,10 @@ fn scrambled_gpu_poses_cross_the_quality_bound_and_rebuild_an_undeformed_one_nev
     let ran = run_gpu_skinned(&ctx, &mut calm, FRAMES, 2, |_| false);
     let c = calm.m.backend().counters();
     eprintln!("undeformed: {c:?}, worst ratio {}", ran.worst);
-    assert!(c.gpu_quality_reports >= FRAMES - 4, "measured every refit: {c:?}");
+    assert!(
+        c.gpu_quality_reports >= FRAMES - 4,
+        "measured every refit: {c:?}"
+    );
     assert!(ran.worst < bound, "{}", ran.worst);
     assert_eq!((c.rebuilds, ran.rebuilds), (0, 0), "{c:?}");
     drop(calm);
@@ -674,7 +694,10 @@ fn scrambled_gpu_poses_cross_the_quality_bound_and_rebuild_an_undeformed_one_nev
     let worst = ran.worst;
     eprintln!("scrambled: {c:?}, worst ratio {worst} (bound {bound})");
     assert!(worst > bound, "the GPU figure crossed the bound: {worst}");
-    assert!(c.rebuilds >= 1 && ran.rebuilds >= 1, "the manager rebuilt it: {c:?}");
+    assert!(
+        c.rebuilds >= 1 && ran.rebuilds >= 1,
+        "the manager rebuilt it: {c:?}"
+    );
     // Once rebuilt for the scrambled shape, the same shape does not degrade again.
     assert!(c.rebuilds <= 2, "{c:?}");
     drop(wild);

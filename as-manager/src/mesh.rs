@@ -89,7 +89,8 @@ impl IndexType {
 /// - the buffer was created with `SHADER_DEVICE_ADDRESS` and
 ///   `ACCELERATION_STRUCTURE_BUILD_INPUT_READ_ONLY_KHR` usage (and `STORAGE_BUFFER`, which the
 ///   Vulkan backend's refit-quality pass reads it through), its memory allocated with
-///   `MemoryAllocateFlags::DEVICE_ADDRESS`;
+///   `MemoryAllocateFlags::DEVICE_ADDRESS`, and is readable in whole 4-byte words (its size
+///   rounded up to 4: the quality pass reads 16-bit data by the word);
 /// - `count` positions, `stride` bytes apart, lie inside it from `address` on;
 /// - it stays alive, and unchanged while it is a static mesh's, until the mesh is unregistered
 ///   and every frame that used it completed (`frame_done` / the backend's timeline).

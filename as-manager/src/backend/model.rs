@@ -240,9 +240,8 @@ impl AsBackend for ModelBackend {
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
         self.check(FaultPoint::BuildBlases)?;
         // Indices as CPU slices or in the engine's GPU buffer (`LodGeometry::Device`).
-        let missing = |b: &BlasBuild<'_>| {
-            b.geometry.indices.is_none() && b.geometry.device_indices.is_none()
-        };
+        let missing =
+            |b: &BlasBuild<'_>| b.geometry.indices.is_none() && b.geometry.device_indices.is_none();
         if self.require_geometry && builds.iter().any(missing) {
             return Err(BackendError::MissingGeometry);
         }

@@ -393,12 +393,16 @@ fn device_geometry_builds_and_device_poses_refit() {
     };
     assert!(matches!(
         m.set_skinned_pose_device(id, odd),
-        Err(AsError::InvalidDevicePose(DeviceGeometryError::Misaligned { .. }))
+        Err(AsError::InvalidDevicePose(
+            DeviceGeometryError::Misaligned { .. }
+        ))
     ));
     let short = DeviceVertices { stride: 8, ..pose };
     assert!(matches!(
         m.set_skinned_pose_device(id, short),
-        Err(AsError::InvalidDevicePose(DeviceGeometryError::StrideTooSmall { .. }))
+        Err(AsError::InvalidDevicePose(
+            DeviceGeometryError::StrideTooSmall { .. }
+        ))
     ));
     let null = DeviceGeometry {
         indices: DeviceIndices {

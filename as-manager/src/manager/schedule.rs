@@ -42,7 +42,11 @@ fn pose_of(t: &super::state::Tables, owner: u32) -> Option<PoseSrc> {
     }
 }
 
-fn geometry_ref<'a>(g: &'a LodGeometry, pose: Option<&'a PoseSrc>, opaque: bool) -> GeometryRef<'a> {
+fn geometry_ref<'a>(
+    g: &'a LodGeometry,
+    pose: Option<&'a PoseSrc>,
+    opaque: bool,
+) -> GeometryRef<'a> {
     let data = g.data();
     let device = g.device();
     let vertex_count = g.vertices();

@@ -169,7 +169,12 @@ pub(super) struct QualityInputs {
 impl VulkanBackend {
     /// [`record_quality`](Self::record_quality), advisory: a failure (no memory for the
     /// readback buffer, no pipeline) leaves the BLAS unmeasured this time and is logged.
-    pub(super) fn measure_quality(&mut self, blas: BlasHandle, kind: Measured, inputs: QualityInputs) {
+    pub(super) fn measure_quality(
+        &mut self,
+        blas: BlasHandle,
+        kind: Measured,
+        inputs: QualityInputs,
+    ) {
         if let Err(e) = self.record_quality(blas, kind, inputs) {
             tracing::warn!(?blas, "refit quality not measured: {e}");
         }
@@ -184,7 +189,10 @@ impl VulkanBackend {
         inputs: QualityInputs,
     ) -> BackendResult<()> {
         let cmd = self.cmd()?;
-        let Some(build_gen) = self.entry(blas).and_then(|e| e.gpu_quality).map(|q| q.build_gen)
+        let Some(build_gen) = self
+            .entry(blas)
+            .and_then(|e| e.gpu_quality)
+            .map(|q| q.build_gen)
         else {
             return Ok(());
         };

@@ -346,10 +346,12 @@ type SizeKey = (u32, u32, bool, BlasClass, vk::Format, vk::IndexType);
 /// The position format and index type a geometry is built with (CPU slices: f32x3, u32).
 fn input_formats(g: &GeometryRef<'_>) -> (vk::Format, vk::IndexType) {
     (
-        g.device_vertices
-            .map_or(vk::Format::R32G32B32_SFLOAT, |v| gpu_quality::vk_format(v.format)),
-        g.device_indices
-            .map_or(vk::IndexType::UINT32, |i| gpu_quality::vk_index(i.index_type)),
+        g.device_vertices.map_or(vk::Format::R32G32B32_SFLOAT, |v| {
+            gpu_quality::vk_format(v.format)
+        }),
+        g.device_indices.map_or(vk::IndexType::UINT32, |i| {
+            gpu_quality::vk_index(i.index_type)
+        }),
     )
 }
 

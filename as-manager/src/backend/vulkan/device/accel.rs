@@ -399,8 +399,7 @@ impl VulkanContext {
                         | vk::PipelineStageFlags2::COMPUTE_SHADER,
                 )
                 .dst_stage_mask(
-                    vk::PipelineStageFlags2::COMPUTE_SHADER
-                        | vk::PipelineStageFlags2::ALL_TRANSFER,
+                    vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::ALL_TRANSFER,
                 ),
             vk::MemoryBarrier2::default()
                 .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
