@@ -537,12 +537,19 @@ impl<B: AsBackend> AsManager<B> {
         if reports.is_empty() {
             return;
         }
-        for (h, ratio) in reports {
-            let slot = self.t.active.iter().copied().find(|&s| {
+        // One pass over the built skinned entries, not one per report.
+        let by_handle: std::collections::HashMap<_, u32> = self
+            .t
+            .active
+            .iter()
+            .filter_map(|&s| {
                 let e = &self.t.entries[s as usize];
-                e.state == EntryState::Built && e.handle == Some(h)
-            });
-            if let Some(s) = slot {
+                let skinned = e.owner != NONE && e.state == EntryState::Built;
+                skinned.then_some((e.handle?, s))
+            })
+            .collect();
+        for (h, ratio) in reports {
+            if let Some(&s) = by_handle.get(&h) {
                 let e = &mut self.t.entries[s as usize];
                 e.gpu_ratio = Some(ratio);
                 self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(ratio);
