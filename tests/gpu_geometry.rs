@@ -448,26 +448,40 @@ void main() {
 "#;
 
 fn skinning_pipeline(ctx: &VulkanContext) -> ComputePipeline {
-    let dir = std::env::temp_dir().join(format!("rtstream-skinning-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let src = dir.join("skin.comp");
-    let spv = dir.join("skin.spv");
-    std::fs::write(&src, SKINNING).unwrap();
-    let glslc = std::env::var("GLSLC").unwrap_or_else(|_| "glslc".into());
-    let ok = std::process::Command::new(&glslc)
-        .args(["--target-env=vulkan1.2", "-O"])
-        .arg(&src)
-        .arg("-o")
-        .arg(&spv)
-        .status()
-        .unwrap_or_else(|e| panic!("glslc ({glslc}): {e}; run scripts/setup.sh"));
-    assert!(ok.success());
-    let code = std::fs::read(&spv).unwrap();
-    let _ = std::fs::remove_dir_all(&dir);
+    // Compiled once per test process, through glslc's stdin and stdout (no files that tests
+    // running in parallel could share).
+    static SPIRV: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    let code = SPIRV.get_or_init(|| {
+        use std::io::Write;
+        use std::process::{Command, Stdio};
+        let glslc = std::env::var("GLSLC").unwrap_or_else(|_| "glslc".into());
+        let mut child = Command::new(&glslc)
+            .args([
+                "-fshader-stage=comp",
+                "--target-env=vulkan1.2",
+                "-O",
+                "-",
+                "-o",
+                "-",
+            ])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| panic!("glslc ({glslc}): {e}; run scripts/setup.sh"));
+        child
+            .stdin
+            .take()
+            .expect("piped stdin")
+            .write_all(SKINNING.as_bytes())
+            .unwrap();
+        let out = child.wait_with_output().unwrap();
+        assert!(out.status.success(), "glslc failed on the skinning shader");
+        out.stdout
+    });
     ComputePipeline::new(
         ctx,
         "engine skinning",
-        &code,
+        code,
         &[BindingKind::StorageBuffer, BindingKind::StorageBuffer],
         12,
     )
