@@ -138,6 +138,8 @@ fn run(args: Args) -> anyhow::Result<()> {
                 triangle_count: (m.indices.len() / 3) as u32,
                 positions: Some(&m.positions),
                 indices: Some(&m.indices),
+                device_vertices: None,
+                device_indices: None,
                 opaque: true,
             },
             BlasClass::Static,

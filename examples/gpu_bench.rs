@@ -432,6 +432,8 @@ fn main() -> anyhow::Result<()> {
         let verts = tris / 2 + 2;
         let g = TriangleGeometry {
             vertex_address: 0,
+            vertex_format: vk::Format::R32G32B32_SFLOAT,
+            index_type: vk::IndexType::UINT32,
             vertex_stride: 12,
             max_vertex: verts - 1,
             index_address: 0,

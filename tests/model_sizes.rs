@@ -70,6 +70,8 @@ fn model_sizes_are_within_10_percent_of_lavapipe() {
                 triangle_count: *t,
                 positions: None,
                 indices: None,
+                device_vertices: None,
+                device_indices: None,
                 opaque: true,
             };
             let truth = real.blas_sizes(&g, class).as_bytes as f64;

@@ -35,6 +35,10 @@ pub enum AsError {
     /// A group's description is unusable (bounds, parent).
     #[error("invalid group: {0}")]
     InvalidGroup(String),
+    /// A skinned pose in the engine's GPU buffer is unusable (null or misaligned address or
+    /// stride, stride smaller than a position, no vertices).
+    #[error("invalid device pose: {0}")]
+    InvalidDevicePose(#[source] crate::mesh::DeviceGeometryError),
     /// The operation needs a skinned instance.
     #[error("instance {0:?} is not skinned")]
     NotSkinned(crate::InstanceId),

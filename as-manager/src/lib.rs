@@ -42,11 +42,13 @@
 //! # Wiring (facade / engine)
 //! - At start: `AsManager::new(config, backend)`; hand `registrar()` clones to loader threads.
 //! - When a mesh's LOD chain is loaded: `register_mesh(MeshDesc { lods, kind, bounds, opaque })`
-//!   (data as `Arc<GeometryData>` for a real GPU, counts for the model backend); when a level
+//!   (data as `Arc<GeometryData>` for a real GPU, the engine's own GPU buffers by device
+//!   address as [`LodGeometry::Device`], counts for the model backend); when a level
 //!   places it: `add_instance(InstanceDesc { mesh, transform, custom_index, mask, sbt_offset })`.
 //!   Level unload: `remove_instance` / `unregister_mesh` (removes its instances too).
 //! - Skinned instances: `set_skinned_pose(id, positions)` for the LOD `instance_lod(id)`
-//!   reports (or `mark_deformed` without data).
+//!   reports (or `mark_deformed` without data), or `set_skinned_pose_device(id, vertices)`
+//!   when the engine skins on the GPU (refit from its buffer, quality judged on the GPU).
 //! - Each frame: `update(FrameInput { frame, cameras })` → `FrameOutput { tlas, instances,
 //!   stats }`; the renderer takes the TLAS from the backend (`backend()`).
 
@@ -75,4 +77,7 @@ pub use manager::{
     AsManager, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc, Registrar,
     Viewpoint,
 };
-pub use mesh::{GeometryData, LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind, MAX_LODS};
+pub use mesh::{
+    DeviceGeometry, DeviceGeometryError, DeviceIndices, DeviceVertices, GeometryData, IndexType,
+    LodDesc, LodGeometry, MeshData, MeshDesc, MeshKind, VertexFormat, MAX_LODS,
+};

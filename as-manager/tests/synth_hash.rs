@@ -35,7 +35,9 @@ fn synth_hash(params: SynthParams) -> u64 {
                     b.extend_from_slice(&vertices.to_le_bytes());
                     b.extend_from_slice(&triangles.to_le_bytes());
                 }
-                LodGeometry::Data(_) => panic!("synthetic meshes are counts only"),
+                LodGeometry::Data(_) | LodGeometry::Device(_) => {
+                    panic!("synthetic meshes are counts only")
+                }
             }
             f32s(&mut b, &[l.geometric_error]);
         }

@@ -77,9 +77,10 @@ pub enum BlasClass {
     Skinned,
 }
 
-/// One triangle geometry to size or build. `positions`/`indices` are `None` when the mesh was
-/// registered with counts only (enough for the model backend; a Vulkan backend returns
-/// [`BackendError::MissingGeometry`]).
+/// One triangle geometry to size or build. Positions come from `positions` (CPU, copied by the
+/// backend) or `device_vertices` (the engine's GPU buffer, read in place), indices from
+/// `indices` or `device_indices`; all are `None` when the mesh was registered with counts only
+/// (enough for the model backend; a Vulkan backend returns [`BackendError::MissingGeometry`]).
 #[derive(Debug, Clone, Copy)]
 pub struct GeometryRef<'a> {
     /// Vertex count (= `positions.len()` when present).
@@ -90,6 +91,12 @@ pub struct GeometryRef<'a> {
     pub positions: Option<&'a [[f32; 3]]>,
     /// `u32` triangle-list indices.
     pub indices: Option<&'a [u32]>,
+    /// Positions in the engine's GPU buffer ([`crate::LodGeometry::Device`] or a pose from
+    /// `set_skinned_pose_device`); `positions` is `None` when set.
+    pub device_vertices: Option<crate::mesh::DeviceVertices>,
+    /// Indices in the engine's GPU buffer ([`crate::LodGeometry::Device`]); `indices` is `None`
+    /// when set.
+    pub device_indices: Option<crate::mesh::DeviceIndices>,
     /// Sets VK_GEOMETRY_OPAQUE_BIT_KHR.
     pub opaque: bool,
 }
@@ -212,7 +219,8 @@ pub trait AsBackend: Send {
     fn completed_frame(&self) -> Option<u64>;
     /// Whether builds and refits need vertex/index data (`true` for a real GPU). When it does,
     /// the manager only targets LODs whose geometry is registered as [`crate::LodGeometry::Data`]
-    /// (see `Registrar::set_lod_geometry`), falling back to the nearest LOD that has data.
+    /// or [`crate::LodGeometry::Device`] (see `Registrar::set_lod_geometry`), falling back to
+    /// the nearest LOD that has data.
     fn needs_geometry(&self) -> bool {
         true
     }
@@ -246,4 +254,13 @@ pub trait AsBackend: Send {
     fn abort_frame(&mut self) {}
     /// GPU timings measured since the last call (from completed frames).
     fn take_measurements(&mut self) -> Vec<Measurement>;
+    /// Refit-quality ratios of skinned BLASes posed on the GPU (`device_vertices` in a
+    /// [`BlasRefit`]), measured on the GPU since the last call, oldest first: the metric of
+    /// `crate::quality` after a refit over the same metric after the BLAS's last build
+    /// (1.0 = as good as built). They arrive frames late (read once the frame completed); a
+    /// ratio measured before the BLAS's latest rebuild is never reported. Backends without
+    /// such a pass report nothing.
+    fn take_refit_quality(&mut self) -> Vec<(BlasHandle, f32)> {
+        Vec::new()
+    }
 }

@@ -8,7 +8,8 @@
 //! use rtstream_as_manager::backend::{AsBackend, BlasClass, GeometryRef};
 //! use rtstream_as_manager::backend::model::ModelBackend;
 //! let b = ModelBackend::lavapipe();
-//! let g = GeometryRef { vertex_count: 600, triangle_count: 1000, positions: None, indices: None, opaque: true };
+//! let g = GeometryRef { vertex_count: 600, triangle_count: 1000, positions: None, indices: None,
+//!     device_vertices: None, device_indices: None, opaque: true };
 //! let s = b.blas_sizes(&g, BlasClass::Static);
 //! assert!(s.as_bytes >= 100_000);
 //! ```
@@ -238,7 +239,10 @@ impl AsBackend for ModelBackend {
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
         self.check(FaultPoint::BuildBlases)?;
-        if self.require_geometry && builds.iter().any(|b| b.geometry.indices.is_none()) {
+        // Indices as CPU slices or in the engine's GPU buffer (`LodGeometry::Device`).
+        let missing =
+            |b: &BlasBuild<'_>| b.geometry.indices.is_none() && b.geometry.device_indices.is_none();
+        if self.require_geometry && builds.iter().any(missing) {
             return Err(BackendError::MissingGeometry);
         }
         let total: u64 = builds.iter().map(|b| b.sizes.as_bytes).sum();
@@ -415,6 +419,8 @@ mod tests {
             triangle_count: 10_000,
             positions: None,
             indices: None,
+            device_vertices: None,
+            device_indices: None,
             opaque: true,
         };
         let s = b.blas_sizes(&g, BlasClass::Static);

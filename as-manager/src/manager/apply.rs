@@ -61,6 +61,14 @@ impl<B: AsBackend> AsManager<B> {
                 Command::SetPose(id, pose) => {
                     if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
                         i.pose = pose;
+                        i.device_pose = None;
+                        i.pose_version += 1;
+                    }
+                }
+                Command::SetDevicePose(id, pose) => {
+                    if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
+                        i.pose = None;
+                        i.device_pose = Some(pose);
                         i.pose_version += 1;
                     }
                 }
@@ -195,6 +203,7 @@ impl<B: AsBackend> AsManager<B> {
             center,
             radius,
             pose: None,
+            device_pose: None,
             pose_version: 0,
             seed_request: None,
             seed_keep: None,

@@ -14,7 +14,7 @@ impl<B: AsBackend> AsManager<B> {
     pub(crate) fn finest_loaded(&self, mesh: u32) -> Option<usize> {
         let m = self.t.meshes[mesh as usize].as_ref()?;
         let need = self.backend.needs_geometry();
-        (0..m.nlods as usize).find(|&l| !need || m.desc.lods[l].geometry.data().is_some())
+        (0..m.nlods as usize).find(|&l| !need || m.desc.lods[l].geometry.is_buildable())
     }
 
     /// Naive: a BLAS for every loaded LOD of every static mesh (built as soon as the LOD
@@ -33,7 +33,7 @@ impl<B: AsBackend> AsManager<B> {
             let lods: Vec<(bool, u32, u32)> = (0..m.nlods as usize)
                 .map(|l| {
                     let g = &m.desc.lods[l].geometry;
-                    (!need || g.data().is_some(), m.lod_entry[l], g.triangles())
+                    (!need || g.is_buildable(), m.lod_entry[l], g.triangles())
                 })
                 .collect();
             for (lod, (loaded, entry, tris)) in lods.into_iter().enumerate() {

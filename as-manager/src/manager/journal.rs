@@ -27,6 +27,7 @@ pub(crate) struct RefitUndo {
     pub refit_frame: u64,
     pub quality: Option<RefitQuality>,
     pub last_ratio: f32,
+    pub gpu_ratio: Option<f32>,
 }
 
 /// A compaction: the source (freed at commit) and the copy (freed on rollback).
@@ -111,6 +112,7 @@ impl<B: AsBackend> AsManager<B> {
                 e.refit_frame = r.refit_frame;
                 e.quality = r.quality;
                 e.last_ratio = r.last_ratio;
+                e.gpu_ratio = r.gpu_ratio;
             }
         }
         for (slot, h) in j.built.drain(..).rev() {

@@ -389,6 +389,15 @@ impl<B: AsBackend> AsManager<B> {
         self.registrar.set_skinned_pose(id, positions)
     }
 
+    /// See [`Registrar::set_skinned_pose_device`].
+    pub fn set_skinned_pose_device(
+        &self,
+        id: InstanceId,
+        positions: crate::mesh::DeviceVertices,
+    ) -> Result<()> {
+        self.registrar.set_skinned_pose_device(id, positions)
+    }
+
     /// See [`Registrar::mark_deformed`].
     pub fn mark_deformed(&self, id: InstanceId) -> Result<()> {
         self.registrar.mark_deformed(id)

@@ -69,6 +69,7 @@ pub(crate) enum Command {
     SetTransform(InstanceId, Affine3A),
     RemoveInstance(InstanceId),
     SetPose(InstanceId, Option<Arc<Vec<[f32; 3]>>>),
+    SetDevicePose(InstanceId, crate::mesh::DeviceVertices),
     /// (mesh, LOD, geometry, new geometric error if any)
     SetLodGeometry(MeshId, usize, LodGeometry, Option<f32>),
     RegisterGroup(GroupId, GroupDesc),
@@ -332,6 +333,29 @@ impl Registrar {
     /// a quality measurement.
     pub fn set_skinned_pose(&self, id: InstanceId, positions: Arc<Vec<[f32; 3]>>) -> Result<()> {
         self.pose(id, Some(positions))
+    }
+
+    /// Queues a pose of a skinned instance that lives in the engine's GPU buffer (e.g. written
+    /// by its skinning compute pass this frame): the refit reads the positions from there, with
+    /// no CPU copy; the topology is the instance's LOD's (see `AsManager::instance_lod`), and
+    /// `positions.count` must equal that LOD's vertex count (a pose that does not match is not
+    /// refitted). The pose stays current, and every later frame refits from the same address,
+    /// until another pose is set: call it again each frame the engine deforms the mesh.
+    /// Refit quality is then measured on the GPU (see `VulkanBackend`'s refit-quality pass).
+    /// See [`DeviceVertices`](crate::DeviceVertices) for the buffer's contract.
+    pub fn set_skinned_pose_device(
+        &self,
+        id: InstanceId,
+        positions: crate::mesh::DeviceVertices,
+    ) -> Result<()> {
+        positions.validate().map_err(AsError::InvalidDevicePose)?;
+        let mut p = self.pending.lock();
+        Self::live_instance(&p, id)?;
+        if !p.instance_skinned[id.index as usize] {
+            return Err(AsError::NotSkinned(id));
+        }
+        p.commands.push(Command::SetDevicePose(id, positions));
+        Ok(())
     }
 
     /// Marks a skinned instance deformed without data (counts-only meshes, model backend).

@@ -9,38 +9,60 @@ use super::AsManager;
 use crate::backend::{
     AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef,
 };
-use crate::mesh::{LodGeometry, MeshKind};
+use crate::mesh::{DeviceVertices, LodGeometry, MeshKind};
 use crate::quality::RefitQuality;
 use crate::Result;
+
+/// A skinned instance's pose: CPU positions (copied by the backend) or the engine's GPU buffer.
+#[derive(Debug, Clone)]
+enum PoseSrc {
+    Cpu(Arc<Vec<[f32; 3]>>),
+    Device(DeviceVertices),
+}
 
 /// One admitted build, with what it needs from the mesh (kept alive by `Arc`).
 struct Admitted {
     slot: u32,
     geometry: LodGeometry,
-    pose: Option<Arc<Vec<[f32; 3]>>>,
+    pose: Option<PoseSrc>,
     class: BlasClass,
     opaque: bool,
 }
 
 /// A refit: (entry slot, geometry, pose, rebuild, opaque).
-type RefitJob = (u32, LodGeometry, Option<Arc<Vec<[f32; 3]>>>, bool, bool);
+type RefitJob = (u32, LodGeometry, Option<PoseSrc>, bool, bool);
+
+/// The pose of instance `owner` (NONE: none).
+fn pose_of(t: &super::state::Tables, owner: u32) -> Option<PoseSrc> {
+    let i = t.instances.get(owner as usize)?.as_ref()?;
+    match (&i.pose, i.device_pose) {
+        (_, Some(d)) => Some(PoseSrc::Device(d)),
+        (Some(p), None) => Some(PoseSrc::Cpu(p.clone())),
+        (None, None) => None,
+    }
+}
 
 fn geometry_ref<'a>(
     g: &'a LodGeometry,
-    pose: Option<&'a Arc<Vec<[f32; 3]>>>,
+    pose: Option<&'a PoseSrc>,
     opaque: bool,
 ) -> GeometryRef<'a> {
     let data = g.data();
-    let positions = match (pose, data) {
-        (Some(p), Some(d)) if p.len() == d.positions().len() => Some(p.as_slice()),
-        (_, Some(d)) => Some(d.positions()),
-        _ => None,
+    let device = g.device();
+    let vertex_count = g.vertices();
+    // A pose whose vertex count differs from the LOD's is ignored (rest pose instead).
+    let (positions, device_vertices) = match pose {
+        Some(PoseSrc::Cpu(p)) if p.len() as u32 == vertex_count => (Some(p.as_slice()), None),
+        Some(PoseSrc::Device(d)) if d.count == vertex_count => (None, Some(*d)),
+        _ => (data.map(|d| d.positions()), device.map(|d| d.vertices)),
     };
     GeometryRef {
-        vertex_count: g.vertices(),
+        vertex_count,
         triangle_count: g.triangles(),
         positions,
         indices: data.map(|d| d.indices()),
+        device_vertices,
+        device_indices: device.map(|d| d.indices),
         opaque,
     }
 }
@@ -202,7 +224,7 @@ impl<B: AsBackend> AsManager<B> {
                 BlasClass::Static
             };
             let geometry = mesh.desc.lods[lod].geometry.clone();
-            if geometry.data().is_none() && self.backend.needs_geometry() {
+            if !geometry.is_buildable() && self.backend.needs_geometry() {
                 // Its data was evicted since it was queued: wait for it (or another LOD).
                 self.t.entries[slot as usize].state = EntryState::Idle;
                 continue;
@@ -210,9 +232,7 @@ impl<B: AsBackend> AsManager<B> {
             let opaque = mesh.desc.opaque;
             let nlods = mesh.nlods as usize;
             let pose = if owner != NONE {
-                self.t.instances[owner as usize]
-                    .as_ref()
-                    .and_then(|i| i.pose.clone())
+                pose_of(&self.t, owner)
             } else {
                 None
             };
@@ -339,13 +359,12 @@ impl<B: AsBackend> AsManager<B> {
                     } else {
                         0
                     };
+                    // CPU quality needs CPU positions; a BLAS built from the GPU is measured
+                    // on the GPU (`take_refit_quality`).
                     let quality = match (a.class, a.geometry.data()) {
                         (BlasClass::Skinned, Some(d)) => {
                             let g = geometry_ref(&a.geometry, a.pose.as_ref(), a.opaque);
-                            Some(RefitQuality::at_build(
-                                g.positions.unwrap_or(d.positions()),
-                                d.indices(),
-                            ))
+                            g.positions.map(|p| RefitQuality::at_build(p, d.indices()))
                         }
                         _ => None,
                     };
@@ -359,6 +378,7 @@ impl<B: AsBackend> AsManager<B> {
                     e.pose_version = pose_version;
                     e.quality = quality;
                     e.last_ratio = 1.0;
+                    e.gpu_ratio = None;
                     e.needs_compaction = a.class == BlasClass::Static;
                     if e.needs_compaction {
                         let key = (a.slot, e.generation);
@@ -400,6 +420,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Refits dirty skinned BLASes oldest first within the refit budget; rebuilds those whose
     /// measured quality ratio exceeds the bound.
     pub(crate) fn schedule_refits(&mut self, budgeted: bool) -> Result<()> {
+        self.take_gpu_quality();
         let mut dirty: Vec<(u64, u32)> = Vec::new();
         for &s in &self.t.active {
             let e = &self.t.entries[s as usize];
@@ -426,22 +447,27 @@ impl<B: AsBackend> AsManager<B> {
             if budgeted && !jobs.is_empty() && prims + tris > max {
                 continue;
             }
-            let inst = self.t.instances[e.owner as usize]
-                .as_ref()
-                .expect("owner lives");
             let mesh = self.t.meshes[e.mesh as usize].as_ref().expect("live mesh");
             let geometry = mesh.desc.lods[e.lod as usize].geometry.clone();
-            if geometry.data().is_none() && self.backend.needs_geometry() {
+            if !geometry.is_buildable() && self.backend.needs_geometry() {
                 continue; // LOD data evicted: keep the last refit until it is back or released
             }
-            let pose = inst.pose.clone();
+            let pose = pose_of(&self.t, e.owner);
             let mut rebuild = false;
             let mut ratio = e.last_ratio;
-            if let (Some(q), Some(p), Some(d)) = (&e.quality, &pose, geometry.data()) {
-                if p.len() == d.positions().len() {
+            match (&e.quality, &pose, geometry.data()) {
+                (Some(q), Some(PoseSrc::Cpu(p)), Some(d)) if p.len() == d.positions().len() => {
                     ratio = q.ratio(p, d.indices());
                     rebuild = ratio > bound;
                 }
+                // Posed on the GPU: the backend's latest measurement (frames late).
+                (_, Some(PoseSrc::Device(_)), _) => {
+                    if let Some(r) = e.gpu_ratio {
+                        ratio = r;
+                        rebuild = r > bound;
+                    }
+                }
+                _ => {}
             }
             prims += tris;
             let e = &mut self.t.entries[s as usize];
@@ -452,8 +478,12 @@ impl<B: AsBackend> AsManager<B> {
                 refit_frame: e.refit_frame,
                 quality: e.quality.clone(),
                 last_ratio: e.last_ratio,
+                gpu_ratio: e.gpu_ratio,
             });
             e.last_ratio = if rebuild { 1.0 } else { ratio };
+            if rebuild {
+                e.gpu_ratio = None;
+            }
             self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(e.last_ratio);
             jobs.push((s, geometry, pose, rebuild, mesh.desc.opaque));
             if budgeted && prims >= max {
@@ -488,7 +518,7 @@ impl<B: AsBackend> AsManager<B> {
             e.refit_frame = frame;
             if rebuild {
                 self.stats.rebuilds += 1;
-                if let (Some(p), Some(d)) = (&p, g.data()) {
+                if let (Some(PoseSrc::Cpu(p)), Some(d)) = (&p, g.data()) {
                     e.quality = Some(RefitQuality::at_build(p, d.indices()));
                 }
             } else {
@@ -497,6 +527,34 @@ impl<B: AsBackend> AsManager<B> {
             self.stats.refit_primitives += e.triangles as u64;
         }
         Ok(())
+    }
+
+    /// Takes the backend's GPU refit-quality measurements (skinned BLASes posed on the GPU) and
+    /// keeps each BLAS's latest; `schedule_refits` rebuilds on it. Late by the frames in flight,
+    /// like compacted sizes.
+    fn take_gpu_quality(&mut self) {
+        let reports = self.backend.take_refit_quality();
+        if reports.is_empty() {
+            return;
+        }
+        // One pass over the built skinned entries, not one per report.
+        let by_handle: std::collections::HashMap<_, u32> = self
+            .t
+            .active
+            .iter()
+            .filter_map(|&s| {
+                let e = &self.t.entries[s as usize];
+                let skinned = e.owner != NONE && e.state == EntryState::Built;
+                skinned.then_some((e.handle?, s))
+            })
+            .collect();
+        for (h, ratio) in reports {
+            if let Some(&s) = by_handle.get(&h) {
+                let e = &mut self.t.entries[s as usize];
+                e.gpu_ratio = Some(ratio);
+                self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(ratio);
+            }
+        }
     }
 
     /// Compacts built static BLASes whose compacted size is known, within the per-frame

@@ -56,7 +56,7 @@ impl MeshState {
         if !need_data {
             return Some(lod);
         }
-        let has = |l: usize| lods[l].geometry.data().is_some();
+        let has = |l: usize| lods[l].geometry.is_buildable();
         if has(lod) || built(lod) {
             return Some(lod);
         }
@@ -110,6 +110,9 @@ pub(crate) struct BlasEntry {
     pub refit_frame: u64,
     pub quality: Option<RefitQuality>,
     pub last_ratio: f32,
+    /// Skinned, posed on the GPU: the latest quality ratio the backend measured
+    /// (`AsBackend::take_refit_quality`), not yet acted on.
+    pub gpu_ratio: Option<f32>,
     /// Seed baseline: instances holding a reference.
     pub refs: u32,
     /// Index in `Tables::active`.
@@ -147,6 +150,8 @@ pub(crate) struct InstanceState {
     pub center: Vec3,
     pub radius: f32,
     pub pose: Option<Arc<Vec<[f32; 3]>>>,
+    /// The pose in the engine's GPU buffer (`set_skinned_pose_device`); excludes `pose`.
+    pub device_pose: Option<crate::mesh::DeviceVertices>,
     pub pose_version: u64,
     /// Seed baseline marks.
     pub seed_request: Option<u64>,
@@ -203,6 +208,7 @@ impl Tables {
                 refit_frame: 0,
                 quality: None,
                 last_ratio: 1.0,
+                gpu_ratio: None,
                 refs: 0,
                 active_index: 0,
             });
@@ -237,6 +243,7 @@ impl Tables {
             refit_frame: frame,
             quality: None,
             last_ratio: 1.0,
+            gpu_ratio: None,
             refs: 0,
             active_index,
         };

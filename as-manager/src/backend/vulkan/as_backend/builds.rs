@@ -1,6 +1,8 @@
 //! BLAS builds, refits, compaction and frees, recorded into the frame being recorded.
 
+use super::gpu_quality::{vk_format, vk_index, GpuQuality, Measured, QualityInputs};
 use super::*;
+use crate::mesh::{DeviceVertices, IndexType, VertexFormat};
 
 impl VulkanBackend {
     /// Splits a geometry's triangle range into parts that respect the device and size limits.
@@ -34,65 +36,103 @@ impl VulkanBackend {
             skinned: Option<SkinnedInputs>,
             inputs: Option<(GpuBuffer, GpuBuffer)>,
             shading: (u64, u64),
+            shading_plain: bool,
+            /// Bytes of one index.
+            index_bytes: u64,
+            /// Built from the engine's positions: them, and the index address and type.
+            device: Option<(DeviceVertices, u64, IndexType)>,
         }
         let mut planned: Vec<Planned> = Vec::with_capacity(builds.len());
         let align = self.ctx.info().min_scratch_alignment;
         let result: BackendResult<()> = (|| {
             for b in builds {
-                let (Some(pos), Some(idx)) = (b.geometry.positions, b.geometry.indices) else {
+                let g = &b.geometry;
+                let device_v = g.device_vertices;
+                if device_v.is_none() && g.positions.is_none() {
                     return Err(BackendError::MissingGeometry);
+                }
+                let parts = self.parts_of(g, b.class, &b.sizes);
+                // Indices: the engine's (read in place) or the CPU's (uploaded once).
+                let (ib, iaddr, itype) = match (g.device_indices, g.indices) {
+                    (Some(d), _) => (None, d.address, d.index_type),
+                    (None, Some(idx)) => {
+                        let mut ib = self.create_buffer(
+                            BufferDesc {
+                                name: "BLAS indices",
+                                size: (idx.len() * 4).max(4) as u64,
+                                usage: BUILD_INPUT_USAGE,
+                                memory: MemoryKind::Upload,
+                            },
+                            true,
+                        )?;
+                        ib.write(0, bytemuck::cast_slice(idx));
+                        self.counters.input_upload_bytes += (idx.len() * 4) as u64;
+                        let a = ib.address;
+                        (Some(ib), a, IndexType::U32)
+                    }
+                    (None, None) => return Err(BackendError::MissingGeometry),
                 };
-                let parts = self.parts_of(&b.geometry, b.class, &b.sizes);
-                let mut ib = self.create_buffer(
-                    BufferDesc {
-                        name: "BLAS indices",
-                        size: (idx.len() * 4).max(4) as u64,
-                        usage: BUILD_INPUT_USAGE,
-                        memory: MemoryKind::Upload,
-                    },
-                    true,
-                )?;
-                ib.write(0, bytemuck::cast_slice(idx));
-                let iaddr = ib.address;
-                let (vaddr, skinned, inputs) = if b.class == BlasClass::Skinned {
-                    let pose = match self.pose_buffer(pos) {
-                        Ok(pb) => pb,
-                        Err(e) => {
-                            self.destroy(Retired::BlasBuffer(ib));
-                            return Err(e);
-                        }
+                let format = device_v.map_or(VertexFormat::F32x3, |v| v.format);
+                let (vaddr, stride, skinned, inputs) = if b.class == BlasClass::Skinned {
+                    let (vaddr, stride, poses) = match (device_v, g.positions) {
+                        (Some(v), _) => (v.address, v.stride, Vec::new()),
+                        (None, Some(pos)) => match self.pose_buffer(pos) {
+                            Ok(pb) => (pb.address, 12, vec![pb]),
+                            Err(e) => {
+                                self.destroy_all(ib);
+                                return Err(e);
+                            }
+                        },
+                        (None, None) => unreachable!("checked above"),
                     };
+                    let next = poses.len();
                     (
-                        pose.address,
+                        vaddr,
+                        stride,
                         Some(SkinnedInputs {
                             indices: ib,
-                            triangles: b.geometry.triangle_count,
-                            vertices: b.geometry.vertex_count,
-                            poses: vec![pose],
-                            next: 1,
+                            index_address: iaddr,
+                            index_type: itype,
+                            vertex_format: format,
+                            triangles: g.triangle_count,
+                            vertices: g.vertex_count,
+                            poses,
+                            next,
                         }),
                         None,
                     )
                 } else {
-                    let vb = match self.create_buffer(
-                        BufferDesc {
-                            name: "BLAS positions",
-                            size: (pos.len() * 12).max(4) as u64,
-                            usage: BUILD_INPUT_USAGE,
-                            memory: MemoryKind::Upload,
-                        },
-                        true,
-                    ) {
-                        Ok(mut vb) => {
-                            vb.write(0, bytemuck::cast_slice(pos));
-                            vb
+                    match (device_v, g.positions, ib) {
+                        // The engine's buffers: nothing to upload or keep.
+                        (Some(v), _, None) => (v.address, v.stride, None, None),
+                        (None, Some(pos), Some(ib)) => {
+                            match self.create_buffer(
+                                BufferDesc {
+                                    name: "BLAS positions",
+                                    size: (pos.len() * 12).max(4) as u64,
+                                    usage: BUILD_INPUT_USAGE,
+                                    memory: MemoryKind::Upload,
+                                },
+                                true,
+                            ) {
+                                Ok(mut vb) => {
+                                    vb.write(0, bytemuck::cast_slice(pos));
+                                    self.counters.input_upload_bytes += (pos.len() * 12) as u64;
+                                    (vb.address, 12, None, Some((vb, ib)))
+                                }
+                                Err(e) => {
+                                    self.destroy(Retired::BlasBuffer(ib));
+                                    return Err(e);
+                                }
+                            }
                         }
-                        Err(e) => {
-                            self.destroy(Retired::BlasBuffer(ib));
-                            return Err(e);
+                        (_, _, ib) => {
+                            self.destroy_all(ib);
+                            return Err(BackendError::Other(
+                                "static geometry mixes device and CPU inputs".into(),
+                            ));
                         }
-                    };
-                    (vb.address, None, Some((vb, ib)))
+                    }
                 };
                 let p = Planned {
                     geoms: Vec::new(),
@@ -101,6 +141,11 @@ impl VulkanBackend {
                     skinned,
                     inputs,
                     shading: (vaddr, iaddr),
+                    shading_plain: format == VertexFormat::F32x3
+                        && stride == 12
+                        && itype == IndexType::U32,
+                    index_bytes: itype.size(),
+                    device: device_v.map(|v| (v, iaddr, itype)),
                 };
                 let tris = b.geometry.triangle_count;
                 let per = tris.div_ceil(parts);
@@ -114,9 +159,11 @@ impl VulkanBackend {
                     }
                     let g = TriangleGeometry {
                         vertex_address: vaddr,
-                        vertex_stride: 12,
+                        vertex_format: vk_format(format),
+                        index_type: vk_index(itype),
+                        vertex_stride: stride,
                         max_vertex: b.geometry.vertex_count.saturating_sub(1),
-                        index_address: iaddr + u64::from(first) * 12,
+                        index_address: iaddr + u64::from(first) * 3 * itype.size(),
                         triangle_count: count,
                         opaque: b.geometry.opaque,
                     };
@@ -210,13 +257,20 @@ impl VulkanBackend {
                 let parts = p.accels[1..]
                     .iter()
                     .zip(&p.geoms[1..])
-                    .map(|(a, g)| (a.address, ((g.index_address - iaddr) / 12) as u32))
+                    .map(|(a, g)| {
+                        let first = (g.index_address - iaddr) / (3 * p.index_bytes);
+                        (a.address, first as u32)
+                    })
                     .collect();
                 self.split_parts.insert(first, parts);
             }
             let gen = self.next_gen;
             self.next_gen = self.next_gen.wrapping_add(1).max(1);
             let raw0 = p.accels[0].raw;
+            let measure = p.device.filter(|_| b.class == BlasClass::Skinned);
+            if p.device.is_some() {
+                self.counters.device_geometry_builds += 1;
+            }
             let h = self.insert(BlasEntry {
                 gen,
                 parts: p.accels,
@@ -226,8 +280,23 @@ impl VulkanBackend {
                 static_inputs: p.inputs,
                 spares: Vec::new(),
                 shading: p.shading,
+                shading_plain: p.shading_plain,
                 compacted_size: None,
+                gpu_quality: measure.map(|_| GpuQuality {
+                    build_gen: 1,
+                    built_metric: None,
+                }),
             });
+            if let Some((vertices, index_address, index_type)) = measure {
+                // The reference metric of this build, measured on the GPU.
+                let inputs = QualityInputs {
+                    vertices,
+                    index_address,
+                    index_type,
+                    triangles: b.geometry.triangle_count,
+                };
+                self.measure_quality(h, Measured::Build, inputs);
+            }
             if statics.contains(&i) {
                 query_targets.push((h, raw0));
             }
@@ -263,48 +332,71 @@ impl VulkanBackend {
         }
         let cmd = self.cmd()?;
         let align = self.ctx.info().min_scratch_alignment;
+        /// One refit, planned before anything is recorded.
+        struct Plan<'r> {
+            r: &'r BlasRefit<'r>,
+            index_address: u64,
+            index_type: IndexType,
+            tris: u32,
+            verts: u32,
+            src: vk::AccelerationStructureKHR,
+            scratch: u64,
+            /// Update (`false`) or build into the same storage.
+            rebuild: bool,
+            /// The pose in the engine's buffer (`None`: CPU positions, copied to the ring).
+            device: Option<DeviceVertices>,
+        }
         let mut plan = Vec::with_capacity(refits.len());
         let mut total = 0;
         for r in refits {
             let e = self
                 .entry(r.blas)
                 .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
-            let Some(SkinnedInputs {
-                indices: ib,
-                triangles: tris,
-                vertices: verts,
-                ..
-            }) = &e.skinned
-            else {
+            let Some(sk) = &e.skinned else {
                 return Err(BackendError::Other("refit of a static BLAS".into()));
             };
-            let Some(pos) = r.geometry.positions else {
-                return Err(BackendError::MissingGeometry);
+            let (count, device) = match (r.geometry.device_vertices, r.geometry.positions) {
+                (Some(v), _) => (v.count, Some(v)),
+                (None, Some(p)) => (p.len() as u32, None),
+                (None, None) => return Err(BackendError::MissingGeometry),
             };
-            if pos.len() as u32 != *verts || r.geometry.triangle_count != *tris {
+            if count != sk.vertices || r.geometry.triangle_count != sk.triangles {
                 return Err(BackendError::Other(
                     "refit with a different topology".into(),
                 ));
             }
-            let scratch = if r.rebuild {
+            // An update must read the format the BLAS was built from; another one rebuilds.
+            let format = device.map_or(VertexFormat::F32x3, |v| v.format);
+            let rebuild = r.rebuild || format != sk.vertex_format;
+            let scratch = if rebuild {
                 e.sizes.build_scratch
             } else {
                 e.sizes.update_scratch
             };
             total += align_up(scratch.max(1), align);
-            plan.push((r, ib.address, *tris, *verts, e.parts[0].raw, scratch));
+            plan.push(Plan {
+                r,
+                index_address: sk.index_address,
+                index_type: sk.index_type,
+                tris: sk.triangles,
+                verts: sk.vertices,
+                src: e.parts[0].raw,
+                scratch,
+                rebuild,
+                device,
+            });
         }
         // Separate refit targets: each refit writes a structure no frame in flight traces (a
         // new one while the ring is short, else the oldest spare, current `frames_in_flight`
         // refits ago); it becomes current once recorded.
         let ring = self.ring_len(BlasClass::Skinned);
         let mut targets = Vec::with_capacity(plan.len());
-        for (r, _, _, _, src, _) in &plan {
+        for p in &plan {
             if ring == 1 {
-                targets.push(*src);
+                targets.push(p.src);
                 continue;
             }
-            let slot = (r.blas.0 & 0xffff_ffff) as usize;
+            let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
             let (short, size) = {
                 let e = self.blases[slot].as_ref().expect("checked above");
                 ((e.spares.len() as u64) < ring - 1, e.parts[0].size)
@@ -319,31 +411,53 @@ impl VulkanBackend {
         }
         self.ensure_scratch(total)?;
         let mut geoms = Vec::with_capacity(plan.len());
-        for (r, iaddr, tris, verts, _, _) in &plan {
-            let vaddr = self.write_pose(r.blas, r.geometry.positions.expect("checked above"))?;
+        for p in &plan {
+            let (vaddr, stride, format) = match p.device {
+                Some(v) => {
+                    // Read in place: the shading reads the engine's buffer too.
+                    let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
+                    if let Some(e) = self.blases[slot].as_mut() {
+                        e.shading.0 = v.address;
+                        e.shading_plain = v.format == VertexFormat::F32x3
+                            && v.stride == 12
+                            && p.index_type == IndexType::U32;
+                    }
+                    (v.address, v.stride, v.format)
+                }
+                None => {
+                    let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
+                    if let Some(e) = self.blases[slot].as_mut() {
+                        e.shading_plain = p.index_type == IndexType::U32;
+                    }
+                    let pos = p.r.geometry.positions.expect("checked above");
+                    (self.write_pose(p.r.blas, pos)?, 12, VertexFormat::F32x3)
+                }
+            };
             geoms.push(TriangleGeometry {
                 vertex_address: vaddr,
-                vertex_stride: 12,
-                max_vertex: verts.saturating_sub(1),
-                index_address: *iaddr,
-                triangle_count: *tris,
-                opaque: r.geometry.opaque,
+                vertex_format: vk_format(format),
+                index_type: vk_index(p.index_type),
+                vertex_stride: stride,
+                max_vertex: p.verts.saturating_sub(1),
+                index_address: p.index_address,
+                triangle_count: p.tris,
+                opaque: p.r.geometry.opaque,
             });
         }
         let mut raw = Vec::with_capacity(plan.len());
         let mut tris_total = 0u64;
         let flags = class_flags(BlasClass::Skinned);
-        for (i, (r, _, tris, _, src, scratch)) in plan.iter().enumerate() {
-            let scratch_address = self.scratch_alloc((*scratch).max(1));
-            tris_total += u64::from(*tris);
+        for (i, p) in plan.iter().enumerate() {
+            let scratch_address = self.scratch_alloc(p.scratch.max(1));
+            tris_total += u64::from(p.tris);
             raw.push(BlasBuildInput {
                 geometries: std::slice::from_ref(&geoms[i]),
                 flags,
                 dst: targets[i],
-                update_from: (!r.rebuild).then_some(*src),
+                update_from: (!p.rebuild).then_some(p.src),
                 scratch_address,
             });
-            if r.rebuild {
+            if p.rebuild {
                 self.counters.rebuilds += 1;
             } else {
                 self.counters.refits += 1;
@@ -351,22 +465,57 @@ impl VulkanBackend {
         }
         let t = self.timestamp_begin(CostOp::Refit, tris_total);
         // SAFETY: recording; the barrier orders this frame's earlier builds (and previous frames'
-        // traces, via begin_frame's barrier) before the updates; src == dst is allowed.
+        // traces, via begin_frame's barrier) before the updates; src == dst is allowed. The
+        // engine's pose buffers were written before this frame (begin_frame's input barrier).
         unsafe {
             self.ctx.cmd_accel_barrier(cmd);
             self.ctx.cmd_build_blases(cmd, &raw);
         }
         self.timestamp_end(t);
-        if ring > 1 {
-            // Recorded: the targets become current, the structures they replace the newest
-            // spares (frames in flight may still trace them).
-            for (r, ..) in &plan {
-                let slot = (r.blas.0 & 0xffff_ffff) as usize;
-                let e = self.blases[slot].as_mut().expect("checked above");
+        drop(raw);
+        for p in &plan {
+            let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
+            let e = self.blases[slot].as_mut().expect("checked above");
+            if ring > 1 {
+                // Recorded: the target becomes current, the structure it replaces the newest
+                // spare (frames in flight may still trace it).
                 let target = e.spares.remove(0);
                 let old = std::mem::replace(&mut e.parts[0], target);
                 e.spares.push(old);
             }
+            let format = p.device.map_or(VertexFormat::F32x3, |v| v.format);
+            if let Some(sk) = e.skinned.as_mut() {
+                sk.vertex_format = format;
+            }
+            let Some(vertices) = p.device else {
+                // CPU poses: the manager measures quality on the CPU.
+                e.gpu_quality = None;
+                continue;
+            };
+            // Posed on the GPU: after a rebuild (or the first refit from the GPU) this pass
+            // measures the new reference; after an update, the refit's quality.
+            let kind = match (&mut e.gpu_quality, p.rebuild) {
+                (Some(_), false) => Measured::Refit,
+                (Some(q), true) => {
+                    q.build_gen += 1;
+                    q.built_metric = None;
+                    Measured::Build
+                }
+                (None, _) => {
+                    e.gpu_quality = Some(GpuQuality {
+                        build_gen: 1,
+                        built_metric: None,
+                    });
+                    Measured::Build
+                }
+            };
+            let inputs = QualityInputs {
+                vertices,
+                index_address: p.index_address,
+                index_type: p.index_type,
+                triangles: p.tris,
+            };
+            self.measure_quality(p.r.blas, kind, inputs);
         }
         Ok(())
     }
@@ -380,7 +529,8 @@ impl VulkanBackend {
         let size = e
             .compacted_size
             .ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
-        let (src, class, sizes, shading) = (e.parts[0].raw, e.class, e.sizes, e.shading);
+        let (src, class, sizes, shading, shading_plain) =
+            (e.parts[0].raw, e.class, e.sizes, e.shading, e.shading_plain);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
         let t = self.timestamp_begin(CostOp::Compact, entry_storage_bytes(self.entry(blas)));
         // The compacted copy takes over the input buffers (shading reads them).
@@ -409,8 +559,17 @@ impl VulkanBackend {
             static_inputs: inputs,
             spares: Vec::new(),
             shading,
+            shading_plain,
             compacted_size: Some(size),
+            gpu_quality: None,
         }))
+    }
+
+    /// Destroys an input buffer this call created, if any (all-or-nothing failure paths).
+    fn destroy_all(&mut self, b: Option<GpuBuffer>) {
+        if let Some(b) = b {
+            self.destroy(Retired::BlasBuffer(b));
+        }
     }
 
     pub(super) fn retire_blas(&mut self, blas: BlasHandle, last_used_frame: u64) {

@@ -303,8 +303,10 @@ impl VulkanBackend {
                 // Never executed: its queries were never written.
                 self.slots[slot].timed.clear();
                 self.slots[slot].compact_queries.clear();
+                self.slots[slot].quality_jobs.clear();
             } else {
                 self.read_completed_slot(slot)?;
+                self.read_quality(slot);
             }
         }
         let reached = if engine {
@@ -354,9 +356,13 @@ impl VulkanBackend {
                 .op("vkBeginCommandBuffer")?;
         }
         s.recording = true;
-        // Order every earlier submission's AS writes before this frame's AS reads/writes.
-        // SAFETY: the command buffer is recording.
-        unsafe { self.ctx.cmd_accel_barrier(s.cmd) };
+        // Order every earlier submission's AS writes before this frame's AS reads/writes, and
+        // the engine's earlier GPU writes of build inputs (its skinning) before our reads.
+        // SAFETY: the command buffer is recording, outside a render pass.
+        unsafe {
+            self.ctx.cmd_accel_barrier(s.cmd);
+            self.ctx.cmd_build_input_barrier(s.cmd);
+        }
         Ok(())
     }
 
@@ -387,9 +393,11 @@ impl VulkanBackend {
                     u64::from(QUERIES_PER_SLOT) * 8,
                 );
             }
-            // SAFETY: recording; the barrier makes the TLAS build visible to later traces.
+            // SAFETY: recording; the barriers make the TLAS build visible to later traces, and
+            // order this frame's reads of build inputs before the engine's next writes of them.
             unsafe {
                 self.ctx.cmd_accel_barrier(cmd);
+                self.ctx.cmd_build_input_release(cmd);
                 self.ctx
                     .device
                     .end_command_buffer(cmd)

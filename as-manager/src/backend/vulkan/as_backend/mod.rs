@@ -18,6 +18,15 @@
 //!   BLAS keeps its index buffer, which updates reuse, and a ring of `frames_in_flight + 1`
 //!   pose buffers: each build or refit writes the next one, so the shading reads the last pose
 //!   for as long as no refit replaces it, and no buffer is written while a frame may read it.
+//! - **The engine's own buffers** (`LodGeometry::Device`, `set_skinned_pose_device`): builds,
+//!   sizes and refits read the device addresses directly, in the engine's position format
+//!   (f32x3, f16x4, snorm16x4), stride and index type (u16, u32), with nothing uploaded or kept
+//!   (`VulkanCounters::{input_upload_bytes, pose_upload_bytes}` count what CPU slices cost).
+//!   Each frame starts with a barrier making earlier compute and transfer writes on the queue
+//!   (the engine's skinning) visible to build input reads, and ends with one ordering its
+//!   reads before the engine's next writes. A skinned BLAS posed on the GPU is judged by a
+//!   compute pass after its build and each refit (`gpu_quality.rs`), read back with the
+//!   frame's queries.
 //! - **Retirement.** A freed BLAS (and every buffer a slot outgrew) is queued against the last
 //!   frame that used it and destroyed once the timeline passes that frame.
 //! - **Compaction.** Static BLASes get a compacted-size query after their build; the size is
@@ -34,6 +43,7 @@
 
 mod builds;
 mod frame;
+mod gpu_quality;
 pub(crate) mod measure;
 mod registry;
 mod tlas;
@@ -158,9 +168,15 @@ struct BlasEntry {
     /// one is `parts[0]`); a refit writes the oldest and makes it current.
     spares: Vec<AccelStruct>,
     /// Device addresses of the positions and indices a shader should read for this BLAS
-    /// (skinned: the last pose written to its ring).
+    /// (skinned: the last pose written to its ring, or the engine's pose buffer).
     shading: (u64, u64),
+    /// Whether `shading` is `[f32; 3]` positions 12 bytes apart and `u32` indices, what
+    /// [`VulkanBackend::shading_geometry`] promises (not so for the engine's other formats).
+    shading_plain: bool,
     compacted_size: Option<u64>,
+    /// Skinned BLAS built or refitted from the engine's GPU buffer: the GPU quality pass's
+    /// bookkeeping (`gpu_quality.rs`).
+    gpu_quality: Option<gpu_quality::GpuQuality>,
 }
 
 /// A skinned BLAS's own inputs. The positions of each build or refit go to the next buffer of
@@ -169,7 +185,13 @@ struct BlasEntry {
 /// written again only after every frame that could read it has completed.
 #[derive(Debug)]
 struct SkinnedInputs {
-    indices: GpuBuffer,
+    /// The uploaded `u32` indices (`None`: the engine's device indices).
+    indices: Option<GpuBuffer>,
+    /// Address and type of the indices that builds and refits read.
+    index_address: u64,
+    index_type: crate::mesh::IndexType,
+    /// Position format of the last build (an update must use the same; another one rebuilds).
+    vertex_format: crate::mesh::VertexFormat,
     triangles: u32,
     vertices: u32,
     poses: Vec<GpuBuffer>,
@@ -192,7 +214,7 @@ impl BlasEntry {
 
 impl SkinnedInputs {
     fn buffers(self) -> impl Iterator<Item = GpuBuffer> {
-        std::iter::once(self.indices).chain(self.poses)
+        self.indices.into_iter().chain(self.poses)
     }
 }
 
@@ -238,6 +260,11 @@ struct Slot {
     /// The frame's query results, copied on the GPU at the end of the frame (timestamps first,
     /// then compacted sizes at `QUERIES_PER_SLOT`), read by the host once it completed.
     results: GpuBuffer,
+    /// GPU refit-quality partials of this frame (created at the first use), read by the host
+    /// once it completed.
+    quality: Option<GpuBuffer>,
+    /// The quality dispatches recorded this frame.
+    quality_jobs: Vec<gpu_quality::QualityJob>,
 }
 
 /// Counters of what the backend did (for tests and stats).
@@ -257,6 +284,16 @@ pub struct VulkanCounters {
     pub split_meshes: u64,
     /// Calls answered with OutOfDeviceMemory.
     pub oom: u64,
+    /// Bytes of skinned positions copied from the CPU into pose buffers (builds and refits
+    /// with CPU poses; 0 for poses in the engine's GPU buffers).
+    pub pose_upload_bytes: u64,
+    /// Bytes of static positions and of indices copied from the CPU into input buffers (0 for
+    /// device geometry).
+    pub input_upload_bytes: u64,
+    /// BLASes built from the engine's device addresses (static or skinned).
+    pub device_geometry_builds: u64,
+    /// Refit-quality ratios measured on the GPU and reported to the manager.
+    pub gpu_quality_reports: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.
@@ -293,9 +330,29 @@ pub struct VulkanBackend {
     engine_done: Option<u64>,
     /// Sizes by (triangles, vertices, opaque, class): they depend on nothing else, and the
     /// manager asks for every queued item every frame (one driver call each, before).
-    size_cache: std::cell::RefCell<HashMap<(u32, u32, bool, BlasClass), BlasSizes>>,
+    size_cache: std::cell::RefCell<HashMap<SizeKey, BlasSizes>>,
     /// Engine-recorded: the slot ended last and not yet handed to the engine's command buffer.
     to_record: Option<usize>,
+    /// The GPU refit-quality pass, created at its first use.
+    quality_pipeline: Option<gpu_quality::QualityPipeline>,
+    /// GPU quality ratios read from completed frames, not yet taken by the manager.
+    quality_reports: Vec<(BlasHandle, f32)>,
+}
+
+/// What a BLAS's sizes depend on: triangles, vertices, opaque, class, position format, index
+/// type.
+type SizeKey = (u32, u32, bool, BlasClass, vk::Format, vk::IndexType);
+
+/// The position format and index type a geometry is built with (CPU slices: f32x3, u32).
+fn input_formats(g: &GeometryRef<'_>) -> (vk::Format, vk::IndexType) {
+    (
+        g.device_vertices.map_or(vk::Format::R32G32B32_SFLOAT, |v| {
+            gpu_quality::vk_format(v.format)
+        }),
+        g.device_indices.map_or(vk::IndexType::UINT32, |i| {
+            gpu_quality::vk_index(i.index_type)
+        }),
+    )
 }
 
 fn backend_err(e: VulkanError) -> BackendError {
@@ -420,6 +477,8 @@ impl VulkanBackend {
                 compact_pool,
                 compact_queries: Vec::new(),
                 results,
+                quality: None,
+                quality_jobs: Vec::new(),
             });
         }
         let slots = scopeguard::ScopeGuard::into_inner(slots);
@@ -451,6 +510,8 @@ impl VulkanBackend {
             engine_done: None,
             to_record: None,
             size_cache: Default::default(),
+            quality_pipeline: None,
+            quality_reports: Vec::new(),
         })
     }
 
@@ -549,13 +610,23 @@ impl AsBackend for VulkanBackend {
     }
 
     fn blas_sizes(&self, g: &GeometryRef<'_>, class: BlasClass) -> BlasSizes {
-        let key = (g.triangle_count, g.vertex_count, g.opaque, class);
+        let (vertex_format, index_type) = input_formats(g);
+        let key = (
+            g.triangle_count,
+            g.vertex_count,
+            g.opaque,
+            class,
+            vertex_format,
+            index_type,
+        );
         if let Some(s) = self.size_cache.borrow().get(&key) {
             return *s;
         }
         let geom = TriangleGeometry {
             vertex_address: 0,
-            vertex_stride: 12,
+            vertex_format,
+            index_type,
+            vertex_stride: g.device_vertices.map_or(12, |v| v.stride),
             max_vertex: g.vertex_count.saturating_sub(1),
             index_address: 0,
             triangle_count: g.triangle_count,
@@ -614,10 +685,15 @@ impl AsBackend for VulkanBackend {
         s.recording = false;
         s.timed.clear();
         s.compact_queries.clear();
+        s.quality_jobs.clear();
     }
 
     fn take_measurements(&mut self) -> Vec<Measurement> {
         std::mem::take(&mut self.measurements)
+    }
+
+    fn take_refit_quality(&mut self) -> Vec<(BlasHandle, f32)> {
+        std::mem::take(&mut self.quality_reports)
     }
 }
 
@@ -640,12 +716,16 @@ impl Drop for VulkanBackend {
             objects.extend(s.instances.map(Retired::Buffer));
             objects.extend(s.bases.map(Retired::Buffer));
             objects.extend(s.scratch.map(|(b, _, _)| Retired::Buffer(b)));
+            objects.extend(s.quality.map(Retired::Buffer));
             s.timestamps.destroy(&self.ctx);
             s.compact_pool.destroy(&self.ctx);
             self.ctx.destroy_buffer(s.results);
         }
         for o in objects {
             self.destroy(o);
+        }
+        if let Some(p) = self.quality_pipeline.take() {
+            p.destroy(&self.ctx);
         }
         // SAFETY: the device is idle; the pool's command buffers and the semaphore are unused.
         unsafe {

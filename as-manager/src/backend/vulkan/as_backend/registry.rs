@@ -49,7 +49,7 @@ impl VulkanBackend {
             let skinned = e
                 .skinned
                 .iter()
-                .flat_map(|s| std::iter::once(&s.indices).chain(&s.poses));
+                .flat_map(|s| s.indices.iter().chain(&s.poses));
             statics.chain(skinned)
         });
         let retiring = self.retiring.iter().filter_map(|(_, r)| match r {
@@ -131,6 +131,7 @@ impl VulkanBackend {
             true,
         )?;
         b.write(0, bytemuck::cast_slice(positions));
+        self.counters.pose_upload_bytes += (positions.len() * 12) as u64;
         Ok(b)
     }
 
@@ -169,6 +170,7 @@ impl VulkanBackend {
                 // Written `ring` refits ago: every frame that read it has completed.
                 let b = &mut sk.poses[sk.next % ring];
                 b.write(0, bytemuck::cast_slice(positions));
+                self.counters.pose_upload_bytes += (positions.len() * 12) as u64;
                 b.address
             }
         };
@@ -204,9 +206,16 @@ impl VulkanBackend {
     /// Device addresses of the positions (`[f32; 3]`) and `u32` indices a shader should read
     /// for the BLAS whose (first-part) device address is `blas_address` — the address in a TLAS
     /// instance record. For a skinned BLAS the positions are this frame's pose. Valid while the
-    /// frame that recorded the record is in flight.
+    /// frame that recorded the record is in flight. Geometry in the engine's own buffers
+    /// (`LodGeometry::Device`, `set_skinned_pose_device`) is read there, at the engine's
+    /// addresses, when it is `f32x3` 12 bytes apart with `u32` indices; in any other format or
+    /// stride the answer is `None` (the engine shades from its own vertex data).
     pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
         let slot = *self.by_address.get(&blas_address)?;
-        self.blases.get(slot as usize)?.as_ref().map(|e| e.shading)
+        self.blases
+            .get(slot as usize)?
+            .as_ref()
+            .filter(|e| e.shading_plain)
+            .map(|e| e.shading)
     }
 }

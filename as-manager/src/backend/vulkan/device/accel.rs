@@ -21,14 +21,18 @@ pub fn align_up(v: u64, align: u64) -> u64 {
 /// One triangle geometry of a BLAS, by device address.
 #[derive(Debug, Clone, Copy)]
 pub struct TriangleGeometry {
-    /// Address of tightly packed `[f32; 3]` positions (or `vertex_stride` apart).
+    /// Address of the positions, `vertex_stride` apart.
     pub vertex_address: vk::DeviceAddress,
+    /// Position format (`R32G32B32_SFLOAT`, `R16G16B16A16_SFLOAT` or `R16G16B16A16_SNORM`).
+    pub vertex_format: vk::Format,
     /// Bytes between consecutive positions.
     pub vertex_stride: u64,
     /// Highest vertex index referenced.
     pub max_vertex: u32,
-    /// Address of `u32` triangle-list indices.
+    /// Address of the triangle-list indices.
     pub index_address: vk::DeviceAddress,
+    /// `UINT32` or `UINT16`.
+    pub index_type: vk::IndexType,
     /// Number of triangles.
     pub triangle_count: u32,
     /// Mark the geometry opaque (no any-hit; what the seeds recommend for opaque materials).
@@ -61,13 +65,13 @@ pub struct AccelStruct {
 
 fn triangles(g: &TriangleGeometry) -> vk::AccelerationStructureGeometryKHR<'static> {
     let data = vk::AccelerationStructureGeometryTrianglesDataKHR::default()
-        .vertex_format(vk::Format::R32G32B32_SFLOAT)
+        .vertex_format(g.vertex_format)
         .vertex_data(vk::DeviceOrHostAddressConstKHR {
             device_address: g.vertex_address,
         })
         .vertex_stride(g.vertex_stride)
         .max_vertex(g.max_vertex)
-        .index_type(vk::IndexType::UINT32)
+        .index_type(g.index_type)
         .index_data(vk::DeviceOrHostAddressConstKHR {
             device_address: g.index_address,
         });
@@ -340,6 +344,71 @@ impl VulkanContext {
                     | vk::AccessFlags2::ACCELERATION_STRUCTURE_WRITE_KHR,
             )];
         // SAFETY: cmd is recording (caller).
+        unsafe {
+            self.device.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().memory_barriers(&barrier),
+            )
+        };
+    }
+
+    /// Records the barrier a frame starts with, for build inputs the engine writes on the GPU:
+    /// compute-shader and transfer writes recorded or submitted earlier on this queue (e.g. the
+    /// engine's skinning pass writing a pose buffer, an upload of static geometry) are made
+    /// visible to acceleration-structure build input reads and to compute-shader reads and
+    /// writes (the refit-quality pass, which also rewrites its readback buffer every
+    /// `frames_in_flight` frames).
+    ///
+    /// # Safety
+    /// `cmd` is a command buffer of this device, recording, outside a render pass.
+    pub unsafe fn cmd_build_input_barrier(&self, cmd: vk::CommandBuffer) {
+        let barrier = [vk::MemoryBarrier2::default()
+            .src_stage_mask(
+                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::ALL_TRANSFER,
+            )
+            .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(
+                vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR
+                    | vk::PipelineStageFlags2::COMPUTE_SHADER,
+            )
+            .dst_access_mask(
+                vk::AccessFlags2::SHADER_READ
+                    | vk::AccessFlags2::SHADER_STORAGE_READ
+                    | vk::AccessFlags2::SHADER_WRITE,
+            )];
+        // SAFETY: cmd is recording outside a render pass (caller).
+        unsafe {
+            self.device.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().memory_barriers(&barrier),
+            )
+        };
+    }
+
+    /// Records the barrier a frame ends with, for build inputs the engine rewrites: this
+    /// frame's reads of them (builds, refits, the refit-quality pass) happen before later
+    /// compute-shader and transfer writes on this queue (the engine's next skinning pass), and
+    /// the quality pass's writes are visible to the host once the frame completed.
+    ///
+    /// # Safety
+    /// `cmd` is a command buffer of this device, recording, outside a render pass.
+    pub unsafe fn cmd_build_input_release(&self, cmd: vk::CommandBuffer) {
+        let barrier = [
+            vk::MemoryBarrier2::default()
+                .src_stage_mask(
+                    vk::PipelineStageFlags2::ACCELERATION_STRUCTURE_BUILD_KHR
+                        | vk::PipelineStageFlags2::COMPUTE_SHADER,
+                )
+                .dst_stage_mask(
+                    vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::ALL_TRANSFER,
+                ),
+            vk::MemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
+                .src_access_mask(vk::AccessFlags2::SHADER_WRITE)
+                .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+                .dst_access_mask(vk::AccessFlags2::HOST_READ),
+        ];
+        // SAFETY: cmd is recording outside a render pass (caller).
         unsafe {
             self.device.cmd_pipeline_barrier2(
                 cmd,

@@ -73,6 +73,8 @@ impl GpuGeometry {
         };
         let geometry = TriangleGeometry {
             vertex_address: vertices.address,
+            vertex_format: ash::vk::Format::R32G32B32_SFLOAT,
+            index_type: ash::vk::IndexType::UINT32,
             vertex_stride: 12,
             max_vertex,
             index_address: indices.address,
