@@ -132,6 +132,9 @@ pub struct RunArgs {
     /// stays in the TLAS beside the proxies (a landmark).
     #[arg(long)]
     pub far_keep_angle: Option<f32>,
+    /// Far keep range in metres: no landmark farther than this (default: unlimited).
+    #[arg(long)]
+    pub far_keep_range: Option<f32>,
     /// Skip the all-geometry reference (non-opaque as opaque).
     #[arg(long)]
     pub opaque_only: bool,
@@ -297,6 +300,9 @@ impl RunArgs {
         }
         if let Some(a) = self.far_keep_angle {
             m.far_field.keep_angle = a.to_radians();
+        }
+        if let Some(r) = self.far_keep_range {
+            m.far_field.keep_range = r;
         }
         if let Some(ms) = self.max_build_ms {
             m.build.max_gpu_ms = ms;

@@ -90,7 +90,7 @@ impl<B: AsBackend> AsManager<B> {
         });
         if far_on && keep_tan > 0.0 {
             // Landmarks: exactly the tall entries the query rejected or never reached.
-            let far_radius = config.far_field.far_radius;
+            let far_radius = config.far_field.far_radius.min(config.far_field.keep_range);
             grid.query_tall(pass.cams, keep_tan * 0.9, far_radius, |loc, ge| {
                 let (d2, beyond_r2) = pass.distance(ge);
                 if !beyond_r2 || far.is_near_leaf(ge.data.group) {
