@@ -1,4 +1,10 @@
 //! BLAS builds, refits, compaction and frees, recorded into the frame being recorded.
+//!
+//! The frame's builds are laid out in the frame's scratch arena with the same
+//! [`ScratchLayout`] as the one-shot batches (`VulkanContext::plan_blas_batch`: the static
+//! scene, the benchmarks, compaction). What stays here is what only the frame path has: sizes
+//! from the backend's cache (no driver call per queued item), oversized meshes split into
+//! parts, refit-target rings, and device-address inputs.
 
 use super::gpu_quality::{vk_format, vk_index, GpuQuality, Measured, QualityInputs};
 use super::*;

@@ -177,7 +177,7 @@ impl VulkanBackend {
     /// reserve a batch's total first via `ensure_scratch`).
     pub(super) fn ensure_scratch(&mut self, total: u64) -> BackendResult<()> {
         let s = self.current;
-        let used = self.slots[s].scratch_used;
+        let used = self.slots[s].scratch_used.total();
         let cap = self.slots[s].scratch.as_ref().map_or(0, |x| x.2);
         if used + total <= cap {
             return Ok(());
@@ -199,20 +199,17 @@ impl VulkanBackend {
             // Batches already recorded this frame still use the old buffer.
             self.retire_now(Retired::Buffer(old));
         }
-        self.slots[s].scratch_used = 0;
+        self.slots[s].scratch_used.clear();
         Ok(())
     }
 
     pub(super) fn scratch_alloc(&mut self, bytes: u64) -> vk::DeviceAddress {
-        let align = self.ctx.info().min_scratch_alignment;
         let s = &mut self.slots[self.current];
         let (_, base, _) = s
             .scratch
             .as_ref()
             .expect("ensure_scratch before scratch_alloc");
-        let addr = base + s.scratch_used;
-        s.scratch_used += align_up(bytes, align);
-        addr
+        base + s.scratch_used.push(bytes)
     }
 
     pub(super) fn cmd(&self) -> BackendResult<vk::CommandBuffer> {
@@ -334,7 +331,7 @@ impl VulkanBackend {
         }
         let s = &mut self.slots[slot];
         s.frame = frame;
-        s.scratch_used = 0;
+        s.scratch_used.clear();
         s.timestamps.reset(&self.ctx);
         s.compact_pool.reset(&self.ctx);
         s.executed = false;

@@ -5,7 +5,7 @@ use ash::vk;
 use rtstream_stats::Samples;
 
 use crate::backend::vulkan::device::accel::{
-    align_up, AccelStruct, BlasBuildInput, BUILD_INPUT_USAGE,
+    AccelStruct, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
@@ -39,30 +39,21 @@ pub fn build_blas_now(
     flags: vk::BuildAccelerationStructureFlagsKHR,
     name: &str,
 ) -> VkResult<AccelStruct> {
-    let s = ctx.blas_sizes(std::slice::from_ref(&geom.geometry), flags);
-    let blas = ctx.create_accel(
-        vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-        s.storage,
-        name,
-    )?;
+    let geoms = [std::slice::from_ref(&geom.geometry)];
+    let batch = ctx.plan_blas_batch(&geoms, flags, |_| name.to_owned())?;
     // Freed unless the build succeeds.
-    let blas = scopeguard::guard(blas, |b| ctx.destroy_accel(b));
+    let batch = scopeguard::guard(batch, |b| b.destroy(ctx));
     ctx.failpoint("build_blas_now.scratch")?;
-    let (scratch, base) = ctx.create_scratch("build_blas_now scratch", s.build_scratch)?;
-    let b = BlasBuildInput {
-        geometries: std::slice::from_ref(&geom.geometry),
-        flags,
-        dst: blas.raw,
-        update_from: None,
-        scratch_address: base,
-    };
+    let (scratch, base) = ctx.create_scratch("build_blas_now scratch", batch.scratch.total())?;
+    let builds = batch.inputs(&geoms, flags, base);
     let r = ctx.submit_and_wait(name, |_, cmd| {
         // SAFETY: geometry, BLAS and scratch live until the wait returns.
-        unsafe { ctx.cmd_build_blases(cmd, std::slice::from_ref(&b)) }
+        unsafe { ctx.cmd_build_blases(cmd, &builds) }
     });
     ctx.destroy_buffer(scratch);
     r?;
-    Ok(scopeguard::ScopeGuard::into_inner(blas))
+    let mut batch = scopeguard::ScopeGuard::into_inner(batch);
+    Ok(batch.accels.pop().expect("one BLAS planned"))
 }
 
 /// Builds one BLAS per entry of `geoms` (entries may repeat the same geometry) with `flags` —
@@ -75,77 +66,54 @@ pub fn time_blas_builds(
     batched: bool,
     reps: usize,
 ) -> VkResult<(f64, u64)> {
-    let count = geoms.len();
-    let all_sizes: Vec<_> = geoms
+    let lists: Vec<&[TriangleGeometry]> = geoms
         .iter()
-        .map(|g| ctx.blas_sizes(std::slice::from_ref(&g.geometry), flags))
+        .map(|g| std::slice::from_ref(&g.geometry))
         .collect();
-    let sizes = all_sizes.first().copied().unwrap_or_default();
-    let stride = all_sizes
-        .iter()
-        .map(|s| align_up(s.build_scratch, ctx.info().min_scratch_alignment))
-        .max()
-        .unwrap_or(0);
-    let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "time_blas_builds")?;
-    let (scratch, base) = ctx.create_scratch("time_blas_builds scratch", stride * count as u64)?;
-    let mut accels = Vec::with_capacity(count);
-    let mut result = Ok(());
-    for (i, sz) in all_sizes.iter().enumerate() {
-        match ctx.create_accel(
-            vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-            sz.storage,
-            &format!("bench blas {i}"),
-        ) {
-            Ok(a) => accels.push(a),
-            Err(e) => {
-                result = Err(e);
-                break;
-            }
+    let batch = ctx.plan_blas_batch(&lists, flags, |i| format!("bench blas {i}"))?;
+    let first_bytes = batch.sizes.first().map_or(0, |s| s.storage);
+    let ts = match QueryPool::new(ctx, QueryKind::Timestamp, 2, "time_blas_builds") {
+        Ok(ts) => ts,
+        Err(e) => {
+            batch.destroy(ctx);
+            return Err(e);
         }
-    }
+    };
     let mut times = Vec::with_capacity(reps);
-    if result.is_ok() {
-        let builds: Vec<BlasBuildInput<'_>> = accels
-            .iter()
-            .enumerate()
-            .map(|(i, a)| BlasBuildInput {
-                geometries: std::slice::from_ref(&geoms[i].geometry),
-                flags,
-                dst: a.raw,
-                update_from: None,
-                scratch_address: base + stride * i as u64,
-            })
-            .collect();
-        for rep in 0..=reps {
-            let ms = timed(ctx, &ts, "time_blas_builds", |cmd| {
-                // SAFETY: everything referenced lives until the wait; scratch ranges are disjoint,
-                // so the unbatched calls need no barrier between them.
-                unsafe {
-                    if batched {
-                        ctx.cmd_build_blases(cmd, &builds);
-                    } else {
-                        for b in &builds {
-                            ctx.cmd_build_blases(cmd, std::slice::from_ref(b));
+    let mut result = Ok(());
+    match ctx.create_scratch("time_blas_builds scratch", batch.scratch.total()) {
+        Ok((scratch, base)) => {
+            let builds = batch.inputs(&lists, flags, base);
+            for rep in 0..=reps {
+                let ms = timed(ctx, &ts, "time_blas_builds", |cmd| {
+                    // SAFETY: everything referenced lives until the wait; scratch ranges are
+                    // disjoint, so the unbatched calls need no barrier between them.
+                    unsafe {
+                        if batched {
+                            ctx.cmd_build_blases(cmd, &builds);
+                        } else {
+                            for b in &builds {
+                                ctx.cmd_build_blases(cmd, std::slice::from_ref(b));
+                            }
                         }
                     }
-                }
-            });
-            match ms {
-                Ok(ms) if rep > 0 => times.push(ms),
-                Ok(_) => {}
-                Err(e) => {
-                    result = Err(e);
-                    break;
+                });
+                match ms {
+                    Ok(ms) if rep > 0 => times.push(ms),
+                    Ok(_) => {}
+                    Err(e) => {
+                        result = Err(e);
+                        break;
+                    }
                 }
             }
+            ctx.destroy_buffer(scratch);
         }
+        Err(e) => result = Err(e),
     }
-    for a in accels {
-        ctx.destroy_accel(a);
-    }
-    ctx.destroy_buffer(scratch);
+    batch.destroy(ctx);
     ts.destroy(ctx);
-    result.map(|()| (Samples::new(times).median(), sizes.storage))
+    result.map(|()| (Samples::new(times).median(), first_bytes))
 }
 
 /// Result of [`compaction_sizes`].
@@ -162,7 +130,6 @@ pub struct CompactionResult {
 pub fn compaction_sizes(ctx: &VulkanContext, geoms: &[GpuGeometry]) -> VkResult<CompactionResult> {
     let flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
         | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION;
-    let align = ctx.info().min_scratch_alignment;
     let pool = QueryPool::new(
         ctx,
         QueryKind::CompactedSize,
@@ -174,32 +141,21 @@ pub fn compaction_sizes(ctx: &VulkanContext, geoms: &[GpuGeometry]) -> VkResult<
     let mut dsts = Vec::new();
     let mut scratch = None;
     let result = (|| {
-        let mut offsets = Vec::new();
-        let mut total = 0;
-        for g in geoms {
-            let s = ctx.blas_sizes(std::slice::from_ref(&g.geometry), flags);
-            accels.push(ctx.create_accel(
-                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-                s.storage,
-                "compaction source",
-            )?);
-            offsets.push(total);
-            total += align_up(s.build_scratch, align);
-        }
-        let (buf, base) = ctx.create_scratch("compaction scratch", total)?;
-        scratch = Some(buf);
-        let builds: Vec<BlasBuildInput<'_>> = geoms
+        let lists: Vec<&[TriangleGeometry]> = geoms
             .iter()
-            .zip(&accels)
-            .zip(&offsets)
-            .map(|((g, a), o)| BlasBuildInput {
-                geometries: std::slice::from_ref(&g.geometry),
-                flags,
-                dst: a.raw,
-                update_from: None,
-                scratch_address: base + o,
-            })
+            .map(|g| std::slice::from_ref(&g.geometry))
             .collect();
+        let batch = ctx.plan_blas_batch(&lists, flags, |_| "compaction source".into())?;
+        let (buf, base) = match ctx.create_scratch("compaction scratch", batch.scratch.total()) {
+            Ok(s) => s,
+            Err(e) => {
+                batch.destroy(ctx);
+                return Err(e);
+            }
+        };
+        scratch = Some(buf);
+        let builds = batch.inputs(&lists, flags, base);
+        accels = batch.accels;
         let raws: Vec<_> = accels.iter().map(|a: &AccelStruct| a.raw).collect();
         ctx.submit_and_wait("compaction build", |_, cmd| {
             // SAFETY: everything referenced lives until the wait; the barrier orders the builds

@@ -56,7 +56,7 @@ use std::sync::Arc;
 use ash::vk;
 
 use crate::backend::vulkan::device::accel::{
-    align_up, AccelStruct, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
+    align_up, AccelStruct, BlasBuildInput, ScratchLayout, TriangleGeometry, BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
@@ -250,7 +250,8 @@ struct Slot {
     bases: Option<GpuBuffer>,
     bases_address: u64,
     scratch: Option<(GpuBuffer, vk::DeviceAddress, u64)>,
-    scratch_used: u64,
+    /// This frame's scratch ranges in `scratch` (the same layout as every BLAS planner's).
+    scratch_used: ScratchLayout,
     timestamps: QueryPool,
     /// (op, units, first query) of timestamp pairs recorded this frame.
     timed: Vec<(CostOp, u64, u32)>,
@@ -471,7 +472,7 @@ impl VulkanBackend {
                 bases: None,
                 bases_address: 0,
                 scratch: None,
-                scratch_used: 0,
+                scratch_used: ScratchLayout::new(ctx.info().min_scratch_alignment),
                 timestamps,
                 timed: Vec::new(),
                 compact_pool,

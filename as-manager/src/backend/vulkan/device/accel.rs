@@ -18,6 +18,97 @@ pub fn align_up(v: u64, align: u64) -> u64 {
     v.div_ceil(align) * align
 }
 
+/// Scratch ranges laid out in one buffer: each at an offset aligned to the device's
+/// `minAccelerationStructureScratchOffsetAlignment`, disjoint, so the builds of one batch need
+/// no barrier between them. The one layout of every BLAS planner: [`BlasBatch`] (the static
+/// scene, the benchmarks, compaction) and the backend's per-frame scratch arena.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ScratchLayout {
+    align: u64,
+    offsets: Vec<u64>,
+    total: u64,
+}
+
+impl ScratchLayout {
+    /// An empty layout for `align`-aligned offsets.
+    pub fn new(align: u64) -> Self {
+        Self {
+            align: align.max(1),
+            offsets: Vec::new(),
+            total: 0,
+        }
+    }
+
+    /// Adds a range of `bytes` (at least 1) and returns its offset.
+    pub fn push(&mut self, bytes: u64) -> u64 {
+        let at = self.total;
+        self.offsets.push(at);
+        self.total += align_up(bytes.max(1), self.align);
+        at
+    }
+
+    /// Offsets, in push order.
+    pub fn offsets(&self) -> &[u64] {
+        &self.offsets
+    }
+
+    /// Bytes the layout spans.
+    pub fn total(&self) -> u64 {
+        self.total
+    }
+
+    /// Forgets every range (the arena's next frame).
+    pub fn clear(&mut self) {
+        self.offsets.clear();
+        self.total = 0;
+    }
+}
+
+/// BLAS builds planned together for one batched build: each geometry list's sizes and its
+/// destination, and its scratch range in one [`ScratchLayout`]. Made by
+/// [`VulkanContext::plan_blas_batch`] (all or nothing), turned into build inputs by
+/// [`BlasBatch::inputs`].
+#[derive(Debug)]
+pub struct BlasBatch {
+    /// The destinations, one per geometry list.
+    pub accels: Vec<AccelStruct>,
+    /// Their sizes.
+    pub sizes: Vec<AsSizes>,
+    /// Their scratch ranges (build scratch).
+    pub scratch: ScratchLayout,
+}
+
+impl BlasBatch {
+    /// The batch's build inputs over `geoms` (the lists it was planned for), with its scratch
+    /// ranges in the buffer at `scratch_base`.
+    pub fn inputs<'a>(
+        &self,
+        geoms: &[&'a [TriangleGeometry]],
+        flags: vk::BuildAccelerationStructureFlagsKHR,
+        scratch_base: vk::DeviceAddress,
+    ) -> Vec<BlasBuildInput<'a>> {
+        geoms
+            .iter()
+            .zip(&self.accels)
+            .zip(self.scratch.offsets())
+            .map(|((g, a), off)| BlasBuildInput {
+                geometries: g,
+                flags,
+                dst: a.raw,
+                update_from: None,
+                scratch_address: scratch_base + off,
+            })
+            .collect()
+    }
+
+    /// Destroys the destinations (none was built, or the GPU is done with them).
+    pub fn destroy(self, ctx: &VulkanContext) {
+        for a in self.accels {
+            ctx.destroy_accel(a);
+        }
+    }
+}
+
 /// One triangle geometry of a BLAS, by device address.
 #[derive(Debug, Clone, Copy)]
 pub struct TriangleGeometry {
@@ -165,6 +256,41 @@ impl VulkanContext {
             build_scratch: out.build_scratch_size,
             update_scratch: out.update_scratch_size,
         }
+    }
+
+    /// Plans one batched build of a BLAS per geometry list with `flags`: sizes each, creates
+    /// its destination (named by `name(i)`) and lays out the scratch. All or nothing: on an
+    /// error the destinations created so far are destroyed.
+    pub fn plan_blas_batch(
+        &self,
+        geoms: &[&[TriangleGeometry]],
+        flags: vk::BuildAccelerationStructureFlagsKHR,
+        name: impl Fn(usize) -> String,
+    ) -> VkResult<BlasBatch> {
+        let mut batch = BlasBatch {
+            accels: Vec::with_capacity(geoms.len()),
+            sizes: Vec::with_capacity(geoms.len()),
+            scratch: ScratchLayout::new(self.info().min_scratch_alignment),
+        };
+        for (i, g) in geoms.iter().enumerate() {
+            let s = self.blas_sizes(g, flags);
+            match self.create_accel(
+                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+                s.storage,
+                &name(i),
+            ) {
+                Ok(a) => {
+                    batch.accels.push(a);
+                    batch.sizes.push(s);
+                    batch.scratch.push(s.build_scratch);
+                }
+                Err(e) => {
+                    batch.destroy(self);
+                    return Err(e);
+                }
+            }
+        }
+        Ok(batch)
     }
 
     /// Creates an acceleration structure of `size` bytes in its own buffer.

@@ -8,9 +8,7 @@ use std::time::Instant;
 use ash::vk;
 
 use crate::backend::vulkan::as_backend::class_flags;
-use crate::backend::vulkan::device::accel::{
-    align_up, AccelStruct, BlasBuildInput, BUILD_INPUT_USAGE,
-};
+use crate::backend::vulkan::device::accel::{AccelStruct, TriangleGeometry, BUILD_INPUT_USAGE};
 use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::error::{VkResult, VulkanError};
@@ -126,35 +124,43 @@ impl StaticScene {
         built: &mut Vec<GpuMesh>,
     ) -> VkResult<(AccelStruct, GpuBuffer, SceneBuildStats)> {
         let flags = class_flags(BlasClass::Static);
-        let align = ctx.info().min_scratch_alignment;
         let mut stats = SceneBuildStats::default();
-        let mut geoms = Vec::with_capacity(meshes.len());
-        let mut scratch_offsets = Vec::with_capacity(meshes.len());
-        let mut scratch_total = 0u64;
+        let mut uploaded: Vec<GpuGeometry> = Vec::with_capacity(meshes.len());
         for m in meshes {
-            let gg = GpuGeometry::upload(ctx, m)?;
-            let geom = gg.geometry;
-            let sizes = ctx.blas_sizes(&[geom], flags);
-            let blas = match ctx.create_accel(
-                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
-                sizes.storage,
-                &format!("{} BLAS", m.name),
-            ) {
+            match GpuGeometry::upload(ctx, m) {
+                Ok(g) => uploaded.push(g),
+                Err(e) => {
+                    uploaded.into_iter().for_each(|g| g.destroy(ctx));
+                    return Err(e);
+                }
+            }
+        }
+        let geoms: Vec<TriangleGeometry> = uploaded.iter().map(|g| g.geometry).collect();
+        let lists: Vec<&[TriangleGeometry]> = geoms.iter().map(std::slice::from_ref).collect();
+        let mut batch =
+            match ctx.plan_blas_batch(&lists, flags, |i| format!("{} BLAS", meshes[i].name)) {
                 Ok(b) => b,
                 Err(e) => {
-                    gg.destroy(ctx);
+                    uploaded.into_iter().for_each(|g| g.destroy(ctx));
                     return Err(e);
                 }
             };
+        for (g, sizes) in geoms.iter().zip(&batch.sizes) {
             stats.blas_count += 1;
-            stats.triangles += u64::from(geom.triangle_count);
+            stats.triangles += u64::from(g.triangle_count);
             stats.blas_bytes += sizes.storage;
             stats.blas_scratch_bytes += sizes.build_scratch;
-            scratch_offsets.push(scratch_total);
-            scratch_total += align_up(sizes.build_scratch, align);
-            geoms.push(geom);
-            built.push(GpuMesh { geometry: gg, blas });
         }
+        // Scratch offsets from 0; the buffer's base is added once it exists (with the TLAS's
+        // range at the end of the same layout).
+        let mut builds = batch.inputs(&lists, flags, 0);
+        let mut scratch_layout = std::mem::take(&mut batch.scratch);
+        built.extend(
+            uploaded
+                .into_iter()
+                .zip(std::mem::take(&mut batch.accels))
+                .map(|(geometry, blas)| GpuMesh { geometry, blas }),
+        );
 
         let mut records = Vec::with_capacity(instances.len());
         for (i, inst) in instances.iter().enumerate() {
@@ -200,28 +206,19 @@ impl StaticScene {
                 return Err(e);
             }
         };
-        let tlas_scratch_offset = scratch_total;
-        scratch_total += align_up(tlas_sizes.build_scratch, align);
-        let (scratch, base) = match ctx.create_scratch("static scene scratch", scratch_total) {
-            Ok(s) => s,
-            Err(e) => {
-                ctx.destroy_accel(tlas);
-                ctx.destroy_buffer(instance_buffer);
-                return Err(e);
-            }
-        };
-        let builds: Vec<BlasBuildInput<'_>> = geoms
-            .iter()
-            .zip(built.iter())
-            .zip(&scratch_offsets)
-            .map(|((g, m), off)| BlasBuildInput {
-                geometries: std::slice::from_ref(g),
-                flags,
-                dst: m.blas.raw,
-                update_from: None,
-                scratch_address: base + off,
-            })
-            .collect();
+        let tlas_scratch_offset = scratch_layout.push(tlas_sizes.build_scratch);
+        let (scratch, base) =
+            match ctx.create_scratch("static scene scratch", scratch_layout.total()) {
+                Ok(s) => s,
+                Err(e) => {
+                    ctx.destroy_accel(tlas);
+                    ctx.destroy_buffer(instance_buffer);
+                    return Err(e);
+                }
+            };
+        for b in &mut builds {
+            b.scratch_address += base;
+        }
         let recorded = ctx.submit_and_wait("static scene build", |_, cmd| {
             // SAFETY: every buffer referenced lives until submit_and_wait returns; scratch ranges
             // are disjoint and aligned; the barrier orders BLAS writes before the TLAS build.
