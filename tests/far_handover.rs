@@ -55,7 +55,14 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
         rows.iter().any(|r| r.proxy_instances > 0),
         "the far field shows proxies on this walk"
     );
-    let mean = rows.iter().map(|r| far_band(r)).sum::<f64>() / rows.len() as f64;
+    // The start-up: streaming applies the first loads two frames after their request, and the
+    // tight build budget takes until about frame 8 to build the first far field (landmarks
+    // and proxies); the far band is 3-5x its walking level until then. A hand-over during that
+    // backlog is not a pop, so the level test below starts after it (the step test covers
+    // every frame).
+    const START_UP: u64 = 10;
+    let walking: Vec<&&FrameRow> = rows.iter().filter(|r| r.frame >= START_UP).collect();
+    let mean = walking.iter().map(|r| far_band(r)).sum::<f64>() / walking.len() as f64;
     let handovers: Vec<&&FrameRow> = rows
         .windows(2)
         .filter(|w| w[0].far_groups_covered != w[1].far_groups_covered)
@@ -77,15 +84,20 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
         100.0 * step_other
     );
     assert!(
-        handovers.len() >= 3,
-        "the walk crosses r2 of several groups ({} hand-over frames)",
+        handovers.iter().filter(|r| r.frame >= START_UP).count() >= 3,
+        "the walk crosses r2 of several groups after the start-up ({} hand-over frames)",
         handovers.len()
     );
     eprintln!(
-        "{} hand-over frames, r2-1 km mean {:.3} %, worst hand-over {:.3} %",
+        "{} hand-over frames, r2-1 km mean {:.3} % from frame {START_UP}, worst hand-over after it {:.3} %",
         handovers.len(),
         100.0 * mean,
-        100.0 * handovers.iter().map(|r| far_band(r)).fold(0.0, f64::max)
+        100.0
+            * handovers
+                .iter()
+                .filter(|r| r.frame >= START_UP)
+                .map(|r| far_band(r))
+                .fold(0.0, f64::max)
     );
     // A pop would be a step at the hand-over larger than the walk's own frame-to-frame change
     // (a hand-over that dropped a near group's part beyond r2 fails here).
@@ -96,7 +108,7 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
         100.0 * step_other
     );
     assert!(mean > 0.0, "the far band is scored (proxies are not exact)");
-    for r in &handovers {
+    for r in handovers.iter().filter(|r| r.frame >= START_UP) {
         assert!(
             far_band(r) <= 2.0 * mean,
             "frame {}: r2-1 km mismatch {:.3} % on a hand-over frame, mean {:.3} %",
