@@ -270,15 +270,12 @@ impl VulkanBackend {
                     .collect();
                 self.split_parts.insert(first, parts);
             }
-            let gen = self.next_gen;
-            self.next_gen = self.next_gen.wrapping_add(1).max(1);
             let raw0 = p.accels[0].raw;
             let measure = p.device.filter(|_| b.class == BlasClass::Skinned);
             if p.device.is_some() {
                 self.counters.device_geometry_builds += 1;
             }
             let h = self.insert(BlasEntry {
-                gen,
                 parts: p.accels,
                 class: b.class,
                 sizes: b.sizes,
@@ -402,18 +399,18 @@ impl VulkanBackend {
                 targets.push(p.src);
                 continue;
             }
-            let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
+            let key = key_of(p.r.blas);
             let (short, size) = {
-                let e = self.blases[slot].as_ref().expect("checked above");
+                let e = self.blases.get(key).expect("checked above");
                 ((e.spares.len() as u64) < ring - 1, e.parts[0].size)
             };
             if short {
                 let a = self.create_accel(size, "BLAS refit target")?;
-                self.by_address.insert(a.address, slot as u32);
-                let e = self.blases[slot].as_mut().expect("checked above");
+                self.by_address.insert(a.address, key);
+                let e = self.blases.get_mut(key).expect("checked above");
                 e.spares.insert(0, a);
             }
-            targets.push(self.blases[slot].as_ref().expect("checked above").spares[0].raw);
+            targets.push(self.blases.get(key).expect("checked above").spares[0].raw);
         }
         self.ensure_scratch(total)?;
         let mut geoms = Vec::with_capacity(plan.len());
@@ -421,8 +418,8 @@ impl VulkanBackend {
             let (vaddr, stride, format) = match p.device {
                 Some(v) => {
                     // Read in place: the shading reads the engine's buffer too.
-                    let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
-                    if let Some(e) = self.blases[slot].as_mut() {
+                    let key = key_of(p.r.blas);
+                    if let Some(e) = self.blases.get_mut(key) {
                         e.shading.0 = v.address;
                         e.shading_plain = v.format == VertexFormat::F32x3
                             && v.stride == 12
@@ -431,8 +428,8 @@ impl VulkanBackend {
                     (v.address, v.stride, v.format)
                 }
                 None => {
-                    let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
-                    if let Some(e) = self.blases[slot].as_mut() {
+                    let key = key_of(p.r.blas);
+                    if let Some(e) = self.blases.get_mut(key) {
                         e.shading_plain = p.index_type == IndexType::U32;
                     }
                     let pos = p.r.geometry.positions.expect("checked above");
@@ -480,8 +477,8 @@ impl VulkanBackend {
         self.timestamp_end(t);
         drop(raw);
         for p in &plan {
-            let slot = (p.r.blas.0 & 0xffff_ffff) as usize;
-            let e = self.blases[slot].as_mut().expect("checked above");
+            let key = key_of(p.r.blas);
+            let e = self.blases.get_mut(key).expect("checked above");
             if ring > 1 {
                 // Recorded: the target becomes current, the structure it replaces the newest
                 // spare (frames in flight may still trace it).
@@ -541,9 +538,8 @@ impl VulkanBackend {
         let t = self.timestamp_begin(CostOp::Compact, entry_storage_bytes(self.entry(blas)));
         // The compacted copy takes over the input buffers (shading reads them).
         let inputs = {
-            let slot = (blas.0 & 0xffff_ffff) as usize;
-            self.blases[slot]
-                .as_mut()
+            self.blases
+                .get_mut(key_of(blas))
                 .and_then(|e| e.static_inputs.take())
         };
         // SAFETY: recording; the source was built in an earlier, completed frame (its size query
@@ -551,10 +547,7 @@ impl VulkanBackend {
         unsafe { self.ctx.cmd_compact(cmd, src, dst.raw) };
         self.timestamp_end(t);
         self.counters.compactions += 1;
-        let gen = self.next_gen;
-        self.next_gen = self.next_gen.wrapping_add(1).max(1);
         Ok(self.insert(BlasEntry {
-            gen,
             parts: vec![dst],
             class,
             sizes: BlasSizes {

@@ -272,11 +272,8 @@ impl VulkanBackend {
         let queries = std::mem::take(&mut s.compact_queries);
         if let Some(sizes) = sizes {
             for ((h, _), size) in queries.into_iter().zip(sizes) {
-                let (slot_i, gen) = ((h.0 & 0xffff_ffff) as usize, (h.0 >> 32) as u32);
-                if let Some(Some(e)) = self.blases.get_mut(slot_i) {
-                    if e.gen == gen {
-                        e.compacted_size = Some(size);
-                    }
+                if let Some(e) = self.blases.get_mut(key_of(h)) {
+                    e.compacted_size = Some(size);
                 }
             }
         }

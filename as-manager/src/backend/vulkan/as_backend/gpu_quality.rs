@@ -291,14 +291,9 @@ impl VulkanBackend {
                 .collect()
         };
         for (j, m) in jobs.into_iter().zip(metrics) {
-            let slot_i = (j.blas.0 & 0xffff_ffff) as usize;
-            let gen = (j.blas.0 >> 32) as u32;
-            let Some(Some(e)) = self.blases.get_mut(slot_i) else {
+            let Some(e) = self.blases.get_mut(key_of(j.blas)) else {
                 continue;
             };
-            if e.gen != gen {
-                continue;
-            }
             let Some(q) = e.gpu_quality.as_mut() else {
                 continue;
             };

@@ -154,9 +154,19 @@ impl Default for VulkanBackendDesc {
 const QUERIES_PER_SLOT: u32 = 16;
 const COMPACT_QUERIES_PER_SLOT: u32 = 4096;
 
+slotmap::new_key_type! {
+    /// A BLAS's key in the registry; a [`BlasHandle`] is its FFI form (`KeyData::as_ffi`), so
+    /// a handle of a freed BLAS is stale (slotmap's version), never a newer BLAS.
+    struct BlasKey;
+}
+
+/// The registry key of a handle.
+fn key_of(h: BlasHandle) -> BlasKey {
+    BlasKey::from(slotmap::KeyData::from_ffi(h.0))
+}
+
 #[derive(Debug)]
 struct BlasEntry {
-    gen: u32,
     parts: Vec<AccelStruct>,
     class: BlasClass,
     sizes: BlasSizes,
@@ -306,14 +316,12 @@ pub struct VulkanBackend {
     timeline: vk::Semaphore,
     slots: Vec<Slot>,
     current: usize,
-    blases: Vec<Option<BlasEntry>>,
-    free_slots: Vec<u32>,
-    next_gen: u32,
+    blases: slotmap::SlotMap<BlasKey, BlasEntry>,
     /// First-part address -> other parts' addresses, for split meshes.
     /// (the parts' addresses and first primitives).
     split_parts: HashMap<u64, Vec<(u64, u32)>>,
     /// First-part address -> blas slot (shading lookups by instance record).
-    by_address: HashMap<u64, u32>,
+    by_address: HashMap<u64, BlasKey>,
     retiring: VecDeque<(u64, Retired)>,
     completed: Option<u64>,
     measurements: Vec<Measurement>,
@@ -492,9 +500,7 @@ impl VulkanBackend {
             timeline,
             slots,
             current: 0,
-            blases: Vec::new(),
-            free_slots: Vec::new(),
-            next_gen: 1,
+            blases: slotmap::SlotMap::with_key(),
             split_parts: HashMap::new(),
             by_address: HashMap::new(),
             retiring: VecDeque::new(),
@@ -534,7 +540,7 @@ impl VulkanBackend {
 
     /// Live BLAS count (split parts count once).
     pub fn live_blas_count(&self) -> usize {
-        self.blases.iter().filter(|b| b.is_some()).count()
+        self.blases.len()
     }
 
     /// Bytes of device memory the backend holds (AS storage, inputs, scratch, TLAS, instances).
@@ -548,8 +554,7 @@ impl VulkanBackend {
         address != 0
             && self
                 .blases
-                .iter()
-                .flatten()
+                .values()
                 .any(|e| e.parts.first().is_some_and(|p| p.address == address))
     }
 
@@ -559,8 +564,7 @@ impl VulkanBackend {
     pub fn blas_storage_bytes(&self) -> u64 {
         let live: u64 = self
             .blases
-            .iter()
-            .flatten()
+            .values()
             .flat_map(|e| e.parts.iter().chain(&e.spares))
             .map(|a| a.size)
             .sum();
@@ -709,7 +713,7 @@ impl Drop for VulkanBackend {
             tracing::error!("VulkanBackend drop: wait idle failed: {e}");
         }
         let mut objects: Vec<Retired> = self.retiring.drain(..).map(|(_, r)| r).collect();
-        for e in self.blases.drain(..).flatten() {
+        for (_, e) in self.blases.drain() {
             objects.extend(e.into_owned());
         }
         for s in std::mem::take(&mut self.slots) {

@@ -5,8 +5,7 @@ use super::*;
 
 impl VulkanBackend {
     pub(super) fn entry(&self, h: BlasHandle) -> Option<&BlasEntry> {
-        let (slot, gen) = ((h.0 & 0xffff_ffff) as usize, (h.0 >> 32) as u32);
-        self.blases.get(slot)?.as_ref().filter(|e| e.gen == gen)
+        self.blases.get(key_of(h))
     }
 
     /// The device address of a live BLAS, or [`VulkanError::StaleHandle`] for a freed one
@@ -16,11 +15,7 @@ impl VulkanBackend {
             .map(|e| e.parts[0].address)
             .ok_or_else(|| VulkanError::StaleHandle {
                 what: "BLAS",
-                detail: format!(
-                    "slot {} generation {} was freed",
-                    h.0 & 0xffff_ffff,
-                    h.0 >> 32
-                ),
+                detail: format!("{:?} was freed", key_of(h)),
             })
     }
 
@@ -31,8 +26,7 @@ impl VulkanBackend {
         self.is_live_blas_address(address)
             || self
                 .blases
-                .iter()
-                .flatten()
+                .values()
                 .any(|e| e.spares.iter().any(|a| a.address == address))
             || self
                 .retiring
@@ -44,7 +38,7 @@ impl VulkanBackend {
     /// (static vertices or indices, a skinned pose or index buffer), live or retiring.
     #[doc(hidden)]
     pub fn input_buffer_bytes(&self, address: u64) -> Option<Vec<u8>> {
-        let live = self.blases.iter().flatten().flat_map(|e| {
+        let live = self.blases.values().flat_map(|e| {
             let statics = e.static_inputs.iter().flat_map(|(v, i)| [v, i]);
             let skinned = e
                 .skinned
@@ -63,26 +57,13 @@ impl VulkanBackend {
 
     pub(super) fn insert(&mut self, e: BlasEntry) -> BlasHandle {
         let address = e.parts[0].address;
-        let slot = match self.free_slots.pop() {
-            Some(s) => {
-                self.blases[s as usize] = Some(e);
-                s
-            }
-            None => {
-                self.blases.push(Some(e));
-                (self.blases.len() - 1) as u32
-            }
-        };
-        let gen = self.blases[slot as usize].as_ref().map_or(0, |e| e.gen);
-        self.by_address.insert(address, slot);
-        BlasHandle(u64::from(slot) | (u64::from(gen) << 32))
+        let key = self.blases.insert(e);
+        self.by_address.insert(address, key);
+        BlasHandle(slotmap::Key::data(&key).as_ffi())
     }
 
     pub(super) fn take(&mut self, h: BlasHandle) -> Option<BlasEntry> {
-        self.entry(h)?;
-        let slot = (h.0 & 0xffff_ffff) as usize;
-        self.free_slots.push(slot as u32);
-        let e = self.blases[slot].take()?;
+        let e = self.blases.remove(key_of(h))?;
         for a in e.parts.iter().take(1).chain(&e.spares) {
             self.by_address.remove(&a.address);
         }
@@ -143,9 +124,10 @@ impl VulkanBackend {
         positions: &[[f32; 3]],
     ) -> BackendResult<u64> {
         let ring = self.desc.frames_in_flight as usize + 1;
-        let slot = (blas.0 & 0xffff_ffff) as usize;
-        let short = self.blases[slot]
-            .as_ref()
+        let key = key_of(blas);
+        let short = self
+            .blases
+            .get(key)
             .and_then(|e| e.skinned.as_ref())
             .is_some_and(|sk| sk.poses.len() < ring);
         let fresh = if short {
@@ -153,8 +135,9 @@ impl VulkanBackend {
         } else {
             None
         };
-        let e = self.blases[slot]
-            .as_mut()
+        let e = self
+            .blases
+            .get_mut(key)
             .ok_or_else(|| BackendError::Other(format!("refit of unknown {blas:?}")))?;
         let sk = e
             .skinned
@@ -182,8 +165,8 @@ impl VulkanBackend {
     /// The positions the shading of the BLAS at `blas_address` reads now, copied back from
     /// its host-visible buffer (tests check them against the last pose or the mesh).
     pub fn shading_positions(&self, blas_address: u64) -> Option<Vec<[f32; 3]>> {
-        let slot = *self.by_address.get(&blas_address)?;
-        let e = self.blases.get(slot as usize)?.as_ref()?;
+        let key = *self.by_address.get(&blas_address)?;
+        let e = self.blases.get(key)?;
         let buffers = e
             .skinned
             .iter()
@@ -211,10 +194,9 @@ impl VulkanBackend {
     /// addresses, when it is `f32x3` 12 bytes apart with `u32` indices; in any other format or
     /// stride the answer is `None` (the engine shades from its own vertex data).
     pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
-        let slot = *self.by_address.get(&blas_address)?;
+        let key = *self.by_address.get(&blas_address)?;
         self.blases
-            .get(slot as usize)?
-            .as_ref()
+            .get(key)
             .filter(|e| e.shading_plain)
             .map(|e| e.shading)
     }
