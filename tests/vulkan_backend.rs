@@ -8,7 +8,9 @@ mod common;
 use std::sync::Arc;
 
 use glam::{Affine3A, Vec3};
-use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc, VulkanContext};
+use rtstream::as_manager::backend::vulkan::{
+    VulkanBackend, VulkanBackendDesc, VulkanContext, VulkanError,
+};
 use rtstream::as_manager::backend::AsBackend;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
@@ -368,7 +370,7 @@ fn streamed_camera_path_on_vulkan() {
 
 /// A TLAS handle names its slot and its frame: once the slot is reused for a later frame the
 /// old handle resolves to nothing (it used to return the newer TLAS), and so do its primitive
-/// bases.
+/// bases and the shading lookup through it.
 #[test]
 fn a_stale_tlas_handle_resolves_to_nothing() {
     let ctx = common::context();
@@ -392,24 +394,36 @@ fn a_stale_tlas_handle_resolves_to_nothing() {
     let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut handles = Vec::new();
     for frame in 0..6 {
-        let tlas = m
+        let out = m
             .update(FrameInput {
                 frame,
                 cameras: &cams,
             })
-            .unwrap()
-            .tlas;
-        handles.push(tlas);
+            .unwrap();
+        let (tlas, address) = (out.tlas, out.instances.first().map(|r| r.blas_address));
+        handles.push((tlas, address));
         // The current frame's handle resolves; every handle of a frame whose slot was reused
         // does not.
         assert!(m.backend().tlas(tlas).is_some(), "frame {frame}");
-        for (f, h) in handles.iter().enumerate() {
+        for (f, (h, address)) in handles.iter().enumerate() {
             let reused = (f as u64) + 2 <= frame;
             assert_eq!(
                 m.backend().tlas(*h).is_none(),
                 reused,
                 "frame {frame}: handle of frame {f}"
             );
+            // The shading lookup of that frame's records takes the same generation.
+            if let Some(a) = address {
+                let shading = m.backend().shading_geometry_in(*h, *a);
+                assert_eq!(
+                    matches!(shading, Err(VulkanError::StaleHandle { what: "TLAS", .. })),
+                    reused,
+                    "frame {frame}: shading lookup through frame {f}'s TLAS"
+                );
+                if f as u64 == frame {
+                    assert!(shading.unwrap().is_some(), "this frame's record is shaded");
+                }
+            }
             if reused {
                 assert_eq!(m.backend().primitive_bases(*h), 0);
             }

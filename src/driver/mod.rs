@@ -268,9 +268,9 @@ impl PolicyRun {
     )> {
         let backend = self.manager.backend();
         let raw = backend.tlas(self.tlas)?;
-        let shading = self
-            .bridge
-            .shading(&self.records, |addr| backend.shading_geometry(addr));
+        let shading = self.bridge.shading(&self.records, |addr| {
+            backend.shading_geometry_in(self.tlas, addr).ok().flatten()
+        });
         let desc = RenderDesc {
             primitive_bases: backend.primitive_bases(self.tlas),
             ..desc

@@ -21,6 +21,21 @@ impl VulkanBackend {
         self.slot_of(handle)?.tlas.as_ref().map(|t| t.raw)
     }
 
+    /// [`VulkanBackend::shading_geometry`] for a record of the TLAS `tlas`, with the TLAS
+    /// handle as the generation: [`VulkanError::StaleHandle`] once `tlas`'s slot was reused.
+    /// While `tlas` is current, every BLAS its records name is retained (freed BLASes are
+    /// destroyed only after the frames that may trace them), so no address in its records can
+    /// belong to a newer BLAS. `Ok(None)`: the BLAS is not shaded from these buffers (see
+    /// `shading_geometry`), or it was freed after `tlas` was built.
+    pub fn shading_geometry_in(
+        &self,
+        tlas: TlasHandle,
+        blas_address: u64,
+    ) -> VkResult<Option<(u64, u64)>> {
+        self.resolve_tlas(tlas)?;
+        Ok(self.shading_geometry(blas_address))
+    }
+
     /// The raw TLAS of `handle`, or [`VulkanError::StaleHandle`] once its slot was reused.
     pub fn resolve_tlas(&self, handle: TlasHandle) -> VkResult<vk::AccelerationStructureKHR> {
         self.tlas(handle).ok_or_else(|| VulkanError::StaleHandle {
