@@ -196,18 +196,31 @@ pub fn config() -> impl Strategy<Value = Config> {
         500_000u64..10_000_000,
     )
         .prop_map(|(r1, extra, create, release, min_life, prims, bytes)| {
-            let mut c = Config::default();
-            c.residency.r1 = r1;
-            c.residency.r2 = r1 + extra;
+            let mut c = shrunk_config(r1, r1 + extra);
             c.residency.create_threshold = create;
             c.residency.release_threshold = release;
             c.residency.min_resident_frames = min_life;
-            c.residency.cell_size = 32.0;
             c.build.max_primitives = prims;
-            c.build.max_gpu_ms = 5.0;
             c.memory.blas_bytes = bytes;
             c
         })
+}
+
+/// The configuration [`config`] draws from, at the values its cases shrink to: radii `r1` and
+/// `r2`, thresholds and minimum residency 0, 32 m cells, 1,000 triangles and 5 ms of builds a
+/// frame, a 500 KB BLAS budget (the regression tests found by the property tests).
+pub fn shrunk_config(r1: f32, r2: f32) -> Config {
+    let mut c = Config::default();
+    c.residency.r1 = r1;
+    c.residency.r2 = r2;
+    c.residency.create_threshold = 0;
+    c.residency.release_threshold = 0;
+    c.residency.min_resident_frames = 0;
+    c.residency.cell_size = 32.0;
+    c.build.max_primitives = 1000;
+    c.build.max_gpu_ms = 5.0;
+    c.memory.blas_bytes = 500_000;
+    c
 }
 
 pub struct Harness<B: Probe> {
