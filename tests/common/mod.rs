@@ -20,6 +20,18 @@ pub fn asset(rel: &str) -> std::path::PathBuf {
     p
 }
 
+/// A small world (`grid` x `grid` levels of the default map, `seed`) generated and baked into a
+/// fresh temporary directory `rtstream-<name>-<pid>`; returns the directory and the world's side
+/// in metres.
+pub fn baked_small(name: &str, grid: u32, seed: u64) -> (std::path::PathBuf, f32) {
+    use rtstream::streaming::{bake, generate, WorldPreset};
+    let dir = std::env::temp_dir().join(format!("rtstream-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let world = generate(&WorldPreset::small(grid, seed)).expect("generate");
+    bake(&world, &dir).expect("bake");
+    (dir, world.preset.size_m)
+}
+
 /// A context with the validation layer required (a missing layer fails the test).
 pub fn context() -> Arc<VulkanContext> {
     let _ = tracing_subscriber::fmt()
@@ -44,4 +56,72 @@ pub fn assert_no_validation_messages(ctx: &VulkanContext) {
         "validation messages:\n{}",
         log.messages().join("\n")
     );
+}
+
+/// A mesh's one level of detail: `geometry` itself, exact (geometric error 0).
+pub fn one_lod(
+    geometry: Arc<rtstream::as_manager::GeometryData>,
+) -> Vec<rtstream::as_manager::LodDesc> {
+    vec![rtstream::as_manager::LodDesc {
+        geometry: rtstream::as_manager::LodGeometry::Data(geometry),
+        geometric_error: 0.0,
+    }]
+}
+
+/// The grid walk both frame-path tests trace: 24 static grids (6 to 8 m, 12 to 16 cells; custom
+/// indices 0 to 23) in rows of `per_row`, 15 m apart from z = 10 m, and a skinned cloth (custom
+/// index 100) at (0, 2, 5). Returns the cloth's instance and its rest geometry.
+pub fn grid_rows_and_cloth<B: rtstream::as_manager::backend::AsBackend>(
+    m: &rtstream::as_manager::AsManager<B>,
+    per_row: u32,
+) -> (
+    rtstream::as_manager::InstanceId,
+    Arc<rtstream::as_manager::GeometryData>,
+) {
+    use glam::{Affine3A, Vec3};
+    use rtstream::as_manager::synth::grid_geometry;
+    use rtstream::as_manager::{InstanceDesc, MeshDesc, MeshKind};
+    for k in 0..24u32 {
+        let mesh = m
+            .register_mesh(MeshDesc::new(
+                format!("grid{k}"),
+                MeshKind::Static,
+                6.0,
+                one_lod(grid_geometry(12 + k % 5, 8.0)),
+            ))
+            .unwrap();
+        let p = Vec3::new(
+            (k % per_row) as f32 * 15.0,
+            0.0,
+            (k / per_row) as f32 * 15.0 + 10.0,
+        );
+        let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
+        d.custom_index = k;
+        m.add_instance(d).unwrap();
+    }
+    let base = grid_geometry(16, 5.0);
+    let cloth_mesh = m
+        .register_mesh(MeshDesc::new(
+            "cloth",
+            MeshKind::Skinned,
+            4.0,
+            one_lod(base.clone()),
+        ))
+        .unwrap();
+    let mut d = InstanceDesc::new(
+        cloth_mesh,
+        Affine3A::from_translation(Vec3::new(0.0, 2.0, 5.0)),
+    );
+    d.custom_index = 100;
+    (m.add_instance(d).unwrap(), base)
+}
+
+/// The cloth's pose at `frame`: a wave along x of half a metre.
+pub fn cloth_pose(base: &rtstream::as_manager::GeometryData, frame: u64) -> Arc<Vec<[f32; 3]>> {
+    Arc::new(
+        base.positions
+            .iter()
+            .map(|p| [p[0], (p[0] + frame as f32 * 0.3).sin() * 0.5, p[2]])
+            .collect(),
+    )
 }
