@@ -23,11 +23,11 @@ use std::sync::{Arc, Mutex};
 use ash::{ext, khr, vk};
 use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{
-    ash, DeviceFeatures, ExternalDevice, FrameCmd, VulkanBackend, VulkanBackendDesc, VulkanContext,
-    VulkanError, REQUIRED_DEVICE_EXTENSIONS,
+    ash, DeviceFeatures, ExternalDevice, FrameCmd, VulkanBackendDesc, VulkanContext, VulkanError,
+    REQUIRED_DEVICE_EXTENSIONS,
 };
 use rtstream::as_manager::backend::{BackendError, TlasHandle};
-use rtstream::as_manager::{AsError, AsManager, Config, FrameInput, InstanceId, Viewpoint};
+use rtstream::as_manager::{AsError, Config, FrameInput, Viewpoint};
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
 
 /// Validation warnings and errors the engine's messenger received.
@@ -380,11 +380,7 @@ impl Drop for Engine {
     }
 }
 
-struct Scene {
-    m: AsManager<VulkanBackend>,
-    cloth: InstanceId,
-    base: Arc<rtstream::as_manager::GeometryData>,
-}
+type Scene = common::GridWalk;
 
 /// 24 static grids in two rows of 165 m along the camera's walk and a skinned cloth (refitted every frame).
 fn scene(ctx: &Arc<VulkanContext>, frames_in_flight: u32) -> Scene {
@@ -392,7 +388,6 @@ fn scene(ctx: &Arc<VulkanContext>, frames_in_flight: u32) -> Scene {
 }
 
 fn scene_with(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> Scene {
-    let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
     let mut c = Config::default();
     c.residency.create_threshold = 1;
     c.residency.release_threshold = 2;
@@ -401,9 +396,7 @@ fn scene_with(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> Scene {
     c.residency.r2 = 50.0;
     c.build.min_compaction_saving = 0.0;
     c.build.max_primitives = 3_000;
-    let m = AsManager::new(c, backend).unwrap();
-    let (cloth, base) = common::grid_rows_and_cloth(&m, 12);
-    Scene { m, cloth, base }
+    Scene::new(ctx, desc, c, 12)
 }
 
 /// The camera of frame `frame`: along the rows at 2.5 m a frame, so BLASes are built ahead and
@@ -420,8 +413,7 @@ fn update(s: &mut Scene, frame: u64) -> Result<TlasHandle, AsError> {
 }
 
 fn update_at(s: &mut Scene, frame: u64, jump: f32) -> Result<TlasHandle, AsError> {
-    s.m.set_skinned_pose(s.cloth, common::cloth_pose(&s.base, frame))
-        .unwrap();
+    s.pose(frame);
     let cams = [camera(frame, jump)];
     s.m.update(FrameInput {
         frame,

@@ -9,18 +9,13 @@ mod common;
 use std::sync::Arc;
 
 use glam::Vec3;
-use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackend, VulkanBackendDesc};
+use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackendDesc};
 use rtstream::as_manager::backend::BackendError;
-use rtstream::as_manager::{AsError, AsManager, Config, FrameInput, InstanceId, Viewpoint};
+use rtstream::as_manager::{AsError, Config, FrameInput, Viewpoint};
 
-struct Scene {
-    m: AsManager<VulkanBackend>,
-    skinned: InstanceId,
-    base: Arc<rtstream::as_manager::GeometryData>,
-}
+type Scene = common::GridWalk;
 
 fn scene(ctx: &Arc<rtstream::as_manager::backend::vulkan::VulkanContext>) -> Scene {
-    let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()).unwrap();
     let mut c = Config::default();
     c.residency.create_threshold = 1;
     c.residency.r1 = 60.0;
@@ -29,15 +24,12 @@ fn scene(ctx: &Arc<rtstream::as_manager::backend::vulkan::VulkanContext>) -> Sce
     c.build.min_compaction_saving = 0.0;
     // A few builds a frame, so that every frame of the walk has GPU work.
     c.build.max_primitives = 3_000;
-    let m = AsManager::new(c, backend).unwrap();
-    let (skinned, base) = common::grid_rows_and_cloth(&m, 6);
-    Scene { m, skinned, base }
+    Scene::new(ctx, VulkanBackendDesc::default(), c, 6)
 }
 
 /// Frame `frame`: a new pose, a camera walking along the rows.
 fn update(s: &mut Scene, frame: u64) -> Result<usize, AsError> {
-    s.m.set_skinned_pose(s.skinned, common::cloth_pose(&s.base, frame))
-        .unwrap();
+    s.pose(frame);
     let cams = [Viewpoint::new(
         Vec3::new(frame as f32 * 0.8, 3.0, 0.0),
         Vec3::new(0.0, 0.0, 1.0),

@@ -13,6 +13,9 @@ use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::synth::{counts_chain, grid_geometry};
 use rtstream_as_manager::*;
 
+use rtstream_as_manager as rtm;
+mod harness;
+
 fn oscillate(config: Config, frames: u64) -> (u64, u64) {
     let r = config.residency.r1;
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
@@ -103,10 +106,7 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
             "cloth",
             MeshKind::Skinned,
             2.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(geo.clone()),
-                geometric_error: 0.0,
-            }],
+            harness::one_lod(geo.clone()),
         ))
         .unwrap();
     let id = m

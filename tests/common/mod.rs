@@ -4,7 +4,9 @@
 
 use std::sync::Arc;
 
-use rtstream::as_manager::backend::vulkan::{ContextDesc, Validation, VulkanContext};
+use rtstream::as_manager::backend::vulkan::{
+    ContextDesc, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
+};
 
 /// Debian's assimp-testmodels glTF 2 directory (the world generator's default too).
 pub const ASSETS: &str = rtstream::streaming::ASSIMP_GLTF2_DIR;
@@ -68,60 +70,73 @@ pub fn one_lod(
     }]
 }
 
-/// The grid walk both frame-path tests trace: 24 static grids (6 to 8 m, 12 to 16 cells; custom
-/// indices 0 to 23) in rows of `per_row`, 15 m apart from z = 10 m, and a skinned cloth (custom
-/// index 100) at (0, 2, 5). Returns the cloth's instance and its rest geometry.
-pub fn grid_rows_and_cloth<B: rtstream::as_manager::backend::AsBackend>(
-    m: &rtstream::as_manager::AsManager<B>,
-    per_row: u32,
-) -> (
-    rtstream::as_manager::InstanceId,
-    Arc<rtstream::as_manager::GeometryData>,
-) {
-    use glam::{Affine3A, Vec3};
-    use rtstream::as_manager::synth::grid_geometry;
-    use rtstream::as_manager::{InstanceDesc, MeshDesc, MeshKind};
-    for k in 0..24u32 {
-        let mesh = m
-            .register_mesh(MeshDesc::new(
-                format!("grid{k}"),
-                MeshKind::Static,
-                6.0,
-                one_lod(grid_geometry(12 + k % 5, 8.0)),
-            ))
-            .unwrap();
-        let p = Vec3::new(
-            (k % per_row) as f32 * 15.0,
-            0.0,
-            (k / per_row) as f32 * 15.0 + 10.0,
-        );
-        let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
-        d.custom_index = k;
-        m.add_instance(d).unwrap();
-    }
-    let base = grid_geometry(16, 5.0);
-    let cloth_mesh = m
-        .register_mesh(MeshDesc::new(
-            "cloth",
-            MeshKind::Skinned,
-            4.0,
-            one_lod(base.clone()),
-        ))
-        .unwrap();
-    let mut d = InstanceDesc::new(
-        cloth_mesh,
-        Affine3A::from_translation(Vec3::new(0.0, 2.0, 5.0)),
-    );
-    d.custom_index = 100;
-    (m.add_instance(d).unwrap(), base)
+/// The grid walk both frame-path tests trace, on a manager of their own configuration: 24
+/// static grids (6 to 8 m, 12 to 16 cells; custom indices 0 to 23) in rows of `per_row`, 15 m
+/// apart from z = 10 m, and a skinned cloth (custom index 100) at (0, 2, 5).
+pub struct GridWalk {
+    pub m: rtstream::as_manager::AsManager<VulkanBackend>,
+    /// The cloth's instance.
+    pub cloth: rtstream::as_manager::InstanceId,
+    /// The cloth's rest geometry.
+    pub base: Arc<rtstream::as_manager::GeometryData>,
 }
 
-/// The cloth's pose at `frame`: a wave along x of half a metre.
-pub fn cloth_pose(base: &rtstream::as_manager::GeometryData, frame: u64) -> Arc<Vec<[f32; 3]>> {
-    Arc::new(
-        base.positions
+impl GridWalk {
+    pub fn new(
+        ctx: &Arc<VulkanContext>,
+        desc: VulkanBackendDesc,
+        config: rtstream::as_manager::Config,
+        per_row: u32,
+    ) -> GridWalk {
+        use glam::{Affine3A, Vec3};
+        use rtstream::as_manager::synth::grid_geometry;
+        use rtstream::as_manager::{AsManager, InstanceDesc, MeshDesc, MeshKind};
+        let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
+        let m = AsManager::new(config, backend).unwrap();
+        for k in 0..24u32 {
+            let mesh = m
+                .register_mesh(MeshDesc::new(
+                    format!("grid{k}"),
+                    MeshKind::Static,
+                    6.0,
+                    one_lod(grid_geometry(12 + k % 5, 8.0)),
+                ))
+                .unwrap();
+            let p = Vec3::new(
+                (k % per_row) as f32 * 15.0,
+                0.0,
+                (k / per_row) as f32 * 15.0 + 10.0,
+            );
+            let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
+            d.custom_index = k;
+            m.add_instance(d).unwrap();
+        }
+        let base = grid_geometry(16, 5.0);
+        let cloth_mesh = m
+            .register_mesh(MeshDesc::new(
+                "cloth",
+                MeshKind::Skinned,
+                4.0,
+                one_lod(base.clone()),
+            ))
+            .unwrap();
+        let mut d = InstanceDesc::new(
+            cloth_mesh,
+            Affine3A::from_translation(Vec3::new(0.0, 2.0, 5.0)),
+        );
+        d.custom_index = 100;
+        let cloth = m.add_instance(d).unwrap();
+        GridWalk { m, cloth, base }
+    }
+
+    /// Sets the cloth's pose of frame `frame`: a wave along x of half a metre.
+    pub fn pose(&self, frame: u64) {
+        let pose: Vec<[f32; 3]> = self
+            .base
+            .positions
             .iter()
             .map(|p| [p[0], (p[0] + frame as f32 * 0.3).sin() * 0.5, p[2]])
-            .collect(),
-    )
+            .collect();
+        self.m.set_skinned_pose(self.cloth, Arc::new(pose)).unwrap();
+    }
 }

@@ -223,6 +223,14 @@ pub fn shrunk_config(r1: f32, r2: f32) -> Config {
     c
 }
 
+/// A mesh's one level of detail: `geometry` itself, exact (geometric error 0).
+pub fn one_lod(geometry: Arc<GeometryData>) -> Vec<LodDesc> {
+    vec![LodDesc {
+        geometry: LodGeometry::Data(geometry),
+        geometric_error: 0.0,
+    }]
+}
+
 pub struct Harness<B: Probe> {
     pub m: AsManager<B>,
     pub meshes: Vec<Option<MeshId>>,
@@ -257,10 +265,7 @@ impl<B: Probe> Harness<B> {
                     format!("skinned{i}"),
                     MeshKind::Skinned,
                     1.5,
-                    vec![LodDesc {
-                        geometry: LodGeometry::Data(grid_geometry(8, 2.0)),
-                        geometric_error: 0.0,
-                    }],
+                    one_lod(grid_geometry(8, 2.0)),
                 )
             } else {
                 MeshDesc::new(
@@ -375,6 +380,21 @@ impl<B: Probe> Harness<B> {
             prop_assert!(self.m.backend().blas_allocated() <= cfg.memory.blas_bytes);
         }
         prop_assert!(s.blas_bytes <= cfg.memory.blas_bytes || !settled);
+        Ok(())
+    }
+
+    /// The end of a sequence: disarms every fault, unregisters every mesh and runs four
+    /// frames; unless the device was lost, no BLAS and no byte of BLAS memory is left.
+    pub fn drain(&mut self) -> Result<(), TestCaseError> {
+        self.m.backend_mut().disarm();
+        for i in 0..self.meshes.len() {
+            self.apply(Op::Unregister { mesh: i })?;
+        }
+        self.apply(Op::Frames { n: 4 })?;
+        if !self.lost {
+            prop_assert_eq!(self.m.backend().live_blases(), 0);
+            prop_assert_eq!(self.m.memory_in_use(), 0);
+        }
         Ok(())
     }
 
