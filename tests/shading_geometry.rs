@@ -127,6 +127,19 @@ fn agreement(
     (n, same_prim, same_normal)
 }
 
+/// More than 97 % of the `n` hit pixels report the reference's triangle (`same_prim`, failing
+/// with "`same_prim`/`n` `prim_what`") and shade with its normal (`same_normal`).
+fn assert_most_agree(n: usize, same_prim: usize, same_normal: usize, prim_what: &str) {
+    assert!(
+        same_prim as f64 > 0.97 * n as f64,
+        "{same_prim}/{n} {prim_what}"
+    );
+    assert!(
+        same_normal as f64 > 0.97 * n as f64,
+        "{same_normal}/{n} pixels shade with the right normal"
+    );
+}
+
 #[test]
 fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
     let ctx = common::context();
@@ -198,14 +211,7 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
         )
     });
     assert!(n > 1000, "both cloths fill the view ({n} pixels)");
-    assert!(
-        same_prim as f64 > 0.97 * n as f64,
-        "{same_prim}/{n} same triangle"
-    );
-    assert!(
-        same_normal as f64 > 0.97 * n as f64,
-        "{same_normal}/{n} pixels shade with the right normal"
-    );
+    assert_most_agree(n, same_prim, same_normal, "same triangle");
     drop(renderer);
     drop(m);
     common::assert_no_validation_messages(&ctx);
@@ -273,13 +279,11 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
          {same_normal}/{n} shade with its normal (CPU reference)"
     );
     assert!(n > total / 3, "the grid fills the view ({n} pixels)");
-    assert!(
-        same_prim as f64 > 0.97 * n as f64,
-        "{same_prim}/{n} pixels report the mesh's triangle"
-    );
-    assert!(
-        same_normal as f64 > 0.97 * n as f64,
-        "{same_normal}/{n} pixels shade with the right normal"
+    assert_most_agree(
+        n,
+        same_prim,
+        same_normal,
+        "pixels report the mesh's triangle",
     );
     drop(renderer);
     drop(m);
