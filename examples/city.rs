@@ -16,10 +16,7 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use std::sync::Arc;
-
 use clap::Parser;
-use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
 use rtstream::as_manager::{CullMode, PolicyKind};
 use rtstream::driver::RunConfig;
 use rtstream::streaming::WorldPreset;
@@ -91,10 +88,7 @@ fn main() -> anyhow::Result<()> {
             (format!("cull {name}"), c)
         })
         .collect();
-    let ctx = Arc::new(VulkanContext::new(&ContextDesc {
-        validation: base.validation,
-        ..ContextDesc::default()
-    })?);
+    let ctx = sweep::context(&base)?;
     let world = rtstream::driver::prepare_world(&base.preset, &base.world_dir)?;
     let instances = world.instance_count();
     eprintln!(
@@ -105,14 +99,9 @@ fn main() -> anyhow::Result<()> {
     let mut out = Vec::new();
     for ((name, _), r) in modes.iter().zip(&reports) {
         let p = &r.summary.policies[0];
-        let rows: Vec<_> = r.rows.iter().filter(|x| x.policy == "managed").collect();
-        let n = rows.len().max(1) as f64;
-        let tlas = rows
-            .iter()
-            .map(|x| f64::from(x.tlas_instances))
-            .sum::<f64>()
-            / n;
-        let culled = rows.iter().map(|x| f64::from(x.culled)).sum::<f64>() / n;
+        let rows = cli::managed_rows(&r.rows);
+        let tlas = cli::mean(&rows, |x| f64::from(x.tlas_instances));
+        let culled = cli::mean(&rows, |x| f64::from(x.culled));
         out.push(Mode {
             cull: (*name).into(),
             tlas_instances_mean: tlas,

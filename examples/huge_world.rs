@@ -280,10 +280,8 @@ fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<
     .with_context(|| format!("streaming {}", c.preset.name))?;
     bar.finish_and_clear();
     let p = &report.summary.policies[0];
-    let times = report
-        .rows
-        .iter()
-        .filter(|r| r.policy == "managed")
+    let times = cli::managed_rows(&report.rows)
+        .into_iter()
         .map(|r| r.update_ms);
     let later: Vec<&Sample> = samples.iter().skip(samples.len() / 10).collect();
     let rss_min = later

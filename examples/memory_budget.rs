@@ -16,10 +16,7 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use std::sync::Arc;
-
 use clap::Parser;
-use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
 use rtstream::as_manager::PolicyKind;
 use rtstream::driver::RunConfig;
 use serde::Serialize;
@@ -86,16 +83,12 @@ fn main() -> anyhow::Result<()> {
             (b.map_or("no budget".into(), |mb| format!("{mb} MB")), c)
         })
         .collect();
-    let ctx = Arc::new(VulkanContext::new(&ContextDesc {
-        validation: base.validation,
-        ..ContextDesc::default()
-    })?);
+    let ctx = sweep::context(&base)?;
     let reports = sweep::run_points(&ctx, &points, cli.output.quiet)?;
     let mut out = Vec::new();
     for (b, r) in budgets.iter().zip(&reports) {
         let p = &r.summary.policies[0];
-        let rows: Vec<_> = r.rows.iter().filter(|x| x.policy == "managed").collect();
-        let n = rows.len().max(1) as f64;
+        let rows = cli::managed_rows(&r.rows);
         out.push(Point {
             budget_mb: *b,
             peak_blas_mb: p.peak_blas_bytes as f64 / (1 << 20) as f64,
@@ -103,16 +96,8 @@ fn main() -> anyhow::Result<()> {
             evictions: rows.iter().map(|x| u64::from(x.evictions)).sum(),
             lod_fallback_frames: rows.iter().filter(|x| x.lod_fallbacks > 0).count(),
             memory_refused_frames: rows.iter().filter(|x| x.memory_refused > 0).count(),
-            short_of_target_mean: rows
-                .iter()
-                .map(|x| f64::from(x.short_of_target))
-                .sum::<f64>()
-                / n,
-            tlas_instances_mean: rows
-                .iter()
-                .map(|x| f64::from(x.tlas_instances))
-                .sum::<f64>()
-                / n,
+            short_of_target_mean: cli::mean(&rows, |x| f64::from(x.short_of_target)),
+            tlas_instances_mean: cli::mean(&rows, |x| f64::from(x.tlas_instances)),
             hit_mismatch_mean: p.hit_mismatch_mean,
             shadow_mismatch_mean: p.shadow_mismatch_mean,
             validation_messages: p.validation_messages,

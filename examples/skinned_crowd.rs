@@ -100,11 +100,7 @@ fn main() -> anyhow::Result<()> {
     let report = driver::run(&config, &mut progress).context("skinned crowd run")?;
     bar.finish_and_clear();
 
-    let rows: Vec<&FrameRow> = report
-        .rows
-        .iter()
-        .filter(|r| r.policy == "managed")
-        .collect();
+    let rows = cli::managed_rows(&report.rows);
     let p = &report.summary.policies[0];
     let summary = Summary {
         device: p.backend.clone(),
@@ -159,9 +155,7 @@ fn main() -> anyhow::Result<()> {
         summary.validation_messages
     );
     std::fs::create_dir_all(&cli.run.out)?;
-    let per_frame = |f: fn(&FrameRow) -> f64| -> Vec<(f64, f64)> {
-        rows.iter().map(|r| (r.frame as f64, f(r))).collect()
-    };
+    let per_frame = |f: fn(&FrameRow) -> f64| cli::per_frame(&rows, f);
     let mut files = charts::lines(
         &cli.run.out.join("refits"),
         "Skinned crowd: refits and rebuilds per frame",

@@ -81,11 +81,7 @@ fn main() -> anyhow::Result<()> {
     let report = driver::run(&config, &mut progress).context("teleport storm run")?;
     bar.finish_and_clear();
 
-    let rows: Vec<&FrameRow> = report
-        .rows
-        .iter()
-        .filter(|r| r.policy == "managed")
-        .collect();
+    let rows = cli::managed_rows(&report.rows);
     let coverage = driver::frames_to_coverage(&report.rows, "managed", cli.every);
     let teleports: Vec<Teleport> = rows
         .chunks(cli.every as usize)
@@ -121,9 +117,7 @@ fn main() -> anyhow::Result<()> {
     };
     print_table(&summary);
     std::fs::create_dir_all(&cli.run.out)?;
-    let per_frame = |f: fn(&FrameRow) -> f64| -> Vec<(f64, f64)> {
-        rows.iter().map(|r| (r.frame as f64, f(r))).collect()
-    };
+    let per_frame = |f: fn(&FrameRow) -> f64| cli::per_frame(&rows, f);
     let mut files = charts::lines(
         &cli.run.out.join("build_work"),
         &format!("Teleport every {} frames: build work per frame", cli.every),

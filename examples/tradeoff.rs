@@ -78,15 +78,15 @@ fn points(knob: Knob) -> Vec<Point> {
     fn p(v: String, f: impl Fn(&mut Config) + 'static) -> Point {
         (v, Box::new(f))
     }
-    match knob {
-        Knob::Angle => [0.0f32, 0.25, 0.5, 1.0, 2.0, 4.0]
+    /// The angle knobs' points: 0 to 4 degrees, set in radians by `set`.
+    fn angles(set: fn(&mut Config, f32)) -> Vec<Point> {
+        [0.0f32, 0.25, 0.5, 1.0, 2.0, 4.0]
             .into_iter()
-            .map(|a| {
-                p(format!("{a}deg"), move |c| {
-                    c.cull.min_angle = a.to_radians()
-                })
-            })
-            .collect(),
+            .map(|a| p(format!("{a}deg"), move |c| set(c, a.to_radians())))
+            .collect()
+    }
+    match knob {
+        Knob::Angle => angles(|c, a| c.cull.min_angle = a),
         Knob::Distance => [100.0f32, 150.0, 200.0, 250.0, 300.0]
             .into_iter()
             .map(|d| p(format!("{d}m"), move |c| c.cull.far_distance = d))
@@ -121,14 +121,7 @@ fn points(knob: Knob) -> Vec<Point> {
             v.push(p("off".into(), |c| c.far_field.enabled = false));
             v
         }
-        Knob::Keep => [0.0f32, 0.25, 0.5, 1.0, 2.0, 4.0]
-            .into_iter()
-            .map(|a| {
-                p(format!("{a}deg"), move |c| {
-                    c.far_field.keep_angle = a.to_radians()
-                })
-            })
-            .collect(),
+        Knob::Keep => angles(|c, a| c.far_field.keep_angle = a),
     }
 }
 

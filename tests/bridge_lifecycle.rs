@@ -61,12 +61,18 @@ fn frame(m: &mut AsManager<ModelBackend>, f: u64) {
     .unwrap();
 }
 
-#[test]
-fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
+/// A manager on a model backend that requires every BLAS's geometry, and a bridge without a
+/// manifest.
+fn manager_and_bridge() -> (AsManager<ModelBackend>, WorldBridge) {
     let mut backend = ModelBackend::lavapipe();
     backend.require_geometry = true;
-    let mut m = AsManager::new(Config::default(), backend).unwrap();
-    let mut bridge = WorldBridge::new(None);
+    let m = AsManager::new(Config::default(), backend).unwrap();
+    (m, WorldBridge::new(None))
+}
+
+#[test]
+fn lods_are_shared_guesses_are_replaced_and_unused_meshes_leave() {
+    let (mut m, mut bridge) = manager_and_bridge();
     let (g0, g2) = (grid(32), grid(4));
 
     // The coarsest LOD arrives first: LOD 0 and 1 are guessed from it.
@@ -163,10 +169,7 @@ fn lods_of(m: &AsManager<ModelBackend>, bridge: &WorldBridge) -> Vec<(u32, f32)>
 #[test]
 fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
     use rtstream::streaming::{ProxyId, ProxyNode, ProxyTree};
-    let mut backend = ModelBackend::lavapipe();
-    backend.require_geometry = true;
-    let mut m = AsManager::new(Config::default(), backend).unwrap();
-    let mut bridge = WorldBridge::new(None);
+    let (mut m, mut bridge) = manager_and_bridge();
     let g = grid(8);
     let bounds = Aabb::from_points(&g.positions);
     let tree = ProxyTree {

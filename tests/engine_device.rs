@@ -21,17 +21,13 @@ use std::ffi::{c_void, CStr, CString};
 use std::sync::{Arc, Mutex};
 
 use ash::{ext, khr, vk};
-use glam::{Affine3A, Vec3};
+use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{
-    ash, DeviceFeatures, ExternalDevice, FrameCmd, VulkanBackend, VulkanBackendDesc, VulkanContext,
-    VulkanError, REQUIRED_DEVICE_EXTENSIONS,
+    ash, DeviceFeatures, ExternalDevice, FrameCmd, VulkanBackendDesc, VulkanContext, VulkanError,
+    REQUIRED_DEVICE_EXTENSIONS,
 };
 use rtstream::as_manager::backend::{BackendError, TlasHandle};
-use rtstream::as_manager::synth::grid_geometry;
-use rtstream::as_manager::{
-    AsError, AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry,
-    MeshDesc, MeshKind, Viewpoint,
-};
+use rtstream::as_manager::{AsError, Config, FrameInput, Viewpoint};
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
 
 /// Validation warnings and errors the engine's messenger received.
@@ -339,6 +335,27 @@ impl Engine {
     fn messages(&self) -> Vec<String> {
         MESSAGES.lock().unwrap().clone()
     }
+
+    /// Fails the test if the engine's messenger received a validation message.
+    fn assert_no_messages(&self) {
+        let messages = self.messages();
+        assert!(
+            messages.is_empty(),
+            "validation messages:\n{}",
+            messages.join("\n")
+        );
+    }
+}
+
+/// An engine with everything rtstream needs.
+fn full_engine(frames_in_flight: u32) -> Engine {
+    Engine::new(
+        EngineSetup {
+            ray_query: true,
+            acceleration_structure: true,
+        },
+        frames_in_flight,
+    )
 }
 
 impl Drop for Engine {
@@ -363,11 +380,7 @@ impl Drop for Engine {
     }
 }
 
-struct Scene {
-    m: AsManager<VulkanBackend>,
-    cloth: InstanceId,
-    base: Arc<rtstream::as_manager::GeometryData>,
-}
+type Scene = common::GridWalk;
 
 /// 24 static grids in two rows of 165 m along the camera's walk and a skinned cloth (refitted every frame).
 fn scene(ctx: &Arc<VulkanContext>, frames_in_flight: u32) -> Scene {
@@ -375,7 +388,6 @@ fn scene(ctx: &Arc<VulkanContext>, frames_in_flight: u32) -> Scene {
 }
 
 fn scene_with(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> Scene {
-    let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
     let mut c = Config::default();
     c.residency.create_threshold = 1;
     c.residency.release_threshold = 2;
@@ -384,43 +396,7 @@ fn scene_with(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> Scene {
     c.residency.r2 = 50.0;
     c.build.min_compaction_saving = 0.0;
     c.build.max_primitives = 3_000;
-    let m = AsManager::new(c, backend).unwrap();
-    for k in 0..24u32 {
-        let mesh = m
-            .register_mesh(MeshDesc::new(
-                format!("grid{k}"),
-                MeshKind::Static,
-                6.0,
-                vec![LodDesc {
-                    geometry: LodGeometry::Data(grid_geometry(12 + k % 5, 8.0)),
-                    geometric_error: 0.0,
-                }],
-            ))
-            .unwrap();
-        let p = Vec3::new((k % 12) as f32 * 15.0, 0.0, (k / 12) as f32 * 15.0 + 10.0);
-        let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
-        d.custom_index = k;
-        m.add_instance(d).unwrap();
-    }
-    let base = grid_geometry(16, 5.0);
-    let cloth_mesh = m
-        .register_mesh(MeshDesc::new(
-            "cloth",
-            MeshKind::Skinned,
-            4.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(base.clone()),
-                geometric_error: 0.0,
-            }],
-        ))
-        .unwrap();
-    let mut d = InstanceDesc::new(
-        cloth_mesh,
-        Affine3A::from_translation(Vec3::new(0.0, 2.0, 5.0)),
-    );
-    d.custom_index = 100;
-    let cloth = m.add_instance(d).unwrap();
-    Scene { m, cloth, base }
+    Scene::new(ctx, desc, c, 12)
 }
 
 /// The camera of frame `frame`: along the rows at 2.5 m a frame, so BLASes are built ahead and
@@ -437,13 +413,7 @@ fn update(s: &mut Scene, frame: u64) -> Result<TlasHandle, AsError> {
 }
 
 fn update_at(s: &mut Scene, frame: u64, jump: f32) -> Result<TlasHandle, AsError> {
-    let pose: Vec<[f32; 3]> = s
-        .base
-        .positions
-        .iter()
-        .map(|p| [p[0], (p[0] + frame as f32 * 0.3).sin() * 0.5, p[2]])
-        .collect();
-    s.m.set_skinned_pose(s.cloth, Arc::new(pose)).unwrap();
+    s.pose(frame);
     let cams = [camera(frame, jump)];
     s.m.update(FrameInput {
         frame,
@@ -461,19 +431,54 @@ fn render_desc(frame: u64) -> RenderDesc {
     )
 }
 
+/// Retires the frames the engine finished and takes the rendered frames that are ready.
+fn retire_completed(
+    engine: &Engine,
+    s: &mut Scene,
+    renderer: &mut Renderer,
+    images: &mut Vec<rtstream::renderer::Frame>,
+) {
+    if let Some(done) = engine.completed() {
+        s.m.backend_mut().frame_done(done);
+        while let Some(f) = renderer.take(images.len() as u64, Some(done)).unwrap() {
+            images.push(f);
+        }
+    }
+}
+
+/// Records frame `frame`'s work into the engine's command buffer: the manager's, then the
+/// renderer's passes over `tlas`.
+fn record_frame(
+    engine: &Engine,
+    s: &mut Scene,
+    renderer: &mut Renderer,
+    tlas: vk::AccelerationStructureKHR,
+    frame: u64,
+) -> FrameCmd {
+    let cmd = engine.begin(frame);
+    s.m.backend_mut().record(&cmd).unwrap();
+    renderer
+        .record(&cmd, tlas, &[], &render_desc(frame))
+        .unwrap();
+    cmd
+}
+
+/// The BLAS address in the cloth's TLAS instance record (customIndex 100, the low 24 bits after
+/// the 3x4 transform), if the cloth is in `records`.
+fn cloth_address(records: &[u8]) -> Option<u64> {
+    records
+        .chunks_exact(64)
+        .find(|r| u32::from_le_bytes(r[48..52].try_into().unwrap()) & 0xff_ffff == 100)
+        .map(|r| u64::from_le_bytes(r[56..64].try_into().unwrap()))
+}
+
 /// Three frames in flight in the engine's own command buffers, rendered, and the recorded
 /// frames equal to the blocking renderer's images of the same TLAS.
 #[test]
 fn an_engine_device_records_rtstream_into_its_own_frames() {
     const IN_FLIGHT: u32 = 3;
     const FRAMES: u64 = 40;
-    let engine = Engine::new(
-        EngineSetup {
-            ray_query: true,
-            acceleration_structure: true,
-        },
-        IN_FLIGHT,
-    );
+    let engine = full_engine(IN_FLIGHT);
     let ctx = Arc::new(VulkanContext::from_external(engine.handover()).expect("engine device"));
     assert!(ctx.is_external());
     let mut s = scene(&ctx, IN_FLIGHT);
@@ -485,31 +490,16 @@ fn an_engine_device_records_rtstream_into_its_own_frames() {
         if frame >= u64::from(IN_FLIGHT) {
             engine.wait(frame - u64::from(IN_FLIGHT));
         }
-        if let Some(done) = engine.completed() {
-            s.m.backend_mut().frame_done(done);
-            while let Some(f) = renderer.take(images.len() as u64, Some(done)).unwrap() {
-                images.push(f);
-            }
-        }
+        retire_completed(&engine, &mut s, &mut renderer, &mut images);
         let handle = update(&mut s, frame).unwrap();
         last = Some(handle);
         let tlas = s.m.backend().resolve_tlas(handle).unwrap();
-        let cmd = engine.begin(frame);
-        s.m.backend_mut().record(&cmd).unwrap();
-        renderer
-            .record(&cmd, tlas, &[], &render_desc(frame))
-            .unwrap();
+        let cmd = record_frame(&engine, &mut s, &mut renderer, tlas, frame);
         engine.submit(cmd, false);
         max_in_flight = max_in_flight.max(frame + 1 - engine.completed().map_or(0, |c| c + 1));
     }
     engine.wait(FRAMES - 1);
-    s.m.backend_mut().frame_done(FRAMES - 1);
-    while let Some(f) = renderer
-        .take(images.len() as u64, Some(FRAMES - 1))
-        .unwrap()
-    {
-        images.push(f);
-    }
+    retire_completed(&engine, &mut s, &mut renderer, &mut images);
     assert_eq!(
         images.len() as u64,
         FRAMES,
@@ -546,12 +536,7 @@ fn an_engine_device_records_rtstream_into_its_own_frames() {
     drop(renderer);
     drop(s);
     drop(ctx);
-    let messages = engine.messages();
-    assert!(
-        messages.is_empty(),
-        "validation messages:\n{}",
-        messages.join("\n")
-    );
+    engine.assert_no_messages();
 }
 
 /// What frame N references: its TLAS handle, its instance records, the BLAS addresses they
@@ -564,13 +549,7 @@ type Held = (TlasHandle, Vec<u8>, Vec<u64>, u64, Vec<u8>);
 #[test]
 fn a_frame_held_back_on_the_gpu_keeps_what_it_references() {
     const IN_FLIGHT: u32 = 4;
-    let engine = Engine::new(
-        EngineSetup {
-            ray_query: true,
-            acceleration_structure: true,
-        },
-        IN_FLIGHT,
-    );
+    let engine = full_engine(IN_FLIGHT);
     let ctx = Arc::new(VulkanContext::from_external(engine.handover()).unwrap());
     let mut s = scene(&ctx, IN_FLIGHT);
     let mut renderer = Renderer::new(ctx.clone()).unwrap();
@@ -590,11 +569,7 @@ fn a_frame_held_back_on_the_gpu_keeps_what_it_references() {
         let jump = if frame > held { 100.0 } else { 0.0 };
         let handle = update_at(&mut s, frame, jump).unwrap();
         let tlas = s.m.backend().resolve_tlas(handle).unwrap();
-        let cmd = engine.begin(frame);
-        s.m.backend_mut().record(&cmd).unwrap();
-        renderer
-            .record(&cmd, tlas, &[], &render_desc(frame))
-            .unwrap();
+        let cmd = record_frame(&engine, &mut s, &mut renderer, tlas, frame);
         if frame == held {
             // What frame N references, before anything later runs.
             let b = s.m.backend();
@@ -604,13 +579,8 @@ fn a_frame_held_back_on_the_gpu_keeps_what_it_references() {
                 .map(|r| u64::from_le_bytes(r[56..64].try_into().unwrap()))
                 .collect();
             assert!(addresses.len() > 5, "frame N traces a scene");
-            // The cloth's record (customIndex 100, the low 24 bits after the 3x4 transform).
-            let cloth_address = records
-                .chunks_exact(64)
-                .find(|r| u32::from_le_bytes(r[48..52].try_into().unwrap()) & 0xff_ffff == 100)
-                .map(|r| u64::from_le_bytes(r[56..64].try_into().unwrap()))
-                .expect("the cloth is in frame N");
-            let (pose_address, _) = b.shading_geometry(cloth_address).unwrap();
+            let cloth_blas = cloth_address(&records).expect("the cloth is in frame N");
+            let (pose_address, _) = b.shading_geometry(cloth_blas).unwrap();
             let pose = b.input_buffer_bytes(pose_address).unwrap();
             engine.submit(cmd, true);
             held_state = Some((handle, records, addresses, pose_address, pose));
@@ -678,12 +648,7 @@ fn a_frame_held_back_on_the_gpu_keeps_what_it_references() {
     drop(renderer);
     drop(s);
     drop(ctx);
-    let messages = engine.messages();
-    assert!(
-        messages.is_empty(),
-        "validation messages:\n{}",
-        messages.join("\n")
-    );
+    engine.assert_no_messages();
 }
 
 /// A device without acceleration structures or ray queries: a typed error naming each.
@@ -731,13 +696,7 @@ fn separate_refit_targets_rotate_and_render_the_same() {
     const IN_FLIGHT: u32 = 3;
     const FRAMES: u64 = 16;
     let run = |separate: bool| {
-        let engine = Engine::new(
-            EngineSetup {
-                ray_query: true,
-                acceleration_structure: true,
-            },
-            IN_FLIGHT,
-        );
+        let engine = full_engine(IN_FLIGHT);
         let ctx = Arc::new(VulkanContext::from_external(engine.handover()).unwrap());
         let mut s = scene_with(
             &ctx,
@@ -752,19 +711,11 @@ fn separate_refit_targets_rotate_and_render_the_same() {
             if frame >= u64::from(IN_FLIGHT) {
                 engine.wait(frame - u64::from(IN_FLIGHT));
             }
-            if let Some(done) = engine.completed() {
-                s.m.backend_mut().frame_done(done);
-                while let Some(f) = renderer.take(images.len() as u64, Some(done)).unwrap() {
-                    images.push(f);
-                }
-            }
+            retire_completed(&engine, &mut s, &mut renderer, &mut images);
             let handle = update(&mut s, frame).unwrap();
             let b = s.m.backend();
             let records = b.tlas_instance_bytes(handle).unwrap();
-            let address = records
-                .chunks_exact(64)
-                .find(|r| u32::from_le_bytes(r[48..52].try_into().unwrap()) & 0xff_ffff == 100)
-                .map(|r| u64::from_le_bytes(r[56..64].try_into().unwrap()));
+            let address = cloth_address(&records);
             if let Some(a) = address {
                 // Every cloth structure a frame still in flight may trace exists.
                 let done = engine.completed();
@@ -780,32 +731,17 @@ fn separate_refit_targets_rotate_and_render_the_same() {
                 cloth.push((frame, a));
             }
             let tlas = b.resolve_tlas(handle).unwrap();
-            let cmd = engine.begin(frame);
-            s.m.backend_mut().record(&cmd).unwrap();
-            renderer
-                .record(&cmd, tlas, &[], &render_desc(frame))
-                .unwrap();
+            let cmd = record_frame(&engine, &mut s, &mut renderer, tlas, frame);
             engine.submit(cmd, false);
         }
         engine.wait(FRAMES - 1);
-        s.m.backend_mut().frame_done(FRAMES - 1);
-        while let Some(f) = renderer
-            .take(images.len() as u64, Some(FRAMES - 1))
-            .unwrap()
-        {
-            images.push(f);
-        }
+        retire_completed(&engine, &mut s, &mut renderer, &mut images);
         let storage = s.m.backend().blas_storage_bytes();
         let accounted = s.m.stats().blas_bytes;
         drop(renderer);
         drop(s);
         drop(ctx);
-        let messages = engine.messages();
-        assert!(
-            messages.is_empty(),
-            "validation messages:\n{}",
-            messages.join("\n")
-        );
+        engine.assert_no_messages();
         (images, cloth, storage, accounted)
     };
     let (in_place, cloth_a, _, _) = run(false);

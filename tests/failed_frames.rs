@@ -8,23 +8,14 @@ mod common;
 
 use std::sync::Arc;
 
-use glam::{Affine3A, Vec3};
-use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackend, VulkanBackendDesc};
+use glam::Vec3;
+use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackendDesc};
 use rtstream::as_manager::backend::BackendError;
-use rtstream::as_manager::synth::grid_geometry;
-use rtstream::as_manager::{
-    AsError, AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry,
-    MeshDesc, MeshKind, Viewpoint,
-};
+use rtstream::as_manager::{AsError, Config, FrameInput, Viewpoint};
 
-struct Scene {
-    m: AsManager<VulkanBackend>,
-    skinned: InstanceId,
-    base: Arc<rtstream::as_manager::GeometryData>,
-}
+type Scene = common::GridWalk;
 
 fn scene(ctx: &Arc<rtstream::as_manager::backend::vulkan::VulkanContext>) -> Scene {
-    let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()).unwrap();
     let mut c = Config::default();
     c.residency.create_threshold = 1;
     c.residency.r1 = 60.0;
@@ -33,51 +24,12 @@ fn scene(ctx: &Arc<rtstream::as_manager::backend::vulkan::VulkanContext>) -> Sce
     c.build.min_compaction_saving = 0.0;
     // A few builds a frame, so that every frame of the walk has GPU work.
     c.build.max_primitives = 3_000;
-    let m = AsManager::new(c, backend).unwrap();
-    for k in 0..24u32 {
-        let mesh = m
-            .register_mesh(MeshDesc::new(
-                format!("grid{k}"),
-                MeshKind::Static,
-                6.0,
-                vec![LodDesc {
-                    geometry: LodGeometry::Data(grid_geometry(12 + k % 5, 8.0)),
-                    geometric_error: 0.0,
-                }],
-            ))
-            .unwrap();
-        let p = Vec3::new((k % 6) as f32 * 15.0, 0.0, (k / 6) as f32 * 15.0 + 10.0);
-        let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
-        d.custom_index = k;
-        m.add_instance(d).unwrap();
-    }
-    let base = grid_geometry(16, 5.0);
-    let cloth = m
-        .register_mesh(MeshDesc::new(
-            "cloth",
-            MeshKind::Skinned,
-            4.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(base.clone()),
-                geometric_error: 0.0,
-            }],
-        ))
-        .unwrap();
-    let mut d = InstanceDesc::new(cloth, Affine3A::from_translation(Vec3::new(0.0, 2.0, 5.0)));
-    d.custom_index = 100;
-    let skinned = m.add_instance(d).unwrap();
-    Scene { m, skinned, base }
+    Scene::new(ctx, VulkanBackendDesc::default(), c, 6)
 }
 
 /// Frame `frame`: a new pose, a camera walking along the rows.
 fn update(s: &mut Scene, frame: u64) -> Result<usize, AsError> {
-    let pose: Vec<[f32; 3]> = s
-        .base
-        .positions
-        .iter()
-        .map(|p| [p[0], (p[0] + frame as f32 * 0.3).sin() * 0.5, p[2]])
-        .collect();
-    s.m.set_skinned_pose(s.skinned, Arc::new(pose)).unwrap();
+    s.pose(frame);
     let cams = [Viewpoint::new(
         Vec3::new(frame as f32 * 0.8, 3.0, 0.0),
         Vec3::new(0.0, 0.0, 1.0),

@@ -12,6 +12,15 @@ use rtstream::as_manager::backend::vulkan::{
 use rtstream::as_manager::backend::BlasClass;
 use rtstream::as_manager::synth::grid_geometry;
 
+/// Fails the test unless `result` is the failure injected at `step`.
+fn assert_injected<T>(step: &str, result: Result<T, VulkanError>) {
+    match result {
+        Err(VulkanError::Injected { at }) => assert_eq!(at, step),
+        Err(e) => panic!("{step}: unexpected error {e}"),
+        Ok(_) => panic!("{step}: the injected failure did not strike"),
+    }
+}
+
 #[test]
 fn every_failed_creation_frees_what_it_made() {
     let before = live_vulkan_handles();
@@ -22,11 +31,7 @@ fn every_failed_creation_frees_what_it_made() {
             require_ray_query: true,
             fail_at: Some(step),
         };
-        match VulkanContext::new(&desc) {
-            Err(VulkanError::Injected { at }) => assert_eq!(at, step),
-            Err(e) => panic!("{step}: unexpected error {e}"),
-            Ok(_) => panic!("{step}: the injected failure did not strike"),
-        }
+        assert_injected(step, VulkanContext::new(&desc));
         assert_eq!(
             live_vulkan_handles(),
             before,
@@ -44,11 +49,10 @@ fn every_failed_creation_frees_what_it_made() {
         "query_pool",
     ] {
         ctx.inject_failure(step);
-        match VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()) {
-            Err(VulkanError::Injected { at }) => assert_eq!(at, step),
-            Err(e) => panic!("{step}: unexpected error {e}"),
-            Ok(_) => panic!("{step}: the injected failure did not strike"),
-        }
+        assert_injected(
+            step,
+            VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()),
+        );
         assert_eq!(
             live_vulkan_handles(),
             with_ctx,

@@ -11,13 +11,12 @@ mod common;
 use std::sync::Arc;
 
 use glam::{Affine3A, Mat4, Vec3};
-use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc};
+use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc, VulkanContext};
 use rtstream::as_manager::backend::TlasHandle;
 use rtstream::as_manager::record::TlasInstance;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
-    AsManager, Config, FrameInput, GeometryData, InstanceDesc, LodDesc, LodGeometry, MeshDesc,
-    MeshKind, Viewpoint,
+    AsManager, Config, FrameInput, GeometryData, InstanceDesc, MeshDesc, MeshKind, Viewpoint,
 };
 use rtstream::renderer::reference::ReferenceScene;
 use rtstream::renderer::{Camera, Frame, InstanceShading, RenderDesc, Renderer};
@@ -44,6 +43,29 @@ fn bumpy(n: u32, size: f32, phase: f32) -> Arc<GeometryData> {
 fn face_normal(pos: &[[f32; 3]], idx: &[u32], prim: u32, m: Mat4) -> Vec3 {
     let v = |k: usize| m.transform_point3(Vec3::from(pos[idx[3 * prim as usize + k] as usize]));
     (v(1) - v(0)).cross(v(2) - v(0)).normalize()
+}
+
+/// A manager on a Vulkan backend (`desc`) that builds what it sees from the first frame.
+fn manager(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> AsManager<VulkanBackend> {
+    let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
+    let mut config = Config::default();
+    config.residency.create_threshold = 1;
+    AsManager::new(config, backend).unwrap()
+}
+
+/// Frame `frame` seen from `cams`: its TLAS and instance records.
+fn update(
+    m: &mut AsManager<VulkanBackend>,
+    frame: u64,
+    cams: &[Viewpoint],
+) -> (TlasHandle, Vec<TlasInstance>) {
+    let out = m
+        .update(FrameInput {
+            frame,
+            cameras: cams,
+        })
+        .unwrap();
+    (out.tlas, out.instances.to_vec())
 }
 
 /// Renders `tlas` with real shading addresses from the backend.
@@ -105,23 +127,30 @@ fn agreement(
     (n, same_prim, same_normal)
 }
 
+/// More than 97 % of the `n` hit pixels report the reference's triangle (`same_prim`, failing
+/// with "`same_prim`/`n` `prim_what`") and shade with its normal (`same_normal`).
+fn assert_most_agree(n: usize, same_prim: usize, same_normal: usize, prim_what: &str) {
+    assert!(
+        same_prim as f64 > 0.97 * n as f64,
+        "{same_prim}/{n} {prim_what}"
+    );
+    assert!(
+        same_normal as f64 > 0.97 * n as f64,
+        "{same_normal}/{n} pixels shade with the right normal"
+    );
+}
+
 #[test]
 fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
     let ctx = common::context();
-    let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()).unwrap();
-    let mut config = Config::default();
-    config.residency.create_threshold = 1;
-    let mut m = AsManager::new(config, backend).unwrap();
+    let mut m = manager(&ctx, VulkanBackendDesc::default());
     let base = bumpy(16, 6.0, 0.0);
     let mesh = m
         .register_mesh(MeshDesc::new(
             "cloth",
             MeshKind::Skinned,
             5.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(base.clone()),
-                geometric_error: 0.0,
-            }],
+            common::one_lod(base.clone()),
         ))
         .unwrap();
     // A (custom index 0) holds one pose; B (1) gets a new pose every frame.
@@ -141,13 +170,7 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
         pose_b = Arc::new(bumpy(16, 6.0, 0.4 * frame as f32).positions.clone());
         m.set_skinned_pose(ids[1], pose_b.clone()).unwrap();
         // No wait: frames stay in flight, each slot is reused every other frame.
-        let out = m
-            .update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .unwrap();
-        last = Some((out.tlas, out.instances.to_vec()));
+        last = Some(update(&mut m, frame, &cams));
     }
     let c = m.backend().counters();
     assert!(c.refits + c.rebuilds >= 8, "B refits every frame: {c:?}");
@@ -188,14 +211,7 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
         )
     });
     assert!(n > 1000, "both cloths fill the view ({n} pixels)");
-    assert!(
-        same_prim as f64 > 0.97 * n as f64,
-        "{same_prim}/{n} same triangle"
-    );
-    assert!(
-        same_normal as f64 > 0.97 * n as f64,
-        "{same_normal}/{n} pixels shade with the right normal"
-    );
+    assert_most_agree(n, same_prim, same_normal, "same triangle");
     drop(renderer);
     drop(m);
     common::assert_no_validation_messages(&ctx);
@@ -209,20 +225,14 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
         max_part_bytes: 64 << 10,
         ..VulkanBackendDesc::default()
     };
-    let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
-    let mut config = Config::default();
-    config.residency.create_threshold = 1;
-    let mut m = AsManager::new(config, backend).unwrap();
+    let mut m = manager(&ctx, desc);
     let g = bumpy(40, 20.0, 0.3);
     let mesh = m
         .register_mesh(MeshDesc::new(
             "big",
             MeshKind::Static,
             15.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(g.clone()),
-                geometric_error: 0.0,
-            }],
+            common::one_lod(g.clone()),
         ))
         .unwrap();
     let at = Vec3::new(0.0, 0.0, 20.0);
@@ -231,13 +241,7 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
     let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut last = None;
     for frame in 0..4 {
-        let out = m
-            .update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .unwrap();
-        last = Some((out.tlas, out.instances.to_vec()));
+        last = Some(update(&mut m, frame, &cams));
     }
     let (tlas, records) = last.unwrap();
     assert_eq!(
@@ -275,13 +279,11 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
          {same_normal}/{n} shade with its normal (CPU reference)"
     );
     assert!(n > total / 3, "the grid fills the view ({n} pixels)");
-    assert!(
-        same_prim as f64 > 0.97 * n as f64,
-        "{same_prim}/{n} pixels report the mesh's triangle"
-    );
-    assert!(
-        same_normal as f64 > 0.97 * n as f64,
-        "{same_normal}/{n} pixels shade with the right normal"
+    assert_most_agree(
+        n,
+        same_prim,
+        same_normal,
+        "pixels report the mesh's triangle",
     );
     drop(renderer);
     drop(m);

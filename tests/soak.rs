@@ -15,7 +15,7 @@ use rtstream::as_manager::backend::vulkan::{
 };
 use rtstream::as_manager::{AsManager, Config, FrameInput, Viewpoint};
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
-use rtstream::streaming::{bake, generate, StreamConfig, World, WorldPreset};
+use rtstream::streaming::{StreamConfig, World};
 use rtstream::WorldBridge;
 
 /// Resident set size of this process in KiB (Linux).
@@ -36,11 +36,7 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
     assert!(frames >= 300, "SOAK_FRAMES >= 300");
     let handles_before = live_vulkan_handles();
     let ctx = common::context();
-    let dir = std::env::temp_dir().join(format!("rtstream-soak-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let gw = generate(&WorldPreset::small(8, 3)).expect("generate");
-    bake(&gw, &dir).expect("bake");
-    let size = gw.preset.size_m;
+    let (dir, size) = common::baked_small("soak", 8, 3);
     let stream = StreamConfig {
         load_radius: 150.0,
         unload_radius: 200.0,

@@ -99,10 +99,7 @@ fn scene(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc, config: Config) -> S
             "cloth",
             MeshKind::Skinned,
             6.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(skin_base.clone()),
-                geometric_error: 0.0,
-            }],
+            common::one_lod(skin_base.clone()),
         ))
         .unwrap();
     let mut skinned = Vec::new();
@@ -301,13 +298,9 @@ fn forced_out_of_memory_is_survived() {
 /// through the WorldBridge into the manager on the real backend; every frame's TLAS is traced.
 #[test]
 fn streamed_camera_path_on_vulkan() {
-    use rtstream::streaming::{bake, generate, StreamConfig, World, WorldPreset};
+    use rtstream::streaming::{StreamConfig, World};
     let ctx = common::context();
-    let dir = std::env::temp_dir().join(format!("rtstream-vk-stream-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let generated = generate(&WorldPreset::small(6, 7)).expect("generate");
-    bake(&generated, &dir).expect("bake");
-    let size = generated.preset.size_m;
+    let (dir, size) = common::baked_small("vk-stream", 6, 7);
     let mut world = World::open(
         &dir,
         StreamConfig {

@@ -15,7 +15,7 @@ use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc};
 use rtstream::as_manager as rtm;
 #[path = "../as-manager/tests/harness/mod.rs"]
 mod harness;
-use harness::{config, op, Harness, Op};
+use harness::{config, op, shrunk_config, Harness, Op};
 
 #[test]
 fn invariants_hold_on_the_vulkan_backend() {
@@ -42,15 +42,7 @@ fn invariants_hold_on_the_vulkan_backend() {
             for o in ops {
                 h.apply(o)?;
             }
-            h.m.backend_mut().clear_faults();
-            for i in 0..h.meshes.len() {
-                h.apply(Op::Unregister { mesh: i })?;
-            }
-            h.apply(Op::Frames { n: 4 })?;
-            if !h.lost {
-                prop_assert_eq!(h.m.backend().live_blas_count(), 0);
-                prop_assert_eq!(h.m.memory_in_use(), 0);
-            }
+            h.drain()?;
             frames.set(frames.get() + h.frame);
             faults.set(faults.get() + h.retried);
             let (b, t) = work.get();
@@ -74,20 +66,9 @@ fn invariants_hold_on_the_vulkan_backend() {
 /// buffers the backend keeps for shading are outside it.
 #[test]
 fn regression_blas_storage_within_budget_with_inputs_outside_it() {
-    use rtstream::as_manager::Config;
     let ctx = common::context();
-    let mut c = Config::default();
-    c.residency.r1 = 93.77278;
-    c.residency.r2 = 93.77278;
-    c.residency.create_threshold = 0;
-    c.residency.release_threshold = 0;
-    c.residency.min_resident_frames = 0;
-    c.residency.cell_size = 32.0;
-    c.build.max_primitives = 1000;
-    c.build.max_gpu_ms = 5.0;
-    c.memory.blas_bytes = 500_000;
     let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()).unwrap();
-    let mut h = Harness::new(c, backend);
+    let mut h = Harness::new(shrunk_config(93.77278, 93.77278), backend);
     let mut ops = vec![Op::Add {
         mesh: 4,
         n: 22,

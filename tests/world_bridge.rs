@@ -2,6 +2,8 @@
 //! stream in and out along a camera path, the TLAS only references instances of loaded levels,
 //! BLASes stay far below the naive policy's, and a corrupt level file is only a logged failure.
 
+mod common;
+
 use std::collections::HashSet;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -9,15 +11,11 @@ use std::time::Duration;
 use glam::Vec3;
 use rtstream::as_manager::backend::model::ModelBackend;
 use rtstream::as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
-use rtstream::streaming::{bake, generate, StreamConfig, World, WorldPreset};
+use rtstream::streaming::{StreamConfig, World};
 use rtstream::WorldBridge;
 
 fn baked_world(name: &str) -> (PathBuf, f32) {
-    let dir = std::env::temp_dir().join(format!("rtstream-bridge-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let world = generate(&WorldPreset::small(6, 7)).expect("generate");
-    bake(&world, &dir).expect("bake");
-    (dir, world.preset.size_m)
+    common::baked_small(&format!("bridge-{name}"), 6, 7)
 }
 
 fn stream_config() -> StreamConfig {

@@ -8,37 +8,13 @@
 use std::sync::Arc;
 
 use glam::{Affine3A, Quat, Vec3};
-use rand_xoshiro::rand_core::{RngCore, SeedableRng};
-use rand_xoshiro::SplitMix64;
 
 use crate::mesh::{GeometryData, LodDesc, LodGeometry, MeshDesc, MeshKind};
 use crate::{AsManager, InstanceDesc, InstanceId, MeshId, Result, Viewpoint};
 
-/// The placement's random source: [`rand_xoshiro::SplitMix64`] (its raw `next_u64` is
-/// value-stable across versions) with the helpers placement needs on top of `next_u64`, so a
-/// seed gives the same world, bit for bit. No `rand` distributions: their values may change
-/// between versions.
-#[derive(Debug, Clone)]
-pub struct Rng(SplitMix64);
-
-impl Rng {
-    /// Seeded generator (the state starts at `seed`).
-    pub fn new(seed: u64) -> Self {
-        Self(SplitMix64::seed_from_u64(seed))
-    }
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0.next_u64()
-    }
-    /// Uniform in [0, 1).
-    pub fn f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    /// Uniform in [lo, hi).
-    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.f32()
-    }
-}
+/// The placement's random source, shared with the world generator (`rtstream-streaming`); a
+/// generator's state starts at the seed.
+pub use rtstream_stats::Rng;
 
 /// World parameters.
 #[derive(Debug, Clone, PartialEq)]

@@ -14,7 +14,7 @@ use rtstream_as_manager::*;
 
 use rtstream_as_manager as rtm;
 mod harness;
-use harness::{config, op, Harness, Op, POINTS};
+use harness::{config, op, shrunk_config, Harness, Op, POINTS};
 
 proptest! {
     // 10,000 sequences in the suite (PROPTEST_CASES overrides it, e.g. for longer runs).
@@ -33,17 +33,9 @@ proptest! {
         for o in ops {
             h.apply(o)?;
         }
-        // A fault armed but never reached must not strike the drain.
-        h.m.backend_mut().faults.clear();
-        // drain: every registered thing can be unregistered and everything retires
-        for i in 0..h.meshes.len() {
-            h.apply(Op::Unregister { mesh: i })?;
-        }
-        h.apply(Op::Frames { n: 4 })?;
-        if !h.lost {
-            prop_assert_eq!(h.m.backend().live_blas_count(), 0);
-            prop_assert_eq!(h.m.memory_in_use(), 0);
-        }
+        // drain: every registered thing can be unregistered and everything retires (a fault
+        // armed but never reached must not strike it)
+        h.drain()?;
         // A lost device: the manager drops cleanly (this scope's end).
     }
 
@@ -98,10 +90,9 @@ fn drive_until_struck(h: &mut Harness<ModelBackend>, point: usize) {
     panic!("{:?} never struck", POINTS[point]);
 }
 
-/// The fault path of the harness runs: a fault at each point fails one frame, which is rolled
-/// back and retried; a lost device is reported by every later update.
-#[test]
-fn injected_faults_are_retried_and_a_lost_device_stays_lost() {
+/// A harness that builds at once and always compacts, with three skinned instances (mesh 8)
+/// 5 m ahead of the camera.
+fn three_skinned_compacting() -> Harness<ModelBackend> {
     let mut c = Config::default();
     c.residency.create_threshold = 0;
     c.build.min_compaction_saving = 0.0;
@@ -113,6 +104,14 @@ fn injected_faults_are_retried_and_a_lost_device_stays_lost() {
         z: 5.0,
     })
     .unwrap();
+    h
+}
+
+/// The fault path of the harness runs: a fault at each point fails one frame, which is rolled
+/// back and retried; a lost device is reported by every later update.
+#[test]
+fn injected_faults_are_retried_and_a_lost_device_stays_lost() {
+    let mut h = three_skinned_compacting();
     h.apply(Op::Add {
         mesh: 2,
         n: 20,
@@ -141,17 +140,10 @@ fn injected_faults_are_retried_and_a_lost_device_stays_lost() {
 /// backend's bytes passed the budget.
 #[test]
 fn a_failed_frames_blases_retire_in_frame_order() {
-    let mut c = Config::default();
-    c.residency.r1 = 145.45135;
-    c.residency.r2 = 169.57576;
-    c.residency.create_threshold = 0;
-    c.residency.release_threshold = 0;
-    c.residency.min_resident_frames = 0;
-    c.residency.cell_size = 32.0;
-    c.build.max_primitives = 1000;
-    c.build.max_gpu_ms = 5.0;
-    c.memory.blas_bytes = 500_000;
-    let mut h = Harness::new(c, ModelBackend::lavapipe());
+    let mut h = Harness::new(
+        shrunk_config(145.45135, 169.57576),
+        ModelBackend::lavapipe(),
+    );
     for o in [
         Op::Walk {
             dx: 0.0,
@@ -198,17 +190,7 @@ fn a_failed_frames_blases_retire_in_frame_order() {
 /// budget holds on every frame (the harness checks it).
 #[test]
 fn injected_out_of_memory_evicts_and_retries() {
-    let mut c = Config::default();
-    c.residency.create_threshold = 0;
-    c.build.min_compaction_saving = 0.0;
-    let mut h = Harness::new(c, ModelBackend::lavapipe());
-    h.apply(Op::Add {
-        mesh: 8,
-        n: 3,
-        x: 0.0,
-        z: 5.0,
-    })
-    .unwrap();
+    let mut h = three_skinned_compacting();
     h.apply(Op::Frames { n: 3 }).unwrap();
     // Compaction first: after a build's OOM the capped budget leaves no room to compact.
     for point in [2, 1, 0] {

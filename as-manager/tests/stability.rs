@@ -13,6 +13,20 @@ use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::synth::{counts_chain, grid_geometry};
 use rtstream_as_manager::*;
 
+use rtstream_as_manager as rtm;
+mod harness;
+
+/// Runs frame `frame` seen from `cam` and returns its statistics.
+fn frame_stats(m: &mut AsManager<ModelBackend>, frame: u64, cam: Viewpoint) -> FrameStats {
+    m.update(FrameInput {
+        frame,
+        cameras: &[cam],
+    })
+    .unwrap()
+    .stats
+    .clone()
+}
+
 fn oscillate(config: Config, frames: u64) -> (u64, u64) {
     let r = config.residency.r1;
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
@@ -35,15 +49,7 @@ fn oscillate(config: Config, frames: u64) -> (u64, u64) {
         } else {
             1.0 + r + if f % 2 == 0 { -0.5 } else { 0.5 }
         };
-        let cams = [Viewpoint::new(Vec3::new(d, 0.0, 0.0), -Vec3::X)];
-        let s = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &cams,
-            })
-            .unwrap()
-            .stats
-            .clone();
+        let s = frame_stats(&mut m, f, Viewpoint::new(Vec3::new(d, 0.0, 0.0), -Vec3::X));
         builds += s.builds as u64;
         releases += s.releases as u64;
     }
@@ -103,10 +109,7 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
             "cloth",
             MeshKind::Skinned,
             2.0,
-            vec![LodDesc {
-                geometry: LodGeometry::Data(geo.clone()),
-                geometric_error: 0.0,
-            }],
+            harness::one_lod(geo.clone()),
         ))
         .unwrap();
     let id = m
@@ -115,19 +118,10 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
             Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)),
         ))
         .unwrap();
-    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut frame = 0;
     let mut step = |m: &mut AsManager<ModelBackend>| {
-        let s = m
-            .update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .unwrap()
-            .stats
-            .clone();
         frame += 1;
-        s
+        frame_stats(m, frame - 1, Viewpoint::new(Vec3::ZERO, Vec3::Z))
     };
     for _ in 0..3 {
         step(&mut m);

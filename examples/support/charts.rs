@@ -147,6 +147,47 @@ fn ok(p: &Point, log_x: bool) -> bool {
     p.x.is_finite() && p.y.is_finite() && (!log_x || p.x > 0.0) && p.y >= 0.0
 }
 
+/// Every chart's frame: the title and the room for the axis labels.
+fn chart_builder<'a, 'b, DB: DrawingBackend>(
+    root: &'a DrawingArea<DB, Shift>,
+    title: &str,
+) -> ChartBuilder<'a, 'b, DB> {
+    let mut builder = ChartBuilder::on(root);
+    builder
+        .caption(title, ("sans-serif", 22))
+        .margin(20)
+        .x_label_area_size(50)
+        .y_label_area_size(70);
+    builder
+}
+
+/// A chart's legend box, to be placed and drawn by the caller (a macro for the same reason as
+/// `axes!`, defined below).
+macro_rules! legend_box {
+    ($chart:expr) => {
+        $chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 15))
+    };
+}
+
+/// Draws a chart's grid and axis descriptions (a macro: the mesh's bounds differ between linear
+/// and logarithmic axes).
+macro_rules! axes {
+    ($chart:expr, $x_label:expr, $y_label:expr) => {
+        $chart
+            .configure_mesh()
+            .x_desc($x_label)
+            .y_desc($y_label)
+            .label_style(("sans-serif", 15))
+            .axis_desc_style(("sans-serif", 17))
+            .draw()
+            .map_err(|e| anyhow::anyhow!("{e}"))?
+    };
+}
+
 fn draw_scatter<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
@@ -165,24 +206,12 @@ where
     let spread = ys().fold(0.0f64, f64::max) / ys().fold(f64::INFINITY, f64::min);
     let log_y = spread > 20.0;
     let (y0, y1) = range(all().filter(|p| ok(p, log_x)).map(|p| p.y), log_y);
-    let mut builder = ChartBuilder::on(root);
-    builder
-        .caption(title, ("sans-serif", 22))
-        .margin(20)
-        .x_label_area_size(50)
-        .y_label_area_size(70);
+    let mut builder = chart_builder(root, title);
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("{e}");
     macro_rules! body {
         ($chart:expr) => {{
             let mut chart = $chart;
-            chart
-                .configure_mesh()
-                .x_desc(x_label)
-                .y_desc(y_label)
-                .label_style(("sans-serif", 15))
-                .axis_desc_style(("sans-serif", 17))
-                .draw()
-                .map_err(|e| err(&e))?;
+            axes!(chart, x_label, y_label);
             let mut sweep_colour = 0;
             for s in series {
                 let pts: Vec<&Point> = s.points.iter().filter(|p| ok(p, log_x)).collect();
@@ -229,11 +258,7 @@ where
                     }))
                     .map_err(|e| err(&e))?;
             }
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .label_font(("sans-serif", 15))
+            legend_box!(chart)
                 .position(SeriesLabelPosition::MiddleRight)
                 .draw()
                 .map_err(|e| err(&e))?;
@@ -283,21 +308,10 @@ where
     let all = || series.iter().flat_map(|s| s.1.iter()).filter(finite);
     let (x0, x1) = range(all().map(|p| p.0), false);
     let (y0, y1) = range(all().map(|p| p.1), false);
-    let mut chart = ChartBuilder::on(root)
-        .caption(title, ("sans-serif", 22))
-        .margin(20)
-        .x_label_area_size(50)
-        .y_label_area_size(70)
+    let mut chart = chart_builder(root, title)
         .build_cartesian_2d(x0..x1, y0..y1)
         .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .label_style(("sans-serif", 15))
-        .axis_desc_style(("sans-serif", 17))
-        .draw()
-        .map_err(|e| err(&e))?;
+    axes!(chart, x_label, y_label);
     for (i, (name, pts)) in series.iter().enumerate() {
         let colour = palette(i);
         chart
@@ -309,13 +323,7 @@ where
             .label(name.as_str())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], colour));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 15))
-        .draw()
-        .map_err(|e| err(&e))?;
+    legend_box!(chart).draw().map_err(|e| err(&e))?;
     Ok(())
 }
 
@@ -351,11 +359,7 @@ where
         .max(1e-9)
         * 1.15;
     let n = groups.len().max(1) as f64;
-    let mut chart = ChartBuilder::on(root)
-        .caption(title, ("sans-serif", 22))
-        .margin(20)
-        .x_label_area_size(50)
-        .y_label_area_size(70)
+    let mut chart = chart_builder(root, title)
         .build_cartesian_2d(0.0..n, 0.0..top)
         .map_err(|e| err(&e))?;
     let labels = groups.to_vec();
@@ -395,13 +399,7 @@ where
             .label(name.as_str())
             .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], colour.filled()));
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 15))
-        .draw()
-        .map_err(|e| err(&e))?;
+    legend_box!(chart).draw().map_err(|e| err(&e))?;
     Ok(())
 }
 

@@ -9,7 +9,7 @@ use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rtstream::as_manager::PolicyKind;
-use rtstream::driver::{Progress, RunConfig};
+use rtstream::driver::{FrameRow, Progress, RunConfig};
 use rtstream::streaming::WorldPreset;
 
 /// World presets.
@@ -158,23 +158,11 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
 }
 
 /// `--asset-dir`, for every example that generates a world (flattened into [`RunArgs`] and into
-/// the examples with a command line of their own).
-#[derive(Debug, Clone, Default, Args)]
-pub struct AssetArgs {
-    /// Directory of Debian's assimp-testmodels glTF2 models the world generator places
-    /// (default: the preset's, /usr/share/assimp/models/glTF2).
-    #[arg(long, value_name = "DIR")]
-    pub asset_dir: Option<PathBuf>,
-}
-
-impl AssetArgs {
-    /// Sets `preset`'s asset directory when `--asset-dir` was given.
-    pub fn apply(&self, preset: &mut WorldPreset) {
-        if let Some(dir) = &self.asset_dir {
-            preset.asset_dir = dir.clone();
-        }
-    }
-}
+/// the examples with a command line of their own): the streaming crate's examples' type, one
+/// definition for both (the streaming crate cannot see the facade's examples).
+#[path = "../../streaming/examples/support/world_args.rs"]
+mod world_args;
+pub use world_args::AssetArgs;
 
 /// A world preset with its seed and, optionally, another asset directory.
 pub fn world_preset(preset: Preset, seed: u64, assets: &AssetArgs) -> WorldPreset {
@@ -360,4 +348,19 @@ pub fn progress_bar(frames: u64, quiet: bool) -> (ProgressBar, impl FnMut(&Progr
         b.set_message(msg);
     };
     (bar, update)
+}
+
+/// The managed policy's rows of a run's per-frame table.
+pub fn managed_rows(rows: &[FrameRow]) -> Vec<&FrameRow> {
+    rows.iter().filter(|r| r.policy == "managed").collect()
+}
+
+/// `f` of each row against its frame number: a chart series.
+pub fn per_frame(rows: &[&FrameRow], f: impl Fn(&FrameRow) -> f64) -> Vec<(f64, f64)> {
+    rows.iter().map(|r| (r.frame as f64, f(r))).collect()
+}
+
+/// The mean of `f` over `rows` (0 for no rows).
+pub fn mean(rows: &[&FrameRow], f: impl Fn(&FrameRow) -> f64) -> f64 {
+    rows.iter().map(|r| f(r)).sum::<f64>() / rows.len().max(1) as f64
 }

@@ -13,7 +13,9 @@ use rtstream_as_manager::backend::vulkan::{
 
 use crate::error::{RenderError, Result};
 use crate::frame::Frame;
-use crate::renderer::{push_constants, read_frame, validate, InstanceShading, Tracer};
+use crate::renderer::{
+    push_constants, read_frame, shading_table, validate, InstanceShading, Tracer,
+};
 use crate::{RenderDesc, Renderer};
 
 /// Readback buffers, their bytes per pixel: colour, hits, surface, light.
@@ -127,17 +129,7 @@ impl Renderer {
             }
             slot.size = (w, h);
         }
-        let fallback = [InstanceShading {
-            vertices: 0,
-            indices: 0,
-            base_color: [0.8; 4],
-        }];
-        let inst = if instances.is_empty() {
-            &fallback[..]
-        } else {
-            instances
-        };
-        let bytes: &[u8] = bytemuck::cast_slice(inst);
+        let bytes: &[u8] = bytemuck::cast_slice(shading_table(instances));
         if slot
             .instances
             .as_ref()

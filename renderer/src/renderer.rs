@@ -41,6 +41,23 @@ pub struct InstanceShading {
     pub base_color: [f32; 4],
 }
 
+/// The shading table of a frame given no instances: one grey, view-facing entry, so the
+/// shaders always have a table to read.
+const NO_INSTANCES: [InstanceShading; 1] = [InstanceShading {
+    vertices: 0,
+    indices: 0,
+    base_color: [0.8; 4],
+}];
+
+/// `instances`, or the one-entry fallback table when there are none.
+pub(crate) fn shading_table(instances: &[InstanceShading]) -> &[InstanceShading] {
+    if instances.is_empty() {
+        &NO_INSTANCES
+    } else {
+        instances
+    }
+}
+
 /// What to render.
 #[derive(Debug, Clone, Copy)]
 pub struct RenderDesc {
@@ -228,20 +245,10 @@ impl Renderer {
                     memory: MemoryKind::Readback,
                 })?);
             }
-            let fallback = [InstanceShading {
-                vertices: 0,
-                indices: 0,
-                base_color: [0.8; 4],
-            }];
-            let inst = if instances.is_empty() {
-                &fallback[..]
-            } else {
-                instances
-            };
             bufs.push(ctx.create_buffer_with_data(
                 "render instances",
                 vk::BufferUsageFlags::STORAGE_BUFFER,
-                bytemuck::cast_slice(inst),
+                bytemuck::cast_slice(shading_table(instances)),
             )?);
             let mut push = push_constants(desc);
             let bound = [

@@ -13,8 +13,12 @@
 //!   runs (`tests/driver_run.rs`); `hdrhistogram` would round them to its significant digits.
 //! - **Non-finite values are left out** (a PSNR of identical frames is infinite).
 //! - Its own crate because `streaming` and `as-manager` do not know each other and both need it.
+//!   For the same reason it holds the one seeded random source both generators use ([`Rng`]).
 
 use serde::Serialize;
+
+mod rng;
+pub use rng::Rng;
 
 /// The 0-based index of the `p`-th percentile (nearest rank) in a sorted sample of `n` values;
 /// `p` in `[0, 1]`, `n > 0`.

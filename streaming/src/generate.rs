@@ -350,8 +350,9 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
     let mut extent = Aabb::EMPTY;
     for lid in 0..n_levels {
         let (cx, cz) = ((lid % preset.grid) as i32, (lid / preset.grid) as i32);
-        let mut rng =
-            Rng::new(preset.seed ^ (u64::from(lid) << 20).wrapping_mul(0x2545_F491_4F6C_DD1D));
+        let mut rng = procedural::seeded(
+            preset.seed ^ (u64::from(lid) << 20).wrapping_mul(0x2545_F491_4F6C_DD1D),
+        );
         let base = preset.instances / n_levels;
         let count = base + u32::from(lid < preset.instances % n_levels);
         let origin = Vec3::new(

@@ -9,52 +9,24 @@ use std::f32::consts::{PI, TAU};
 use std::sync::Arc;
 
 use glam::{Mat4, Quat, Vec3, Vec4};
-use rand_xoshiro::rand_core::{RngCore, SeedableRng};
-use rand_xoshiro::SplitMix64;
 
 use crate::lod::build_lod_chain;
 use crate::model::{Aabb, Mesh, SkinWeights, WorldMeshId};
 use crate::skeleton::{Channel, ChannelPath, Joint, Skeleton};
 
-/// The generator's random source: [`rand_xoshiro::SplitMix64`] (its raw `next_u64` is
-/// value-stable across versions) with the few helpers placement needs, written on top of
-/// `next_u64` so the same seed gives the same world, bit for bit. No `rand` distributions: their
-/// values may change between versions.
-#[derive(Debug, Clone)]
-pub struct Rng(SplitMix64);
+/// The generator's random source (shared with as-manager's synthetic world, in `rtstream-stats`).
+pub use rtstream_stats::Rng;
 
-impl Rng {
-    /// A generator from a seed. The state starts at `seed ^ 0x9E37_79B9_7F4A_7C15`, as the
-    /// hand-written SplitMix64 this replaces did (so generated worlds did not change).
-    pub fn new(seed: u64) -> Rng {
-        Rng(SplitMix64::seed_from_u64(seed ^ 0x9E37_79B9_7F4A_7C15))
-    }
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0.next_u64()
-    }
-    /// Uniform in [0, 1).
-    pub fn f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    /// Uniform in [lo, hi).
-    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.f32()
-    }
-    /// Uniform integer in [0, n); 0 when n is 0.
-    pub fn below(&mut self, n: usize) -> usize {
-        if n == 0 {
-            0
-        } else {
-            (self.next_u64() % n as u64) as usize
-        }
-    }
+/// The generator's seeding: the state starts at `seed ^ 0x9E37_79B9_7F4A_7C15`, as the
+/// hand-written SplitMix64 this replaced did (so generated worlds did not change).
+pub fn seeded(seed: u64) -> Rng {
+    Rng::new(seed ^ 0x9E37_79B9_7F4A_7C15)
 }
 
 type Geometry = (Vec<[f32; 3]>, Vec<u32>);
 
 fn hash2(x: i32, z: i32, seed: u64) -> f32 {
-    let mut r = Rng::new(seed ^ ((x as u32 as u64) << 32 | z as u32 as u64));
+    let mut r = seeded(seed ^ ((x as u32 as u64) << 32 | z as u32 as u64));
     r.f32()
 }
 
@@ -165,7 +137,7 @@ fn icosphere(subdivisions: u32) -> Geometry {
 pub fn rock(seed: u64, size: f32) -> Geometry {
     let (mut pos, idx) = icosphere(3);
     let stretch = {
-        let mut r = Rng::new(seed);
+        let mut r = seeded(seed);
         Vec3::new(r.range(0.7, 1.3), r.range(0.4, 0.9), r.range(0.7, 1.3))
     };
     for p in &mut pos {
@@ -208,7 +180,7 @@ fn push_box(pos: &mut Vec<[f32; 3]>, idx: &mut Vec<u32>, min: Vec3, max: Vec3, n
 
 /// A building of a few stacked, set-back boxes with tessellated facades.
 pub fn building(seed: u64) -> Geometry {
-    let mut r = Rng::new(seed);
+    let mut r = seeded(seed);
     let (mut pos, mut idx) = (Vec::new(), Vec::new());
     let mut half = Vec3::new(r.range(5.0, 12.0), 0.0, r.range(5.0, 12.0));
     let mut y = 0.0;
@@ -248,7 +220,7 @@ fn cylinder(radius: f32, height: f32, segments: u32, rings: u32) -> Geometry {
 
 /// A tree: a trunk and crossed foliage cards (an alpha-masked material in the world).
 pub fn tree(seed: u64) -> Geometry {
-    let mut r = Rng::new(seed);
+    let mut r = seeded(seed);
     let h = r.range(6.0, 14.0);
     let (mut pos, mut idx) = cylinder(r.range(0.2, 0.4), h * 0.6, 10, 6);
     let w = r.range(2.0, 4.0);
@@ -269,7 +241,7 @@ pub fn tree(seed: u64) -> Geometry {
 
 /// A patch of grass blades (a world-position-offset material in the world).
 pub fn grass(seed: u64) -> Geometry {
-    let mut r = Rng::new(seed);
+    let mut r = seeded(seed);
     let (mut pos, mut idx) = (Vec::new(), Vec::new());
     for _ in 0..48 {
         let o = Vec3::new(r.range(-1.5, 1.5), 0.0, r.range(-1.5, 1.5));
@@ -282,7 +254,7 @@ pub fn grass(seed: u64) -> Geometry {
 
 /// A glass pane (a transparent material in the world).
 pub fn glass_pane(seed: u64) -> Geometry {
-    let mut r = Rng::new(seed);
+    let mut r = seeded(seed);
     let (w, h) = (r.range(1.0, 4.0), r.range(1.0, 3.0));
     let (mut pos, mut idx) = (Vec::new(), Vec::new());
     push_quad_grid(
@@ -299,7 +271,7 @@ pub fn glass_pane(seed: u64) -> Geometry {
 /// A skinned character: a segmented body on a three-joint spine with a looping sway animation,
 /// its LOD chain already built. `seed` varies proportions and gait.
 pub fn character(seed: u64) -> Mesh {
-    let mut r = Rng::new(seed);
+    let mut r = seeded(seed);
     let height = r.range(1.6, 2.0);
     let (pos, idx) = cylinder(r.range(0.2, 0.3), height, 16, 24);
     let seg = height / 3.0;

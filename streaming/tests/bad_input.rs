@@ -102,9 +102,7 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
         })
         .collect();
     let cam = [StreamFocus::from(Vec3::ZERO)];
-    let events = w
-        .update_until_idle(0, &cam, common::SETTLE)
-        .expect("streaming settles");
+    let events = common::settle(&mut w, 0, &cam);
     for (level, path) in &broken_levels {
         let failure = events.iter().find_map(|e| match e {
             WorldEvent::LoadFailed {
@@ -138,12 +136,8 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
 
     // The failed levels retry after leaving and re-entering; still failing, still no thread lost.
     let away = [StreamFocus::from(Vec3::new(500.0, 0.0, 0.0))];
-    let _ = w
-        .update_until_idle(1, &away, common::SETTLE)
-        .expect("streaming settles");
-    let again = w
-        .update_until_idle(2, &cam, common::SETTLE)
-        .expect("streaming settles");
+    let _ = common::settle(&mut w, 1, &away);
+    let again = common::settle(&mut w, 2, &cam);
     let fails = again
         .iter()
         .filter(|e| matches!(e, WorldEvent::LoadFailed { .. }))
@@ -184,9 +178,7 @@ fn corrupted_baked_files_fail_and_other_levels_keep_streaming() {
         ..StreamConfig::default()
     };
     let mut w = World::open(&dir, config).expect("open");
-    let events = w
-        .update_until_idle(0, &[StreamFocus::from(Vec3::ZERO)], common::SETTLE)
-        .expect("streaming settles");
+    let events = common::settle(&mut w, 0, &[StreamFocus::from(Vec3::ZERO)]);
     for (i, reason) in &bad {
         let err = events
             .iter()
@@ -241,13 +233,8 @@ fn a_corrupt_mesh_chunk_fails_that_lod_only() {
     };
     let mut w = World::open(&dir, config).expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];
-    let mut events = w
-        .update_until_idle(0, &cam, common::SETTLE)
-        .expect("streaming settles");
-    events.extend(
-        w.update_until_idle(1, &cam, common::SETTLE)
-            .expect("streaming settles"),
-    );
+    let mut events = common::settle(&mut w, 0, &cam);
+    events.extend(common::settle(&mut w, 1, &cam));
     let failed: Vec<_> = events
         .iter()
         .filter_map(|e| match e {

@@ -75,20 +75,10 @@ fn characters_skin_in_parallel_like_serially() {
     let (mut a, mut b) = (Vec::new(), Vec::new());
     skin_positions(g, &sk.pose(0.1), &mut a);
     skin_positions(g, &sk.pose(sk.duration * 0.3), &mut b);
-    let top = g
-        .positions
-        .iter()
-        .enumerate()
-        .max_by(|x, y| x.1[1].total_cmp(&y.1[1]))
-        .map(|(i, _)| i)
-        .expect("vertex");
-    let bottom = g
-        .positions
-        .iter()
-        .enumerate()
-        .min_by(|x, y| x.1[1].total_cmp(&y.1[1]))
-        .map(|(i, _)| i)
-        .expect("vertex");
+    // Vertex indices from the lowest to the highest.
+    let mut by_height: Vec<usize> = (0..g.positions.len()).collect();
+    by_height.sort_by(|&x, &y| g.positions[x][1].total_cmp(&g.positions[y][1]));
+    let (bottom, top) = (by_height[0], *by_height.last().expect("vertex"));
     assert!(Vec3::from(a[top]).distance(Vec3::from(b[top])) > 0.01);
     assert!(Vec3::from(a[bottom]).distance(Vec3::from(b[bottom])) < 1e-4);
 }

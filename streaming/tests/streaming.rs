@@ -94,10 +94,7 @@ fn camera_path_streams_levels_with_hysteresis() {
     for f in 0..=steps {
         let t = f as f32 / steps as f32;
         let p = Vec3::new(lo.x + (hi.x - lo.x) * t, 2.0, lo.z + (hi.z - lo.z) * t);
-        c.eat(
-            w.update_until_idle(f, &[StreamFocus::from(p)], common::SETTLE)
-                .expect("streaming settles"),
-        );
+        c.eat(common::settle(&mut w, f, &[StreamFocus::from(p)]));
         let st = w.stats();
         assert!(st.mesh_bytes <= config.mesh_budget_bytes, "{st:?}");
         // Everything within the load radius is in; nothing beyond the unload radius is.
@@ -132,10 +129,7 @@ fn camera_path_streams_levels_with_hysteresis() {
     for f in 0..80u64 {
         let x = if f % 2 == 0 { -amp } else { amp };
         let p = mid + Vec3::new(x, 0.0, 0.0);
-        osc.eat(
-            w.update_until_idle(1000 + f, &[StreamFocus::from(p)], common::SETTLE)
-                .expect("streaming settles"),
-        );
+        osc.eat(common::settle(&mut w, 1000 + f, &[StreamFocus::from(p)]));
     }
     for (level, n) in &osc.loads {
         assert!(*n <= 1, "{level:?} loaded {n} times while oscillating");
@@ -160,14 +154,8 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     let mut w = World::open(&dir, big).expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];
     let mut c = Consumer::default();
-    c.eat(
-        w.update_until_idle(0, &cam, common::SETTLE)
-            .expect("streaming settles"),
-    );
-    c.eat(
-        w.update_until_idle(1, &cam, common::SETTLE)
-            .expect("streaming settles"),
-    );
+    c.eat(common::settle(&mut w, 0, &cam));
+    c.eat(common::settle(&mut w, 1, &cam));
     let unlimited = w.stats().mesh_bytes;
     assert!(c.fine_loads > 0);
     drop(w);
@@ -180,10 +168,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     let mut w = World::open(&dir, tight).expect("open");
     let mut c = Consumer::default();
     for f in 0..5 {
-        c.eat(
-            w.update_until_idle(f, &cam, common::SETTLE)
-                .expect("streaming settles"),
-        );
+        c.eat(common::settle(&mut w, f, &cam));
         let st = w.stats();
         assert!(
             st.mesh_bytes + st.in_flight_bytes <= tight.mesh_budget_bytes,
@@ -193,9 +178,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     assert!(c.fine_loads > 0);
     assert!(w.stats().mesh_bytes < unlimited);
     // Settled under pressure: a further frame with the same camera changes nothing (no thrash).
-    let calm = w
-        .update_until_idle(5, &cam, common::SETTLE)
-        .expect("streaming settles");
+    let calm = common::settle(&mut w, 5, &cam);
     assert!(
         calm.is_empty(),
         "{} events after settling under budget pressure",
@@ -206,10 +189,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     let far = [StreamFocus::from(Vec3::new(1100.0, 0.0, 0.0))];
     let evicted_before = c.fine_evictions;
     let loaded_before = w.stats().loaded_levels;
-    c.eat(
-        w.update_until_idle(10, &far, common::SETTLE)
-            .expect("streaming settles"),
-    );
+    c.eat(common::settle(&mut w, 10, &far));
     assert!(
         c.fine_evictions > evicted_before,
         "no finer LOD evicted when the camera left"
@@ -235,9 +215,7 @@ fn skinned_instances_deform_each_frame() {
     )
     .expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];
-    let _ = w
-        .update_until_idle(0, &cam, common::SETTLE)
-        .expect("streaming settles");
+    let _ = common::settle(&mut w, 0, &cam);
     let a = w.skin_frame(0.0, 2);
     let b = w.skin_frame(0.4, 2);
     assert!(!a.is_empty(), "no skinned instance loaded");
@@ -269,14 +247,11 @@ fn two_cameras_keep_two_areas_loaded() {
     let a = Vec3::new(lo.x + 60.0, 0.0, lo.z + 60.0);
     let b = Vec3::new(hi.x - 60.0, 0.0, hi.z - 60.0);
     let mut c = Consumer::default();
-    c.eat(
-        w.update_until_idle(
-            0,
-            &[StreamFocus::from(a), StreamFocus::from(b)],
-            common::SETTLE,
-        )
-        .expect("streaming settles"),
-    );
+    c.eat(common::settle(
+        &mut w,
+        0,
+        &[StreamFocus::from(a), StreamFocus::from(b)],
+    ));
     let near = |p: Vec3| {
         world
             .levels
@@ -289,10 +264,7 @@ fn two_cameras_keep_two_areas_loaded() {
         assert!(w.is_loaded(id), "{id:?} not loaded");
     }
     // Dropping camera b unloads its area only.
-    c.eat(
-        w.update_until_idle(1, &[StreamFocus::from(a)], common::SETTLE)
-            .expect("streaming settles"),
-    );
+    c.eat(common::settle(&mut w, 1, &[StreamFocus::from(a)]));
     for id in near(b) {
         assert!(
             !w.is_loaded(id) || near(a).contains(&id),

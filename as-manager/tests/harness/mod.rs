@@ -196,18 +196,39 @@ pub fn config() -> impl Strategy<Value = Config> {
         500_000u64..10_000_000,
     )
         .prop_map(|(r1, extra, create, release, min_life, prims, bytes)| {
-            let mut c = Config::default();
-            c.residency.r1 = r1;
-            c.residency.r2 = r1 + extra;
+            let mut c = shrunk_config(r1, r1 + extra);
             c.residency.create_threshold = create;
             c.residency.release_threshold = release;
             c.residency.min_resident_frames = min_life;
-            c.residency.cell_size = 32.0;
             c.build.max_primitives = prims;
-            c.build.max_gpu_ms = 5.0;
             c.memory.blas_bytes = bytes;
             c
         })
+}
+
+/// The configuration [`config`] draws from, at the values its cases shrink to: radii `r1` and
+/// `r2`, thresholds and minimum residency 0, 32 m cells, 1,000 triangles and 5 ms of builds a
+/// frame, a 500 KB BLAS budget (the regression tests found by the property tests).
+pub fn shrunk_config(r1: f32, r2: f32) -> Config {
+    let mut c = Config::default();
+    c.residency.r1 = r1;
+    c.residency.r2 = r2;
+    c.residency.create_threshold = 0;
+    c.residency.release_threshold = 0;
+    c.residency.min_resident_frames = 0;
+    c.residency.cell_size = 32.0;
+    c.build.max_primitives = 1000;
+    c.build.max_gpu_ms = 5.0;
+    c.memory.blas_bytes = 500_000;
+    c
+}
+
+/// A mesh's one level of detail: `geometry` itself, exact (geometric error 0).
+pub fn one_lod(geometry: Arc<GeometryData>) -> Vec<LodDesc> {
+    vec![LodDesc {
+        geometry: LodGeometry::Data(geometry),
+        geometric_error: 0.0,
+    }]
 }
 
 pub struct Harness<B: Probe> {
@@ -244,10 +265,7 @@ impl<B: Probe> Harness<B> {
                     format!("skinned{i}"),
                     MeshKind::Skinned,
                     1.5,
-                    vec![LodDesc {
-                        geometry: LodGeometry::Data(grid_geometry(8, 2.0)),
-                        geometric_error: 0.0,
-                    }],
+                    one_lod(grid_geometry(8, 2.0)),
                 )
             } else {
                 MeshDesc::new(
@@ -362,6 +380,21 @@ impl<B: Probe> Harness<B> {
             prop_assert!(self.m.backend().blas_allocated() <= cfg.memory.blas_bytes);
         }
         prop_assert!(s.blas_bytes <= cfg.memory.blas_bytes || !settled);
+        Ok(())
+    }
+
+    /// The end of a sequence: disarms every fault, unregisters every mesh and runs four
+    /// frames; unless the device was lost, no BLAS and no byte of BLAS memory is left.
+    pub fn drain(&mut self) -> Result<(), TestCaseError> {
+        self.m.backend_mut().disarm();
+        for i in 0..self.meshes.len() {
+            self.apply(Op::Unregister { mesh: i })?;
+        }
+        self.apply(Op::Frames { n: 4 })?;
+        if !self.lost {
+            prop_assert_eq!(self.m.backend().live_blases(), 0);
+            prop_assert_eq!(self.m.memory_in_use(), 0);
+        }
         Ok(())
     }
 

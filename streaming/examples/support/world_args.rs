@@ -1,6 +1,7 @@
 //! The world-preset arguments shared by the streaming crate's examples (`bake_world`,
 //! `format_load`): the preset names and `--asset-dir`. (The facade's examples share
-//! `examples/support/cli.rs`, which needs the facade; this crate's examples cannot use it.)
+//! `examples/support/cli.rs`, which needs the facade; this crate's examples cannot use it, so
+//! `cli.rs` includes this file for its `AssetArgs` instead.)
 //! Included with `#[path = "support/world_args.rs"] mod world_args;`.
 
 use std::path::PathBuf;

@@ -87,23 +87,48 @@ impl World {
         if self.mesh_bytes + self.in_flight_bytes <= budget {
             return;
         }
-        let mut victims: Vec<(f32, WorldMeshId, usize)> = Vec::new();
+        let mut victims = self.finer_lods(eff, None);
+        // Farthest first; at equal distance the finest (largest) LOD first, in id order.
+        victims.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.2.cmp(&b.2)).then(a.1.cmp(&b.1)));
+        self.evict_until_fits(victims, 0, ev);
+    }
+
+    /// The resident LODs finer than the coarsest of the streamed meshes (farther than `beyond`
+    /// when given), as (mesh distance, mesh, LOD), in mesh and LOD order.
+    fn finer_lods(
+        &self,
+        eff: &HashMap<WorldMeshId, f32>,
+        beyond: Option<f32>,
+    ) -> Vec<(f32, WorldMeshId, usize)> {
+        let mut victims = Vec::new();
         for (i, s) in self.meshes.iter().enumerate() {
             if !s.streamed {
                 continue;
             }
             let m = WorldMeshId(i as u32);
             let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
+            if beyond.is_some_and(|d| md <= d) {
+                continue;
+            }
             for k in 0..s.coarsest() {
                 if s.resident[k].is_some() {
                     victims.push((md, m, k));
                 }
             }
         }
-        // Farthest first; at equal distance the finest (largest) LOD first, in id order.
-        victims.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.2.cmp(&b.2)).then(a.1.cmp(&b.1)));
+        victims
+    }
+
+    /// Evicts `victims` in their order until resident plus in-flight plus `bytes` fit the budget.
+    fn evict_until_fits(
+        &mut self,
+        victims: Vec<(f32, WorldMeshId, usize)>,
+        bytes: usize,
+        ev: &mut Vec<WorldEvent>,
+    ) {
+        let budget = self.config.mesh_budget_bytes;
         for (_, m, k) in victims {
-            if self.mesh_bytes + self.in_flight_bytes <= budget {
+            if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
                 break;
             }
             let s = &mut self.meshes[m.0 as usize];
@@ -129,22 +154,7 @@ impl World {
         if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
             return true;
         }
-        let mut victims: Vec<(f32, WorldMeshId, usize)> = Vec::new();
-        for (i, s) in self.meshes.iter().enumerate() {
-            if !s.streamed {
-                continue;
-            }
-            let m = WorldMeshId(i as u32);
-            let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
-            if md <= d {
-                continue;
-            }
-            for k in 0..s.coarsest() {
-                if s.resident[k].is_some() {
-                    victims.push((md, m, k));
-                }
-            }
-        }
+        let mut victims = self.finer_lods(eff, Some(d));
         // Evict only if that makes enough room; evicting for a request that still does not fit
         // would make the victims re-request and thrash.
         let freeable: usize = victims
@@ -155,19 +165,7 @@ impl World {
             return false;
         }
         victims.sort_by(|a, b| b.0.total_cmp(&a.0));
-        for (_, m, k) in victims {
-            if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
-                break;
-            }
-            let s = &mut self.meshes[m.0 as usize];
-            if s.resident[k].take().is_some() {
-                self.mesh_bytes -= s.lods[k].0;
-                ev.push(WorldEvent::MeshLodEvicted {
-                    mesh: m,
-                    lod: k as u8,
-                });
-            }
-        }
+        self.evict_until_fits(victims, bytes, ev);
         self.mesh_bytes + self.in_flight_bytes + bytes <= budget
     }
 }

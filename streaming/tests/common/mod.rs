@@ -4,7 +4,9 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use rtstream_streaming::{bake, generate, GeneratedWorld, WorldPreset, ASSIMP_GLTF2_DIR};
+use rtstream_streaming::{
+    bake, generate, GeneratedWorld, StreamFocus, World, WorldEvent, WorldPreset, ASSIMP_GLTF2_DIR,
+};
 
 /// The assimp-testmodels glTF2 directory; fails the test with a clear message when missing.
 pub fn assets() -> PathBuf {
@@ -35,3 +37,9 @@ pub fn baked_small(name: &str, grid: u32) -> (GeneratedWorld, PathBuf) {
 }
 
 pub const SETTLE: Duration = Duration::from_secs(30);
+
+/// Frame `frame` of `w` seen from `focus`, run until the loaders are idle (at most [`SETTLE`]).
+pub fn settle(w: &mut World, frame: u64, focus: &[StreamFocus]) -> Vec<WorldEvent> {
+    w.update_until_idle(frame, focus, SETTLE)
+        .expect("streaming settles")
+}
