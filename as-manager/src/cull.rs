@@ -95,7 +95,10 @@ mod tests {
         assert!(c.cull(1.0, 290.0, true));
         assert!(!c.cull(1.0, 290.0, false));
         assert!(!c.cull(1.0, 260.0, true));
-        let s = InstanceCuller::new(&CullConfig::default());
+        let s = InstanceCuller::new(&CullConfig {
+            min_angle: 1f32.to_radians(),
+            ..CullConfig::default()
+        });
         // angular radius 1 degree at 57.3 m for r = 1: band up to 1.1 degrees
         assert!(s.cull(1.0, 60.0, false));
         assert!(s.cull(1.0, 55.0, true));
