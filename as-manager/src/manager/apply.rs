@@ -12,9 +12,9 @@ use crate::mesh::{LodGeometry, MeshDesc, MeshKind, MAX_LODS};
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use crate::{InstanceId, MeshId};
 
-fn world_sphere(desc: &MeshDesc, t: &Affine3A) -> (glam::Vec3, f32, f32) {
-    let c = t.transform_point3(glam::Vec3::from(desc.bounds_center));
-    let m = t.matrix3;
+fn world_sphere(desc: &MeshDesc, transform: &Affine3A) -> (glam::Vec3, f32, f32) {
+    let c = transform.transform_point3(glam::Vec3::from(desc.bounds_center));
+    let m = transform.matrix3;
     let scale = m
         .x_axis
         .length()
@@ -37,7 +37,7 @@ impl<B: AsBackend> AsManager<B> {
                     dead_meshes.push(id.index);
                 }
                 Command::AddInstance(id, desc) => self.apply_add(id, desc),
-                Command::SetTransform(id, t) => self.apply_transform(id, t),
+                Command::SetTransform(id, transform) => self.apply_transform(id, transform),
                 Command::RemoveInstance(id) => {
                     if self.apply_remove(id.index) {
                         dead_instances.push(id.index);
@@ -216,21 +216,21 @@ impl<B: AsBackend> AsManager<B> {
         self.live_instances += 1;
     }
 
-    fn apply_transform(&mut self, id: InstanceId, t: Affine3A) {
+    fn apply_transform(&mut self, id: InstanceId, transform: Affine3A) {
         let Some(Some(inst)) = self.tables.instances.get_mut(id.index as usize) else {
             return;
         };
         let Some(Some(mesh)) = self.tables.meshes.get(inst.mesh as usize) else {
             return;
         };
-        let Some(e) = self.grid.get(id.index) else {
+        let Some(grid_entry) = self.grid.get(id.index) else {
             return;
         };
-        let (center, radius, scale) = world_sphere(&mesh.desc, &t);
+        let (center, radius, scale) = world_sphere(&mesh.desc, &transform);
         inst.center = center;
         inst.radius = radius;
-        let mut hot = e.data;
-        hot.template.transform = crate::record::transform_rows(&t);
+        let mut hot = grid_entry.data;
+        hot.template.transform = crate::record::transform_rows(&transform);
         hot.scale = scale;
         self.grid.insert(id.index, center, radius, hot);
     }
@@ -241,10 +241,9 @@ impl<B: AsBackend> AsManager<B> {
             return false;
         };
         let (mesh, mesh_pos, seed_has) = (inst.mesh, inst.mesh_pos, inst.seed_has);
-        let (own, shown) = self
-            .grid
-            .get(slot)
-            .map_or((None, None), |e| (e.data.own, e.data.shown));
+        let (own, shown) = self.grid.get(slot).map_or((None, None), |grid_entry| {
+            (grid_entry.data.own, grid_entry.data.shown)
+        });
         if let Some(Some(m)) = self.tables.meshes.get_mut(mesh as usize) {
             m.instances.swap_remove(mesh_pos as usize);
             if let Some(&moved) = m.instances.get(mesh_pos as usize) {

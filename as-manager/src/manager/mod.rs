@@ -413,8 +413,8 @@ impl<B: AsBackend> AsManager<B> {
             let mut grid = GridIndex::new(config.residency.cell_size);
             grid.set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
             for (slot, inst) in self.tables.instances.iter().enumerate() {
-                if let (Some(i), Some(e)) = (inst, self.grid.get(slot as u32)) {
-                    grid.insert(slot as u32, i.center, i.radius, e.data);
+                if let (Some(inst), Some(grid_entry)) = (inst, self.grid.get(slot as u32)) {
+                    grid.insert(slot as u32, inst.center, inst.radius, grid_entry.data);
                 }
             }
             self.grid = grid;
