@@ -241,3 +241,29 @@ impl Tables {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dropped_entry_goes_stale_and_leaves_the_active_list() {
+        let mut tables = Tables::default();
+        let a = tables.new_entry(0, 0, None, 12, 1);
+        let b = tables.new_entry(0, 1, Some(3), 12, 1);
+        assert!(!tables.built(Some(a)) && !tables.built(None));
+        tables.entries[a].state = EntryState::Built;
+        assert!(tables.built(Some(a)));
+        tables.entries[a].state = EntryState::Idle;
+        tables.drop_entry(a);
+        assert!(!tables.entries.contains_key(a));
+        assert_eq!(tables.active, vec![b]);
+        assert_eq!(tables.entries[b].active_index, 0);
+        // The slot comes back under a new key: the old one never aliases the new entry.
+        let c = tables.new_entry(0, 0, None, 12, 2);
+        assert_ne!(a, c);
+        tables.entries[c].state = EntryState::Built;
+        assert!(!tables.built(Some(a)) && tables.built(Some(c)));
+        assert_eq!(tables.active, vec![b, c]);
+    }
+}
