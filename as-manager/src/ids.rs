@@ -44,6 +44,20 @@ impl InstanceId {
 }
 
 /// Allocates `(index, generation)` pairs; a freed index comes back with generation + 1.
+///
+/// Hand-written, not a `slotmap::SlotMap` like the manager's BLAS entries
+/// (`manager::state::EntryKey`), because the manager needs each id's dense index and slotmap
+/// does not give it out (`KeyData::as_ffi`'s layout is documented as unspecified):
+/// - the spatial grid (`spatial::GridIndex`) maps an instance's `u32` slot to its cell through
+///   a `Vec`, and each cell entry names its instance by that slot (4 bytes, in the records the
+///   residency and cull passes stream through);
+/// - `InstanceHot` (<= 104 bytes) names its mesh and far-field group by `u32` slot, and the
+///   manager's mesh and instance tables are `Vec`s indexed by it;
+/// - [`MeshId::index`], [`InstanceId::index`] and [`GroupId::index`] are public, and callers
+///   key their own tables with them.
+///
+/// It also keeps a state slotmap has no word for: killed (unknown to later calls, which
+/// fail) but not yet recycled (the manager still applies the queued removal).
 #[derive(Debug, Default)]
 pub(crate) struct IdAllocator {
     generations: Vec<u32>,

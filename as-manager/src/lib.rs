@@ -21,6 +21,10 @@
 //!   frame streams through the cells near the cameras instead of chasing instance slots over
 //!   the whole world; cold state (skinned poses, the baselines' marks) stays in a slot table.
 //!   The benchmark keeps an rstar R*-tree query as the peer design; the grid is ~5x faster.
+//! - BLAS entries live in a `slotmap` (generational keys: an instance's shown BLAS or a pending
+//!   compaction that outlives its entry goes stale, never aliases a new one). Mesh, instance
+//!   and group ids are a dense index plus a generation, allocated by hand: the grid and the
+//!   tables index by the dense slot, which slotmap keys do not expose (see `ids.rs`).
 //! - Registration is queued ([`Registrar`], one mutex, the only lock) and applied at the start
 //!   of `update` in call order, so a frame is deterministic for a given command order.
 //! - One frame: apply → residency (request within r1, keep within r2, create after

@@ -49,6 +49,7 @@ impl Hasher for CellHasher {
     }
 }
 
+/// `GridLoc::cell` of an entry in the large list (not in a cell).
 const LARGE: u32 = u32::MAX;
 
 /// Coarse cells per side of a block of [`GridIndex::query_tall`]'s index.
@@ -63,8 +64,9 @@ pub struct GridIndex<T = ()> {
     cell_coords: Vec<(i32, i32)>,
     cell_entries: Vec<Vec<GridEntry<T>>>,
     large: Vec<GridEntry<T>>,
-    /// Per slot: (cell or LARGE, index in it); `u32::MAX, u32::MAX` when absent.
-    locs: Vec<(u32, u32)>,
+    /// Per caller's slot (a dense index: the grid's callers number their entries densely,
+    /// see `ids::IdAllocator`): where its entry is, `None` when absent.
+    locs: Vec<Option<GridLoc>>,
     scratch: Vec<u32>,
     len: usize,
     /// Largest radius among the in-cell entries (<= cell size): the query's slack.
@@ -265,8 +267,7 @@ impl<T: Copy> GridIndex<T> {
             }
         }
         for &slot in &slots {
-            let (cell, index) = self.locs[slot as usize];
-            let loc = GridLoc { cell, index };
+            let loc = self.locs[slot as usize].expect("a tall entry is indexed");
             visit(loc, self.at_mut(loc));
         }
         self.tall_scratch = slots;
@@ -298,10 +299,13 @@ impl<T: Copy> GridIndex<T> {
             data,
         };
         if self.locs.len() <= slot as usize {
-            self.locs.resize(slot as usize + 1, (u32::MAX, u32::MAX));
+            self.locs.resize(slot as usize + 1, None);
         }
         if radius > self.cell_size {
-            self.locs[slot as usize] = (LARGE, self.large.len() as u32);
+            self.locs[slot as usize] = Some(GridLoc {
+                cell: LARGE,
+                index: self.large.len() as u32,
+            });
             self.large.push(e);
         } else {
             self.max_small_radius = self.max_small_radius.max(radius);
@@ -313,7 +317,10 @@ impl<T: Copy> GridIndex<T> {
                 self.cell_coords.push((x, z));
             }
             let v = &mut self.cell_entries[c as usize];
-            self.locs[slot as usize] = (c, v.len() as u32);
+            self.locs[slot as usize] = Some(GridLoc {
+                cell: c,
+                index: v.len() as u32,
+            });
             v.push(e);
         }
         self.track_tall(center.to_array(), radius, slot);
@@ -322,12 +329,7 @@ impl<T: Copy> GridIndex<T> {
 
     /// Where `slot` is now.
     pub fn loc(&self, slot: u32) -> Option<GridLoc> {
-        match self.locs.get(slot as usize) {
-            Some(&(c, i)) if !(c == u32::MAX && i == u32::MAX) => {
-                Some(GridLoc { cell: c, index: i })
-            }
-            _ => None,
-        }
+        self.locs.get(slot as usize).copied().flatten()
     }
 
     /// The entry at `loc`.
@@ -360,12 +362,9 @@ impl<T: Copy> GridIndex<T> {
 
     /// Removes `slot` if present.
     pub fn remove(&mut self, slot: u32) {
-        let Some(&(c, i)) = self.locs.get(slot as usize) else {
+        let Some(GridLoc { cell: c, index: i }) = self.loc(slot) else {
             return;
         };
-        if c == u32::MAX && i == u32::MAX {
-            return;
-        }
         let v = if c == LARGE {
             &mut self.large
         } else {
@@ -373,9 +372,9 @@ impl<T: Copy> GridIndex<T> {
         };
         let gone = v.swap_remove(i as usize);
         if let Some(moved) = v.get(i as usize) {
-            self.locs[moved.slot as usize] = (c, i);
+            self.locs[moved.slot as usize] = Some(GridLoc { cell: c, index: i });
         }
-        self.locs[slot as usize] = (u32::MAX, u32::MAX);
+        self.locs[slot as usize] = None;
         self.untrack_tall(gone.center, gone.radius, slot);
         self.len -= 1;
     }

@@ -5,16 +5,16 @@ use std::sync::Arc;
 use glam::Affine3A;
 
 use super::registrar::{Command, InstanceDesc};
-use super::state::{EntryState, Hot, InstanceState, MeshState, NONE};
+use super::state::{EntryKey, EntryState, InstanceHot, InstanceState, MeshState, NO_GROUP};
 use super::AsManager;
 use crate::backend::AsBackend;
 use crate::mesh::{LodGeometry, MeshDesc, MeshKind, MAX_LODS};
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 use crate::{InstanceId, MeshId};
 
-fn world_sphere(desc: &MeshDesc, t: &Affine3A) -> (glam::Vec3, f32, f32) {
-    let c = t.transform_point3(glam::Vec3::from(desc.bounds_center));
-    let m = t.matrix3;
+fn world_sphere(desc: &MeshDesc, transform: &Affine3A) -> (glam::Vec3, f32, f32) {
+    let c = transform.transform_point3(glam::Vec3::from(desc.bounds_center));
+    let m = transform.matrix3;
     let scale = m
         .x_axis
         .length()
@@ -37,7 +37,7 @@ impl<B: AsBackend> AsManager<B> {
                     dead_meshes.push(id.index);
                 }
                 Command::AddInstance(id, desc) => self.apply_add(id, desc),
-                Command::SetTransform(id, t) => self.apply_transform(id, t),
+                Command::SetTransform(id, transform) => self.apply_transform(id, transform),
                 Command::RemoveInstance(id) => {
                     if self.apply_remove(id.index) {
                         dead_instances.push(id.index);
@@ -52,21 +52,21 @@ impl<B: AsBackend> AsManager<B> {
                     // a proxy no longer named is released like any unkept BLAS.
                     self.far.set_proxy(id, proxy.map(|(m, e)| (m.index, e)));
                     if let Some((m, _)) = proxy {
-                        if let Some(Some(mesh)) = self.t.meshes.get_mut(m.index as usize) {
+                        if let Some(Some(mesh)) = self.tables.meshes.get_mut(m.index as usize) {
                             mesh.proxy = true;
                         }
                     }
                 }
                 Command::UnregisterGroup(id) => self.far.unregister(id),
                 Command::SetPose(id, pose) => {
-                    if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
+                    if let Some(Some(i)) = self.tables.instances.get_mut(id.index as usize) {
                         i.pose = pose;
                         i.device_pose = None;
                         i.pose_version += 1;
                     }
                 }
                 Command::SetDevicePose(id, pose) => {
-                    if let Some(Some(i)) = self.t.instances.get_mut(id.index as usize) {
+                    if let Some(Some(i)) = self.tables.instances.get_mut(id.index as usize) {
                         i.pose = None;
                         i.device_pose = Some(pose);
                         i.pose_version += 1;
@@ -88,8 +88,8 @@ impl<B: AsBackend> AsManager<B> {
 
     fn apply_register(&mut self, id: MeshId, desc: Arc<MeshDesc>) {
         let slot = id.index as usize;
-        if self.t.meshes.len() <= slot {
-            self.t.meshes.resize_with(slot + 1, || None);
+        if self.tables.meshes.len() <= slot {
+            self.tables.meshes.resize_with(slot + 1, || None);
         }
         let mut errors = [0.0; MAX_LODS];
         let mut lod_tris = [0; MAX_LODS];
@@ -97,16 +97,16 @@ impl<B: AsBackend> AsManager<B> {
             errors[i] = l.geometric_error;
             lod_tris[i] = l.geometry.triangles();
         }
-        if self.t.meshes[slot].is_none() {
+        if self.tables.meshes[slot].is_none() {
             self.live_meshes += 1;
         }
-        self.t.meshes[slot] = Some(MeshState {
+        self.tables.meshes[slot] = Some(MeshState {
             kind: desc.kind,
             nlods: desc.lods.len() as u8,
             errors,
             lod_tris,
             desc,
-            lod_entry: [NONE; MAX_LODS],
+            lod_entry: [None; MAX_LODS],
             lod_floor: 0,
             floor_since: 0,
             instances: Vec::new(),
@@ -117,7 +117,7 @@ impl<B: AsBackend> AsManager<B> {
     /// A LOD's new geometry (and error): the estimates follow it. An unbuilt entry of the LOD
     /// takes the new triangle count; a built one keeps what it was built from.
     fn set_lod_now(&mut self, mesh: u32, lod: usize, geometry: LodGeometry, error: Option<f32>) {
-        let Some(Some(m)) = self.t.meshes.get_mut(mesh as usize) else {
+        let Some(Some(m)) = self.tables.meshes.get_mut(mesh as usize) else {
             return;
         };
         if lod >= m.nlods as usize {
@@ -141,9 +141,8 @@ impl<B: AsBackend> AsManager<B> {
                 d.lods[l].geometric_error = m.errors[l];
             }
         }
-        let slot = m.lod_entry[lod];
-        if slot != NONE {
-            let e = &mut self.t.entries[slot as usize];
+        if let Some(key) = m.lod_entry[lod] {
+            let e = &mut self.tables.entries[key];
             if e.state != EntryState::Built {
                 e.triangles = tris;
             }
@@ -152,32 +151,27 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Removes the mesh's instances and BLASes; returns the instance slots removed.
     fn apply_unregister(&mut self, id: MeshId) -> Vec<u32> {
-        let Some(Some(mesh)) = self.t.meshes.get(id.index as usize) else {
+        let Some(Some(mesh)) = self.tables.meshes.get(id.index as usize) else {
             return Vec::new();
         };
         let insts = mesh.instances.clone();
-        let entries: Vec<u32> = mesh
-            .lod_entry
-            .iter()
-            .copied()
-            .filter(|&e| e != NONE)
-            .collect();
+        let entries: Vec<EntryKey> = mesh.lod_entry.iter().copied().flatten().collect();
         for &i in &insts {
             self.apply_remove(i);
         }
-        for e in entries {
-            if self.t.entries[e as usize].live {
-                self.release_entry(e);
+        for key in entries {
+            if self.tables.entries.contains_key(key) {
+                self.release_entry(key);
             }
         }
         self.floors.retain(|&m| m != id.index);
-        self.t.meshes[id.index as usize] = None;
+        self.tables.meshes[id.index as usize] = None;
         self.live_meshes -= 1;
         insts
     }
 
     fn apply_add(&mut self, id: InstanceId, desc: InstanceDesc) {
-        let Some(Some(mesh)) = self.t.meshes.get_mut(desc.mesh.index as usize) else {
+        let Some(Some(mesh)) = self.tables.meshes.get_mut(desc.mesh.index as usize) else {
             return;
         };
         let (center, radius, scale) = world_sphere(&mesh.desc, &desc.transform);
@@ -190,14 +184,14 @@ impl<B: AsBackend> AsManager<B> {
         let mesh_pos = mesh.instances.len() as u32;
         mesh.instances.push(id.index);
         let slot = id.index as usize;
-        if self.t.instances.len() <= slot {
-            self.t.instances.resize_with(slot + 1, || None);
+        if self.tables.instances.len() <= slot {
+            self.tables.instances.resize_with(slot + 1, || None);
         }
         let group = desc
             .group
             .filter(|g| self.far.is_live(*g))
-            .map_or(NONE, |g| g.index);
-        self.t.instances[slot] = Some(InstanceState {
+            .map_or(NO_GROUP, |g| g.index);
+        self.tables.instances[slot] = Some(InstanceState {
             mesh: desc.mesh.index,
             mesh_pos,
             center,
@@ -209,7 +203,7 @@ impl<B: AsBackend> AsManager<B> {
             seed_keep: None,
             seed_has: false,
         });
-        let hot = Hot {
+        let hot = InstanceHot {
             template: TlasInstance::new(
                 &desc.transform,
                 desc.custom_index,
@@ -220,8 +214,8 @@ impl<B: AsBackend> AsManager<B> {
             ),
             mesh: desc.mesh.index,
             scale,
-            shown: (NONE, 0),
-            own: (NONE, 0),
+            shown: None,
+            own: None,
             last_visit: u64::MAX,
             group,
             lod_target: (MAX_LODS - 1) as u8,
@@ -231,67 +225,71 @@ impl<B: AsBackend> AsManager<B> {
         self.live_instances += 1;
     }
 
-    fn apply_transform(&mut self, id: InstanceId, t: Affine3A) {
-        let Some(Some(inst)) = self.t.instances.get_mut(id.index as usize) else {
+    fn apply_transform(&mut self, id: InstanceId, transform: Affine3A) {
+        let Some(Some(inst)) = self.tables.instances.get_mut(id.index as usize) else {
             return;
         };
-        let Some(Some(mesh)) = self.t.meshes.get(inst.mesh as usize) else {
+        let Some(Some(mesh)) = self.tables.meshes.get(inst.mesh as usize) else {
             return;
         };
-        let Some(e) = self.grid.get(id.index) else {
+        let Some(grid_entry) = self.grid.get(id.index) else {
             return;
         };
-        let (center, radius, scale) = world_sphere(&mesh.desc, &t);
+        let (center, radius, scale) = world_sphere(&mesh.desc, &transform);
         inst.center = center;
         inst.radius = radius;
-        let mut hot = e.data;
-        hot.template.transform = crate::record::transform_rows(&t);
+        let mut hot = grid_entry.data;
+        hot.template.transform = crate::record::transform_rows(&transform);
         hot.scale = scale;
         self.grid.insert(id.index, center, radius, hot);
     }
 
     /// Removes an instance's state; returns whether it existed.
     fn apply_remove(&mut self, slot: u32) -> bool {
-        let Some(Some(inst)) = self.t.instances.get(slot as usize) else {
+        let Some(Some(inst)) = self.tables.instances.get(slot as usize) else {
             return false;
         };
         let (mesh, mesh_pos, seed_has) = (inst.mesh, inst.mesh_pos, inst.seed_has);
-        let (own, shown) = self
-            .grid
-            .get(slot)
-            .map_or(((NONE, 0), (NONE, 0)), |e| (e.data.own, e.data.shown));
-        if let Some(Some(m)) = self.t.meshes.get_mut(mesh as usize) {
+        let (own, shown) = self.grid.get(slot).map_or((None, None), |grid_entry| {
+            (grid_entry.data.own, grid_entry.data.shown)
+        });
+        if let Some(Some(m)) = self.tables.meshes.get_mut(mesh as usize) {
             m.instances.swap_remove(mesh_pos as usize);
             if let Some(&moved) = m.instances.get(mesh_pos as usize) {
-                if let Some(Some(mi)) = self.t.instances.get_mut(moved as usize) {
+                if let Some(Some(mi)) = self.tables.instances.get_mut(moved as usize) {
                     mi.mesh_pos = mesh_pos;
                 }
             }
         }
-        let kind = self.t.meshes[mesh as usize].as_ref().map(|m| m.kind());
+        let kind = self.tables.meshes[mesh as usize].as_ref().map(|m| m.kind());
         if seed_has {
             self.seed_drop_ref(slot);
         }
         if kind == Some(MeshKind::Skinned) {
             // Skinned BLASes belong to the instance: release every entry it owns.
-            for key in [own, shown] {
-                if self.t.entry_valid(key) && self.t.entries[key.0 as usize].owner == slot {
-                    self.release_entry(key.0);
+            for key in [own, shown].into_iter().flatten() {
+                if self
+                    .tables
+                    .entries
+                    .get(key)
+                    .is_some_and(|e| e.owner == Some(slot))
+                {
+                    self.release_entry(key);
                 }
             }
-            let owned: Vec<u32> = self
-                .t
+            let owned: Vec<EntryKey> = self
+                .tables
                 .active
                 .iter()
                 .copied()
-                .filter(|&e| self.t.entries[e as usize].owner == slot)
+                .filter(|&key| self.tables.entries[key].owner == Some(slot))
                 .collect();
-            for e in owned {
-                self.release_entry(e);
+            for key in owned {
+                self.release_entry(key);
             }
         }
         self.grid.remove(slot);
-        self.t.instances[slot as usize] = None;
+        self.tables.instances[slot as usize] = None;
         self.live_instances -= 1;
         true
     }

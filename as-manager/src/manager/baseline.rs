@@ -1,6 +1,6 @@
 //! The comparison policies behind the same API: `Naive` and `SeedR1R2`.
 
-use super::state::{EntryState, NONE};
+use super::state::{EntryKey, EntryState};
 use super::AsManager;
 use crate::backend::AsBackend;
 use crate::config::{CullConfig, CullMode};
@@ -12,7 +12,7 @@ impl<B: AsBackend> AsManager<B> {
     /// The finest LOD of a mesh that is loaded: it holds data, or the backend needs none (the
     /// model backend counts every LOD as loaded).
     pub(crate) fn finest_loaded(&self, mesh: u32) -> Option<usize> {
-        let m = self.t.meshes[mesh as usize].as_ref()?;
+        let m = self.tables.meshes[mesh as usize].as_ref()?;
         let need = self.backend.needs_geometry();
         (0..m.nlods as usize).find(|&l| !need || m.desc.lods[l].geometry.is_buildable())
     }
@@ -23,73 +23,73 @@ impl<B: AsBackend> AsManager<B> {
     fn naive_residency(&mut self) {
         let need = self.backend.needs_geometry();
         let frame = self.frame;
-        for mesh in 0..self.t.meshes.len() as u32 {
-            let Some(m) = self.t.meshes[mesh as usize].as_ref() else {
+        for mesh in 0..self.tables.meshes.len() as u32 {
+            let Some(m) = self.tables.meshes[mesh as usize].as_ref() else {
                 continue;
             };
             if m.kind() != MeshKind::Static || m.proxy {
                 continue;
             }
-            let lods: Vec<(bool, u32, u32)> = (0..m.nlods as usize)
+            let lods: Vec<(bool, Option<EntryKey>, u32)> = (0..m.nlods as usize)
                 .map(|l| {
                     let g = &m.desc.lods[l].geometry;
                     (!need || g.is_buildable(), m.lod_entry[l], g.triangles())
                 })
                 .collect();
             for (lod, (loaded, entry, tris)) in lods.into_iter().enumerate() {
-                match (loaded, entry != NONE) {
-                    (true, false) => {
-                        let s = self.t.new_entry(mesh, lod as u8, NONE, tris, frame);
-                        self.t.entries[s as usize].state = EntryState::Queued;
-                        self.t.meshes[mesh as usize]
+                match (loaded, entry) {
+                    (true, None) => {
+                        let key = self.tables.new_entry(mesh, lod as u8, None, tris, frame);
+                        self.tables.entries[key].state = EntryState::Queued;
+                        self.tables.meshes[mesh as usize]
                             .as_mut()
                             .expect("live")
-                            .lod_entry[lod] = s;
+                            .lod_entry[lod] = Some(key);
                     }
-                    (false, true) => {
-                        self.release_entry(entry);
+                    (false, Some(key)) => {
+                        self.release_entry(key);
                         self.stats.releases += 1;
                     }
                     // Queued entries whose data came back after a miss: queue again.
-                    (true, true) if self.t.entries[entry as usize].state == EntryState::Idle => {
-                        self.t.entries[entry as usize].state = EntryState::Queued;
+                    (true, Some(key)) if self.tables.entries[key].state == EntryState::Idle => {
+                        self.tables.entries[key].state = EntryState::Queued;
                     }
                     _ => {}
                 }
             }
         }
-        for slot in 0..self.t.instances.len() as u32 {
-            let Some(inst) = self.t.instances[slot as usize].as_ref() else {
+        for slot in 0..self.tables.instances.len() as u32 {
+            let Some(inst) = self.tables.instances[slot as usize].as_ref() else {
                 continue;
             };
             let mesh = inst.mesh;
-            let m = self.t.meshes[mesh as usize].as_ref().expect("live");
+            let m = self.tables.meshes[mesh as usize].as_ref().expect("live");
             if m.kind() != MeshKind::Skinned {
                 continue;
             }
             let own = self.grid.get(slot).expect("indexed").data.own;
-            if self.t.entry_valid(own) {
-                let e = &self.t.entries[own.0 as usize];
+            if let Some((key, e)) = own.and_then(|k| Some((k, self.tables.entries.get(k)?))) {
                 // Not built and its data is gone: start again at the finest loaded LOD.
-                if e.state != EntryState::Idle || self.t.built(own) {
+                if e.state != EntryState::Idle {
                     continue;
                 }
-                self.release_entry(own.0);
+                self.release_entry(key);
             }
             let Some(lod) = self.finest_loaded(mesh) else {
                 continue;
             };
-            let tris = self.t.meshes[mesh as usize]
+            let tris = self.tables.meshes[mesh as usize]
                 .as_ref()
                 .expect("live")
                 .desc
                 .lods[lod]
                 .geometry
                 .triangles();
-            let s = self.t.new_entry(mesh, lod as u8, slot, tris, frame);
-            self.t.entries[s as usize].state = EntryState::Queued;
-            let key = self.t.key(s);
-            self.grid.get_mut(slot).expect("indexed").data.own = key;
+            let key = self
+                .tables
+                .new_entry(mesh, lod as u8, Some(slot), tris, frame);
+            self.tables.entries[key].state = EntryState::Queued;
+            self.grid.get_mut(slot).expect("indexed").data.own = Some(key);
         }
     }
 
@@ -101,22 +101,24 @@ impl<B: AsBackend> AsManager<B> {
         self.schedule_builds(false)?;
         self.schedule_refits(false)?;
         self.tlas_list.clear();
-        for slot in 0..self.t.instances.len() {
-            let Some(inst) = self.t.instances[slot].as_ref() else {
+        for slot in 0..self.tables.instances.len() {
+            let Some(inst) = self.tables.instances[slot].as_ref() else {
                 continue;
             };
-            let m = self.t.meshes[inst.mesh as usize].as_ref().expect("live");
+            let m = self.tables.meshes[inst.mesh as usize]
+                .as_ref()
+                .expect("live");
             let loc = self.grid.loc(slot as u32).expect("indexed");
             let key = match m.kind() {
                 MeshKind::Static => m.lod_entry[..m.nlods as usize]
                     .iter()
-                    .map(|&s| if s == NONE { (NONE, 0) } else { self.t.key(s) })
-                    .find(|&k| self.t.built(k))
-                    .unwrap_or((NONE, 0)),
+                    .copied()
+                    .find(|&k| self.tables.built(k))
+                    .flatten(),
                 MeshKind::Skinned => self.grid.at(loc).data.own,
             };
-            if self.t.built(key) {
-                let e = &mut self.t.entries[key.0 as usize];
+            if let Some(key) = key.filter(|&k| self.tables.built(Some(k))) {
+                let e = &mut self.tables.entries[key];
                 e.last_in_tlas = Some(self.frame);
                 let addr = self.backend.blas_address(e.handle.expect("built"));
                 self.tlas_list.push((loc, addr));
@@ -129,18 +131,18 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Seed: drop an instance's reference to its (mesh, LOD 0) BLAS; free it at zero.
     pub(crate) fn seed_drop_ref(&mut self, slot: u32) {
-        self.t.instances[slot as usize]
+        self.tables.instances[slot as usize]
             .as_mut()
             .expect("live")
             .seed_has = false;
-        let h = &mut self.grid.get_mut(slot).expect("indexed").data;
-        let key = h.shown;
-        h.shown = (NONE, 0);
-        if self.t.entry_valid(key) {
-            let e = &mut self.t.entries[key.0 as usize];
+        let hot = &mut self.grid.get_mut(slot).expect("indexed").data;
+        let Some(key) = hot.shown.take() else {
+            return;
+        };
+        if let Some(e) = self.tables.entries.get_mut(key) {
             e.refs = e.refs.saturating_sub(1);
             if e.refs == 0 {
-                self.release_entry(key.0);
+                self.release_entry(key);
                 self.stats.releases += 1;
             }
         }
@@ -153,10 +155,10 @@ impl<B: AsBackend> AsManager<B> {
     pub(crate) fn seed_frame(&mut self) -> Result<()> {
         let frame = self.frame;
         let rc = self.config.residency.clone();
-        let n = self.t.instances.len();
+        let n = self.tables.instances.len();
         for ci in 0..self.cam_pos.len() {
             let cam = self.cam_pos[ci];
-            for inst in self.t.instances.iter_mut().flatten() {
+            for inst in self.tables.instances.iter_mut().flatten() {
                 let d = (cam.distance(inst.center) - inst.radius).max(0.0);
                 if d < rc.r1 {
                     inst.seed_request = Some(frame);
@@ -167,7 +169,7 @@ impl<B: AsBackend> AsManager<B> {
             }
         }
         for slot in 0..n {
-            let Some(inst) = self.t.instances[slot].as_ref() else {
+            let Some(inst) = self.tables.instances[slot].as_ref() else {
                 continue;
             };
             let recent = inst
@@ -182,35 +184,34 @@ impl<B: AsBackend> AsManager<B> {
                 let Some(lod) = self.finest_loaded(mesh_ix) else {
                     continue;
                 };
-                let m = self.t.meshes[mesh_ix as usize].as_ref().expect("live");
+                let m = self.tables.meshes[mesh_ix as usize].as_ref().expect("live");
                 let tris = m.desc.lods[lod].geometry.triangles();
-                let s = match m.kind() {
-                    MeshKind::Static if m.lod_entry[lod] != NONE => m.lod_entry[lod],
-                    MeshKind::Static => {
-                        let s = self.t.new_entry(mesh_ix, lod as u8, NONE, tris, frame);
-                        self.t.meshes[mesh_ix as usize]
+                let key = match (m.kind(), m.lod_entry[lod]) {
+                    (MeshKind::Static, Some(key)) => key,
+                    (MeshKind::Static, None) => {
+                        let key = self.tables.new_entry(mesh_ix, lod as u8, None, tris, frame);
+                        self.tables.meshes[mesh_ix as usize]
                             .as_mut()
                             .expect("live")
-                            .lod_entry[lod] = s;
-                        s
+                            .lod_entry[lod] = Some(key);
+                        key
                     }
-                    MeshKind::Skinned => {
-                        self.t
-                            .new_entry(mesh_ix, lod as u8, slot as u32, tris, frame)
+                    (MeshKind::Skinned, _) => {
+                        self.tables
+                            .new_entry(mesh_ix, lod as u8, Some(slot as u32), tris, frame)
                     }
                 };
-                let e = &mut self.t.entries[s as usize];
+                let e = &mut self.tables.entries[key];
                 e.refs += 1;
                 if e.state == EntryState::Idle {
                     e.state = EntryState::Queued;
                 }
-                let key = self.t.key(s);
-                let owned = self.t.entries[s as usize].owner != NONE;
-                self.t.instances[slot].as_mut().expect("live").seed_has = true;
-                let h = &mut self.grid.get_mut(slot as u32).expect("indexed").data;
-                h.shown = key;
+                let owned = e.owner.is_some();
+                self.tables.instances[slot].as_mut().expect("live").seed_has = true;
+                let hot = &mut self.grid.get_mut(slot as u32).expect("indexed").data;
+                hot.shown = Some(key);
                 if owned {
-                    h.own = key;
+                    hot.own = Some(key);
                 }
             } else if inst.seed_has && stale {
                 self.seed_drop_ref(slot as u32);
@@ -218,8 +219,9 @@ impl<B: AsBackend> AsManager<B> {
                 // Its BLAS was never built and its data left: take the finest loaded LOD
                 // at the next create pass.
                 let shown = self.grid.get(slot as u32).expect("indexed").data.shown;
-                let idle = self.t.entry_valid(shown)
-                    && self.t.entries[shown.0 as usize].state == EntryState::Idle;
+                let idle = shown
+                    .and_then(|k| self.tables.entries.get(k))
+                    .is_some_and(|e| e.state == EntryState::Idle);
                 if idle {
                     self.seed_drop_ref(slot as u32);
                 }
@@ -235,15 +237,17 @@ impl<B: AsBackend> AsManager<B> {
         self.tlas_list.clear();
         let mut culled = 0;
         for slot in 0..n {
-            let Some(inst) = self.t.instances[slot].as_ref() else {
+            let Some(inst) = self.tables.instances[slot].as_ref() else {
                 continue;
             };
             if !inst.seed_has {
                 continue;
             }
             let loc = self.grid.loc(slot as u32).expect("indexed");
-            let shown = self.grid.at(loc).data.shown;
-            if !self.t.built(shown) {
+            let Some(shown) = self.grid.at(loc).data.shown else {
+                continue;
+            };
+            if !self.tables.built(Some(shown)) {
                 continue;
             }
             let mut d2 = f32::INFINITY;
@@ -254,7 +258,7 @@ impl<B: AsBackend> AsManager<B> {
                 culled += 1;
                 continue;
             }
-            let e = &mut self.t.entries[shown.0 as usize];
+            let e = &mut self.tables.entries[shown];
             e.last_in_tlas = Some(frame);
             let addr = self.backend.blas_address(e.handle.expect("built"));
             self.tlas_list.push((loc, addr));

@@ -24,7 +24,7 @@
 
 use glam::{Affine3A, Vec3};
 
-use super::state::{EntryState, NONE};
+use super::state::{EntryKey, EntryState};
 use super::AsManager;
 use crate::backend::AsBackend;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
@@ -33,7 +33,8 @@ use crate::{GroupDesc, GroupId};
 #[derive(Debug, Clone)]
 pub(crate) struct GroupNode {
     desc: GroupDesc,
-    parent: u32,
+    /// The parent's slot (`None` for a root).
+    parent: Option<u32>,
     children: Vec<u32>,
     /// (proxy mesh slot, error in metres).
     proxy: Option<(u32, f32)>,
@@ -94,11 +95,8 @@ impl FarField {
             self.nodes.resize(i + 1, None);
             self.generations.resize(i + 1, u32::MAX);
         }
-        let parent = desc
-            .parent
-            .filter(|p| self.is_live(*p))
-            .map_or(NONE, |p| p.index);
-        if parent != NONE {
+        let parent = desc.parent.filter(|p| self.is_live(*p)).map(|p| p.index);
+        if let Some(parent) = parent {
             if let Some(Some(p)) = self.nodes.get_mut(parent as usize) {
                 p.children.push(id.index);
             }
@@ -139,12 +137,12 @@ impl FarField {
         };
         self.roots_dirty = true;
         self.live -= 1;
-        if let Some(Some(p)) = self.nodes.get_mut(n.parent as usize) {
+        if let Some(Some(p)) = n.parent.and_then(|p| self.nodes.get_mut(p as usize)) {
             p.children.retain(|&c| c != id.index);
         }
         for c in n.children {
             if let Some(Some(child)) = self.nodes.get_mut(c as usize) {
-                child.parent = NONE;
+                child.parent = None;
             }
         }
     }
@@ -170,7 +168,7 @@ impl FarField {
     fn roots(&mut self) -> Vec<u32> {
         if self.roots_dirty {
             self.roots = (0..self.nodes.len() as u32)
-                .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent == NONE))
+                .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent.is_none()))
                 .collect();
             // Leaf counts, children before parents (post-order from the roots).
             let mut order = Vec::with_capacity(self.live);
@@ -195,8 +193,8 @@ impl FarField {
 
     /// Whether `leaf` or one of its ancestors was part of the display cut of `epoch`.
     fn shown_in(&self, leaf: u32, epoch: u64) -> bool {
-        let mut i = leaf;
-        while let Some(Some(n)) = self.nodes.get(i as usize) {
+        let mut i = Some(leaf);
+        while let Some(Some(n)) = i.and_then(|i| self.nodes.get(i as usize)) {
             if n.shown == epoch {
                 return true;
             }
@@ -210,7 +208,8 @@ impl FarField {
         self.epoch >= 1 && self.shown_in(leaf, self.epoch - 1)
     }
 
-    /// Whether `group` is a leaf on the near (detail) side of the hand-over.
+    /// Whether `group` is a leaf on the near (detail) side of the hand-over (false for
+    /// `NO_GROUP`, which names no node).
     pub fn is_near_leaf(&self, group: u32) -> bool {
         matches!(self.nodes.get(group as usize), Some(Some(n)) if n.children.is_empty() && n.near)
     }
@@ -373,19 +372,22 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     fn request_proxy(&mut self, mesh: u32, dist: f32, frame: u64) {
-        let Some(Some(m)) = self.t.meshes.get(mesh as usize) else {
+        let Some(Some(m)) = self.tables.meshes.get(mesh as usize) else {
             return;
         };
         let tris = m.lod_tris[0];
-        let mut slot = m.lod_entry[0];
-        if slot == NONE {
-            slot = self.t.new_entry(mesh, 0, NONE, tris, frame);
-            self.t.meshes[mesh as usize]
-                .as_mut()
-                .expect("live")
-                .lod_entry[0] = slot;
-        }
-        let e = &mut self.t.entries[slot as usize];
+        let key = match m.lod_entry[0] {
+            Some(key) => key,
+            None => {
+                let key = self.tables.new_entry(mesh, 0, None, tris, frame);
+                self.tables.meshes[mesh as usize]
+                    .as_mut()
+                    .expect("live")
+                    .lod_entry[0] = Some(key);
+                key
+            }
+        };
+        let e = &mut self.tables.entries[key];
         e.last_request = frame;
         e.last_keep = frame;
         if e.dist_frame != frame {
@@ -401,20 +403,20 @@ impl<B: AsBackend> AsManager<B> {
         }
     }
 
-    fn proxy_built(&self, group: u32) -> Option<(u32, u64)> {
+    fn proxy_built(&self, group: u32) -> Option<(EntryKey, u64)> {
         let (mesh, _) = self.far.node(group).proxy?;
-        let m = self.t.meshes.get(mesh as usize)?.as_ref()?;
-        let s = m.lod_entry[0];
-        if s == NONE || self.t.entries[s as usize].state != EntryState::Built {
+        let m = self.tables.meshes.get(mesh as usize)?.as_ref()?;
+        let key = m.lod_entry[0]?;
+        let e = &self.tables.entries[key];
+        if e.state != EntryState::Built {
             return None;
         }
-        let h = self.t.entries[s as usize].handle?;
-        Some((s, self.backend.blas_address(h)))
+        Some((key, self.backend.blas_address(e.handle?)))
     }
 
-    /// Picks of the display cut under `i`: (group, entry slot, address). `None` when some far
+    /// Picks of the display cut under `i`: (group, entry, address). `None` when some far
     /// leaf under `i` would show nothing.
-    fn display_cut(&self, i: u32, picks: &mut Vec<(u32, u32, u64)>) -> bool {
+    fn display_cut(&self, i: u32, picks: &mut Vec<(u32, EntryKey, u64)>) -> bool {
         let f = &self.config.far_field;
         let r2 = self.config.residency.r2;
         let n = self.far.node(i);
@@ -428,8 +430,8 @@ impl<B: AsBackend> AsManager<B> {
                 return true;
             }
             return match self.proxy_built(i) {
-                Some((slot, addr)) => {
-                    picks.push((i, slot, addr));
+                Some((key, addr)) => {
+                    picks.push((i, key, addr));
                     true
                 }
                 // A near leaf shows its detail instead; a far one has nothing.
@@ -441,8 +443,8 @@ impl<B: AsBackend> AsManager<B> {
         let px = n
             .proxy
             .map_or(f32::INFINITY, |(_, e)| self.projected_px(e, dist));
-        if let (Some((slot, addr)), true) = (parent, px <= f.max_pixel_error) {
-            picks.push((i, slot, addr));
+        if let (Some((key, addr)), true) = (parent, px <= f.max_pixel_error) {
+            picks.push((i, key, addr));
             return true;
         }
         let mark = picks.len();
@@ -451,10 +453,10 @@ impl<B: AsBackend> AsManager<B> {
             complete &= self.display_cut(c, picks);
         }
         if !complete {
-            if let Some((slot, addr)) = parent {
+            if let Some((key, addr)) = parent {
                 // A child has nothing built yet: the coarser parent covers them all.
                 picks.truncate(mark);
-                picks.push((i, slot, addr));
+                picks.push((i, key, addr));
                 return true;
             }
         }
@@ -476,7 +478,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         let frame = self.frame;
         let mut proxy_bytes = 0;
-        for &(g, slot, addr) in &picks {
+        for &(g, key, addr) in &picks {
             let n = self.far.node(g);
             let radius =
                 0.5 * (Vec3::from(n.desc.bounds_max) - Vec3::from(n.desc.bounds_min)).length();
@@ -492,7 +494,7 @@ impl<B: AsBackend> AsManager<B> {
             self.far.picks.push(g);
             let culled = self.culler.cull_small(radius, centre_dist, was_culled);
             self.far.nodes[g as usize].as_mut().expect("live").culled = culled;
-            let e = &mut self.t.entries[slot as usize];
+            let e = &mut self.tables.entries[key];
             e.last_keep = frame;
             if culled {
                 continue;
@@ -520,7 +522,7 @@ impl<B: AsBackend> AsManager<B> {
         if !self.far.picks.is_empty() {
             let mut keep = Vec::with_capacity(self.tlas_list.len());
             for (item, &g) in self.tlas_list.iter().zip(&self.tlas_groups) {
-                if g == NONE || !self.far.is_covered(g) {
+                if g.is_none_or(|g| !self.far.is_covered(g)) {
                     keep.push(*item);
                 }
             }

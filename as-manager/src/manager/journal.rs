@@ -13,7 +13,7 @@
 //! eviction (their BLASes retire after the frames that used them) and residency marks; a retry
 //! makes the same decisions again.
 
-use super::state::EntryState;
+use super::state::{EntryKey, EntryState};
 use super::AsManager;
 use crate::backend::{AsBackend, BlasHandle};
 use crate::quality::RefitQuality;
@@ -21,8 +21,7 @@ use crate::quality::RefitQuality;
 /// A refit's bookkeeping before the frame.
 #[derive(Debug)]
 pub(crate) struct RefitUndo {
-    pub slot: u32,
-    pub generation: u32,
+    pub entry: EntryKey,
     pub pose_version: u64,
     pub refit_frame: u64,
     pub quality: Option<RefitQuality>,
@@ -33,7 +32,7 @@ pub(crate) struct RefitUndo {
 /// A compaction: the source (freed at commit) and the copy (freed on rollback).
 #[derive(Debug)]
 pub(crate) struct CompactUndo {
-    pub slot: u32,
+    pub entry: EntryKey,
     pub old: BlasHandle,
     pub old_bytes: u64,
     pub new: BlasHandle,
@@ -42,8 +41,8 @@ pub(crate) struct CompactUndo {
 /// This frame's undoable changes.
 #[derive(Debug, Default)]
 pub(crate) struct FrameJournal {
-    /// (entry slot, handle) of the BLASes built.
-    pub built: Vec<(u32, BlasHandle)>,
+    /// (entry, handle) of the BLASes built.
+    pub built: Vec<(EntryKey, BlasHandle)>,
     pub refitted: Vec<RefitUndo>,
     pub compacted: Vec<CompactUndo>,
 }
@@ -69,9 +68,9 @@ impl<B: AsBackend> AsManager<B> {
     /// Frees a BLAS the failed frame created: never submitted, so it retires against the
     /// newest completed frame (gone at the next `begin_frame` once one completed), and its
     /// bytes count as retiring until then (the retry's budget sees them).
-    fn free_unsubmitted(&mut self, h: BlasHandle, bytes: u64) {
+    fn free_unsubmitted(&mut self, handle: BlasHandle, bytes: u64) {
         let last = self.backend.completed_frame().unwrap_or(0);
-        self.backend.free_blas(h, last);
+        self.backend.free_blas(handle, last);
         let i = self.retiring.partition_point(|&(f, _)| f <= last);
         self.retiring.insert(i, (last, bytes));
         self.retiring_bytes += bytes;
@@ -84,15 +83,16 @@ impl<B: AsBackend> AsManager<B> {
         self.backend.abort_frame();
         let mut j = std::mem::take(&mut self.journal);
         for c in j.compacted.drain(..).rev() {
-            let e = &mut self.t.entries[c.slot as usize];
             let mut new_bytes = 0;
-            if e.live && e.handle == Some(c.new) {
-                new_bytes = e.bytes;
-                self.live_bytes = self.live_bytes - e.bytes + c.old_bytes;
-                e.bytes = c.old_bytes;
-                e.handle = Some(c.old);
-                e.needs_compaction = true;
-                self.compact_pending.push((c.slot, e.generation));
+            if let Some(e) = self.tables.entries.get_mut(c.entry) {
+                if e.handle == Some(c.new) {
+                    new_bytes = e.bytes;
+                    self.live_bytes = self.live_bytes - e.bytes + c.old_bytes;
+                    e.bytes = c.old_bytes;
+                    e.handle = Some(c.old);
+                    e.needs_compaction = true;
+                    self.compact_pending.push(c.entry);
+                }
             }
             // The manager counted the source as retiring: it is live again.
             if let Some(i) = self
@@ -106,8 +106,7 @@ impl<B: AsBackend> AsManager<B> {
             self.free_unsubmitted(c.new, new_bytes);
         }
         for r in j.refitted.drain(..).rev() {
-            let e = &mut self.t.entries[r.slot as usize];
-            if e.live && e.generation == r.generation {
+            if let Some(e) = self.tables.entries.get_mut(r.entry) {
                 e.pose_version = r.pose_version;
                 e.refit_frame = r.refit_frame;
                 e.quality = r.quality;
@@ -115,19 +114,20 @@ impl<B: AsBackend> AsManager<B> {
                 e.gpu_ratio = r.gpu_ratio;
             }
         }
-        for (slot, h) in j.built.drain(..).rev() {
-            let e = &mut self.t.entries[slot as usize];
+        for (key, handle) in j.built.drain(..).rev() {
             let mut bytes = 0;
-            if e.live && e.handle == Some(h) {
-                bytes = e.bytes;
-                e.handle = None;
-                e.state = EntryState::Queued;
-                e.needs_compaction = false;
-                self.live_bytes -= e.bytes;
-                self.built_count -= 1;
-                e.bytes = 0;
+            if let Some(e) = self.tables.entries.get_mut(key) {
+                if e.handle == Some(handle) {
+                    bytes = e.bytes;
+                    e.handle = None;
+                    e.state = EntryState::Queued;
+                    e.needs_compaction = false;
+                    self.live_bytes -= e.bytes;
+                    self.built_count -= 1;
+                    e.bytes = 0;
+                }
             }
-            self.free_unsubmitted(h, bytes);
+            self.free_unsubmitted(handle, bytes);
         }
         self.journal = j;
     }

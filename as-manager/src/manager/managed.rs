@@ -3,7 +3,7 @@
 
 use glam::Vec3;
 
-use super::state::{EntryState, Hot, Tables, NONE};
+use super::state::{EntryState, InstanceHot, Tables, NO_GROUP};
 use super::{AsManager, Visit};
 use crate::backend::AsBackend;
 use crate::lod::LodSelector;
@@ -60,7 +60,7 @@ impl<B: AsBackend> AsManager<B> {
             visits,
             cam_pos,
             cam_fwd,
-            t,
+            tables,
             lod,
             far,
             config,
@@ -76,34 +76,34 @@ impl<B: AsBackend> AsManager<B> {
             r2,
             frame: *frame,
             need_data: backend.needs_geometry(),
-            t,
+            tables,
             lod,
             visits,
         };
-        grid.query_with_boxes(pass.cams, r2, &boxes, |loc, ge| {
-            let (d2, beyond_r2) = pass.distance(ge);
+        grid.query_with_boxes(pass.cams, r2, &boxes, |loc, grid_entry| {
+            let (d2, beyond_r2) = pass.distance(grid_entry);
             // Beyond r2 only for a near group (no square root for the rejected).
-            if beyond_r2 && !far.is_near_leaf(ge.data.group) {
+            if beyond_r2 && !far.is_near_leaf(grid_entry.data.group) {
                 return;
             }
-            pass.visit(loc, ge, d2.sqrt(), beyond_r2, false);
+            pass.visit(loc, grid_entry, d2.sqrt(), beyond_r2, false);
         });
         if far_on && keep_tan > 0.0 {
             // Landmarks: exactly the tall entries the query rejected or never reached.
             let far_radius = config.far_field.far_radius.min(config.far_field.keep_range);
-            grid.query_tall(pass.cams, keep_tan * 0.9, far_radius, |loc, ge| {
-                let (d2, beyond_r2) = pass.distance(ge);
-                if !beyond_r2 || far.is_near_leaf(ge.data.group) {
+            grid.query_tall(pass.cams, keep_tan * 0.9, far_radius, |loc, grid_entry| {
+                let (d2, beyond_r2) = pass.distance(grid_entry);
+                if !beyond_r2 || far.is_near_leaf(grid_entry.data.group) {
                     return;
                 }
                 let d = d2.sqrt();
                 // 10 % hysteresis on the angle for a landmark shown last frame.
-                let was = ge.data.last_visit == pass.frame.wrapping_sub(1);
+                let was = grid_entry.data.last_visit == pass.frame.wrapping_sub(1);
                 let tan = if was { keep_tan * 0.9 } else { keep_tan };
-                if d - ge.radius > far_radius || ge.radius <= tan * d {
+                if d - grid_entry.radius > far_radius || grid_entry.radius <= tan * d {
                     return;
                 }
-                pass.visit(loc, ge, d, true, true);
+                pass.visit(loc, grid_entry, d, true, true);
             });
         }
         self.near_boxes = boxes;
@@ -120,17 +120,17 @@ impl<B: AsBackend> AsManager<B> {
             rc.release_threshold as u64,
             rc.min_resident_frames as u64,
         );
-        let mut i = self.t.active.len();
+        let mut i = self.tables.active.len();
         while i > 0 {
             i -= 1;
-            let slot = self.t.active[i];
-            let e = &mut self.t.entries[slot as usize];
+            let key = self.tables.active[i];
+            let e = &mut self.tables.entries[key];
             let requested_now = e.last_request == frame;
             let unkept = frame.saturating_sub(e.last_keep);
             match e.state {
                 EntryState::Built => {
                     if unkept > release && frame.saturating_sub(e.created) >= min_life {
-                        self.release_entry(slot);
+                        self.release_entry(key);
                         self.stats.releases += 1;
                     }
                 }
@@ -143,8 +143,8 @@ impl<B: AsBackend> AsManager<B> {
                     if requested_now && frame - e.streak_start + 1 >= create.max(1) {
                         e.state = EntryState::Queued;
                         e.queued_since = frame;
-                    } else if unkept > release || (e.owner != NONE && unkept > 0) {
-                        self.t.drop_entry(slot);
+                    } else if unkept > release || (e.owner.is_some() && unkept > 0) {
+                        self.tables.drop_entry(key);
                     }
                 }
             }
@@ -163,82 +163,78 @@ impl<B: AsBackend> AsManager<B> {
         let (mut within_r1, mut short) = (0u32, 0u32);
         for vi in 0..self.visits.len() {
             let v = self.visits[vi];
-            let ge = self.grid.at_mut(v.loc);
-            let radius = ge.radius;
+            let grid_entry = self.grid.at_mut(v.loc);
+            let radius = grid_entry.radius;
             // A landmark stands beside its group's proxy: never covered, never handing over.
             let group = if far && !v.landmark {
-                ge.data.group
+                grid_entry.data.group
             } else {
-                NONE
+                NO_GROUP
             };
-            let h = &mut ge.data;
-            let t = &mut self.t;
-            let mesh = t.meshes[h.mesh as usize].as_ref().expect("live mesh");
+            let hot = &mut grid_entry.data;
+            let tables = &mut self.tables;
+            let mesh = tables.meshes[hot.mesh as usize]
+                .as_ref()
+                .expect("live mesh");
             let target = match mesh.kind {
-                MeshKind::Static => {
-                    let s = mesh.lod_entry[h.lod_target as usize];
-                    if s == NONE {
-                        (NONE, 0)
-                    } else {
-                        t.key(s)
-                    }
-                }
-                MeshKind::Skinned => h.own,
+                MeshKind::Static => mesh.lod_entry[hot.lod_target as usize],
+                MeshKind::Skinned => hot.own,
             };
-            let chosen = if t.built(target) {
+            let chosen = if tables.built(target) {
                 target
-            } else if t.built(h.shown) && t.entries[h.shown.0 as usize].mesh == h.mesh {
-                h.shown
+            } else if tables.built(hot.shown)
+                && hot
+                    .shown
+                    .is_some_and(|k| tables.entries[k].mesh == hot.mesh)
+            {
+                hot.shown
             } else if mesh.kind == MeshKind::Static {
                 // nearest built LOD, coarser first
-                let tl = h.lod_target as usize;
+                let tl = hot.lod_target as usize;
                 let n = mesh.nlods as usize;
-                let mut found = (NONE, 0);
-                for l in (tl..n).chain((0..tl).rev()) {
-                    let s = mesh.lod_entry[l];
-                    if s != NONE && t.entries[s as usize].state == EntryState::Built {
-                        found = t.key(s);
-                        break;
-                    }
-                }
-                found
+                (tl..n)
+                    .chain((0..tl).rev())
+                    .map(|l| mesh.lod_entry[l])
+                    .find(|&k| tables.built(k))
+                    .flatten()
             } else {
-                (NONE, 0)
+                None
             };
             // A landmark passed its own test (the far keep angle, with hysteresis) in the
             // residency pass; the culling angle is the near field's.
             let culled = if v.landmark {
                 false
             } else if v.beyond_r2 {
-                self.culler.cull_small(radius, v.center_dist, h.culled)
+                self.culler.cull_small(radius, v.center_dist, hot.culled)
             } else {
-                self.culler.cull(radius, v.center_dist, h.culled)
+                self.culler.cull(radius, v.center_dist, hot.culled)
             };
-            h.shown = chosen;
-            h.culled = culled;
+            hot.shown = chosen;
+            hot.culled = culled;
             if !culled && !v.beyond_r2 && v.center_dist - radius <= r1 {
                 // Covered: its target LOD or a finer one is shown.
                 within_r1 += 1;
-                let covered = chosen.0 != NONE
-                    && (chosen == target
+                let covered = chosen.is_some_and(|k| {
+                    chosen == target
                         || (mesh.kind == MeshKind::Static
-                            && t.entries[chosen.0 as usize].lod <= h.lod_target));
+                            && tables.entries[k].lod <= hot.lod_target)
+                });
                 short += u32::from(!covered);
             }
-            if chosen.0 == NONE && !culled && group != NONE {
+            if chosen.is_none() && !culled && group != NO_GROUP {
                 self.far.add_unready(group);
             }
-            if chosen.0 != NONE {
+            if let Some(chosen) = chosen {
                 if culled {
                     culled_count += 1;
                 } else {
-                    let e = &mut t.entries[chosen.0 as usize];
+                    let e = &mut tables.entries[chosen];
                     e.last_in_tlas = Some(frame);
                     e.last_keep = frame;
                     let handle = e.handle.expect("built entry has a handle");
                     self.tlas_list
                         .push((v.loc, self.backend.blas_address(handle)));
-                    self.tlas_groups.push(group);
+                    self.tlas_groups.push((group != NO_GROUP).then_some(group));
                 }
             }
         }
@@ -276,7 +272,7 @@ struct ResidencyPass<'a> {
     r2: f32,
     frame: u64,
     need_data: bool,
-    t: &'a mut Tables,
+    tables: &'a mut Tables,
     lod: &'a LodSelector,
     visits: &'a mut Vec<Visit>,
 }
@@ -284,14 +280,14 @@ struct ResidencyPass<'a> {
 impl ResidencyPass<'_> {
     /// Squared distance from the nearest camera to the centre, and whether the sphere lies
     /// wholly beyond r2.
-    fn distance(&self, ge: &GridEntry<Hot>) -> (f32, bool) {
-        let c = Vec3::from(ge.center);
+    fn distance(&self, grid_entry: &GridEntry<InstanceHot>) -> (f32, bool) {
+        let c = Vec3::from(grid_entry.center);
         let d2 = self
             .cams
             .iter()
             .map(|p| p.distance_squared(c))
             .fold(f32::INFINITY, f32::min);
-        let reach = self.r2 + ge.radius;
+        let reach = self.r2 + grid_entry.radius;
         (d2, d2 > reach * reach)
     }
 
@@ -300,16 +296,16 @@ impl ResidencyPass<'_> {
     fn visit(
         &mut self,
         loc: GridLoc,
-        ge: &mut GridEntry<Hot>,
+        grid_entry: &mut GridEntry<InstanceHot>,
         center_dist: f32,
         beyond_r2: bool,
         landmark: bool,
     ) {
-        let (t, frame) = (&mut *self.t, self.frame);
-        let c = Vec3::from(ge.center);
-        let surface_dist = (center_dist - ge.radius).max(0.0);
-        let h = &mut ge.data;
-        let mesh = t.meshes[h.mesh as usize]
+        let (tables, frame) = (&mut *self.tables, self.frame);
+        let c = Vec3::from(grid_entry.center);
+        let surface_dist = (center_dist - grid_entry.radius).max(0.0);
+        let hot = &mut grid_entry.data;
+        let mesh = tables.meshes[hot.mesh as usize]
             .as_ref()
             .expect("instance of a live mesh");
         if landmark && mesh.kind != MeshKind::Static {
@@ -321,9 +317,9 @@ impl ResidencyPass<'_> {
             beyond_r2,
             landmark,
         });
-        let was_visited = h.last_visit == frame.wrapping_sub(1);
+        let was_visited = hot.last_visit == frame.wrapping_sub(1);
         let current = if was_visited {
-            h.lod_target as usize
+            hot.lod_target as usize
         } else {
             mesh.nlods as usize - 1
         };
@@ -332,50 +328,46 @@ impl ResidencyPass<'_> {
         // the coarsest LOD's silhouette was the far field's largest error (docs/RESULTS.md).
         let lodi = self.lod.select(
             mesh.errors(),
-            h.scale,
+            hot.scale,
             surface_dist,
             current,
             mesh.lod_floor as usize,
         );
         // A GPU builds only from resident data: the nearest LOD that has some.
-        let built = |l: usize| {
-            mesh.kind == MeshKind::Static
-                && mesh.lod_entry[l] != NONE
-                && t.entries[mesh.lod_entry[l] as usize].state == EntryState::Built
-        };
+        let built = |l: usize| mesh.kind == MeshKind::Static && tables.built(mesh.lod_entry[l]);
         let Some(lodi) = mesh.with_data(lodi, self.need_data, built) else {
             return;
         };
-        h.lod_target = lodi as u8;
-        h.last_visit = frame;
+        hot.lod_target = lodi as u8;
+        hot.last_visit = frame;
         if !was_visited {
-            h.culled = true;
+            hot.culled = true;
         }
         let kind = mesh.kind;
         let tris = mesh.lod_tris[lodi];
-        let mut slot = match kind {
+        let existing = match kind {
             MeshKind::Static => mesh.lod_entry[lodi],
-            MeshKind::Skinned
-                if t.entry_valid(h.own) && t.entries[h.own.0 as usize].lod as usize == lodi =>
-            {
-                h.own.0
-            }
-            MeshKind::Skinned => NONE,
+            MeshKind::Skinned => hot.own.filter(|&k| {
+                tables
+                    .entries
+                    .get(k)
+                    .is_some_and(|e| e.lod as usize == lodi)
+            }),
         };
-        if slot == NONE {
-            let owner = if kind == MeshKind::Skinned {
-                ge.slot
-            } else {
-                NONE
-            };
-            slot = t.new_entry(h.mesh, lodi as u8, owner, tris, frame);
+        let key = existing.unwrap_or_else(|| {
+            let owner = (kind == MeshKind::Skinned).then_some(grid_entry.slot);
+            let key = tables.new_entry(hot.mesh, lodi as u8, owner, tris, frame);
             match kind {
                 MeshKind::Static => {
-                    t.meshes[h.mesh as usize].as_mut().expect("live").lod_entry[lodi] = slot
+                    tables.meshes[hot.mesh as usize]
+                        .as_mut()
+                        .expect("live")
+                        .lod_entry[lodi] = Some(key)
                 }
-                MeshKind::Skinned => h.own = t.key(slot),
+                MeshKind::Skinned => hot.own = Some(key),
             }
-        }
+            key
+        });
         let requested = surface_dist <= self.r1 || beyond_r2;
         let in_view = requested
             && self
@@ -383,7 +375,7 @@ impl ResidencyPass<'_> {
                 .iter()
                 .zip(self.fwds)
                 .any(|(p, f)| f.dot(c - *p) >= 0.0);
-        let e = &mut t.entries[slot as usize];
+        let e = &mut tables.entries[key];
         if requested {
             if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
                 e.streak_start = frame;
@@ -399,8 +391,8 @@ impl ResidencyPass<'_> {
             e.min_dist = e.min_dist.min(surface_dist);
             e.in_view |= in_view;
         }
-        if t.entry_valid(h.shown) {
-            t.entries[h.shown.0 as usize].last_keep = frame;
+        if let Some(shown) = hot.shown.and_then(|k| tables.entries.get_mut(k)) {
+            shown.last_keep = frame;
         }
     }
 }

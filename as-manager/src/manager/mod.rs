@@ -20,7 +20,7 @@ use std::collections::VecDeque;
 use glam::{Affine3A, Vec3};
 
 pub use registrar::{GroupDesc, InstanceDesc, Registrar};
-use state::{EntryState, Tables};
+use state::{EntryKey, EntryState, Tables};
 
 use crate::backend::model::CostModel;
 use crate::backend::{AsBackend, CostOp, TlasHandle};
@@ -218,15 +218,15 @@ pub struct AsManager<B: AsBackend> {
     config: Config,
     backend: B,
     registrar: Registrar,
-    t: Tables,
-    grid: GridIndex<state::Hot>,
+    tables: Tables,
+    grid: GridIndex<state::InstanceHot>,
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
     /// The far-field group tree.
     far: far::FarField,
-    /// Leaf group of each `tlas_list` entry (NONE: none), for the far field.
-    tlas_groups: Vec<u32>,
+    /// Leaf group of each `tlas_list` entry, for the far field.
+    tlas_groups: Vec<Option<u32>>,
     /// Near far-field leaves reaching beyond r2 (XZ boxes), for the residency query.
     near_boxes: Vec<[f32; 4]>,
     /// GPU ms set aside this frame for the TLAS and refits (see `schedule_builds`).
@@ -241,7 +241,8 @@ pub struct AsManager<B: AsBackend> {
     cam_fwd: Vec<Vec3>,
     tlas_list: Vec<(GridLoc, u64)>,
     records: Vec<TlasInstance>,
-    compact_pending: Vec<(u32, u32)>,
+    /// Built static entries waiting for compaction (stale keys are skipped).
+    compact_pending: Vec<EntryKey>,
     retiring: VecDeque<(u64, u64)>,
     retiring_bytes: u64,
     live_bytes: u64,
@@ -279,7 +280,7 @@ impl<B: AsBackend> AsManager<B> {
             config,
             backend,
             registrar: Registrar::default(),
-            t: Tables::default(),
+            tables: Tables::default(),
             visits: Vec::new(),
             cam_pos: Vec::new(),
             cam_fwd: Vec::new(),
@@ -330,7 +331,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Triangles and geometric error of each LOD of `mesh` as the policy uses them now (once
     /// the registration was applied by an `update`).
     pub fn mesh_lods(&self, mesh: crate::MeshId) -> Option<Vec<(u32, f32)>> {
-        let m = self.t.meshes.get(mesh.index as usize)?.as_ref()?;
+        let m = self.tables.meshes.get(mesh.index as usize)?.as_ref()?;
         let n = m.nlods as usize;
         Some(
             m.lod_tris[..n]
@@ -421,9 +422,9 @@ impl<B: AsBackend> AsManager<B> {
         if config.residency.cell_size != self.config.residency.cell_size {
             let mut grid = GridIndex::new(config.residency.cell_size);
             grid.set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
-            for (slot, inst) in self.t.instances.iter().enumerate() {
-                if let (Some(i), Some(e)) = (inst, self.grid.get(slot as u32)) {
-                    grid.insert(slot as u32, i.center, i.radius, e.data);
+            for (slot, inst) in self.tables.instances.iter().enumerate() {
+                if let (Some(inst), Some(grid_entry)) = (inst, self.grid.get(slot as u32)) {
+                    grid.insert(slot as u32, inst.center, inst.radius, grid_entry.data);
                 }
             }
             self.grid = grid;
@@ -465,13 +466,12 @@ impl<B: AsBackend> AsManager<B> {
 
     /// The LOD an instance is targeting (skinned poses are for this LOD), once applied.
     pub fn instance_lod(&self, id: InstanceId) -> Option<usize> {
-        self.t.instances.get(id.index as usize)?.as_ref()?;
-        let h = self.grid.get(id.index)?.data;
-        if self.t.entry_valid(h.own) {
-            Some(self.t.entries[h.own.0 as usize].lod as usize)
-        } else {
-            Some(h.lod_target as usize)
-        }
+        self.tables.instances.get(id.index as usize)?.as_ref()?;
+        let hot = self.grid.get(id.index)?.data;
+        Some(match hot.own.and_then(|k| self.tables.entries.get(k)) {
+            Some(own) => own.lod as usize,
+            None => hot.lod_target as usize,
+        })
     }
 
     /// Checks internal consistency (for tests): byte accounting matches the built entries,
@@ -483,21 +483,33 @@ impl<B: AsBackend> AsManager<B> {
         let mut bytes = 0;
         let mut built = 0;
         let mut seen = std::collections::HashSet::new();
-        for &slot in &self.t.active {
-            let e = &self.t.entries[slot as usize];
-            if !e.live {
-                return Err(format!("inactive entry {slot} in the active list"));
+        if self.tables.active.len() != self.tables.entries.len() {
+            return Err(format!(
+                "{} active entries, {} live",
+                self.tables.active.len(),
+                self.tables.entries.len()
+            ));
+        }
+        for (i, &key) in self.tables.active.iter().enumerate() {
+            let Some(e) = self.tables.entries.get(key) else {
+                return Err(format!("dropped entry {key:?} in the active list"));
+            };
+            if e.active_index as usize != i {
+                return Err(format!(
+                    "entry {key:?} is at {i} in the active list, not {}",
+                    e.active_index
+                ));
             }
             if e.state == EntryState::Built {
                 if e.handle.is_none() {
-                    return Err(format!("built entry {slot} without a handle"));
+                    return Err(format!("built entry {key:?} without a handle"));
                 }
                 bytes += e.bytes;
                 built += 1;
             } else if e.handle.is_some() {
-                return Err(format!("unbuilt entry {slot} holds a handle"));
+                return Err(format!("unbuilt entry {key:?} holds a handle"));
             }
-            if e.owner == state::NONE && !seen.insert((e.mesh, e.lod)) {
+            if e.owner.is_none() && !seen.insert((e.mesh, e.lod)) {
                 return Err(format!(
                     "two live entries for static mesh {} LOD {}",
                     e.mesh, e.lod
@@ -510,18 +522,15 @@ impl<B: AsBackend> AsManager<B> {
                 self.live_bytes, self.built_count
             ));
         }
-        for (i, m) in self.t.meshes.iter().enumerate() {
+        for (i, m) in self.tables.meshes.iter().enumerate() {
             let Some(m) = m else { continue };
-            for (lod, &s) in m.lod_entry.iter().enumerate() {
-                if s != state::NONE {
-                    let e = &self.t.entries[s as usize];
-                    if !e.live
-                        || e.mesh != i as u32
-                        || e.lod as usize != lod
-                        || e.owner != state::NONE
-                    {
-                        return Err(format!("mesh {i} LOD {lod} points at a wrong entry"));
-                    }
+            for (lod, key) in m.lod_entry.iter().enumerate() {
+                let Some(key) = *key else { continue };
+                let ok = self.tables.entries.get(key).is_some_and(|e| {
+                    e.mesh == i as u32 && e.lod as usize == lod && e.owner.is_none()
+                });
+                if !ok {
+                    return Err(format!("mesh {i} LOD {lod} points at a wrong entry"));
                 }
             }
         }
@@ -679,20 +688,20 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     /// Frees a built entry's handle (retired after this frame) and drops the entry.
-    pub(crate) fn release_entry(&mut self, slot: u32) {
+    pub(crate) fn release_entry(&mut self, key: EntryKey) {
         let frame = self.frame;
-        let e = &mut self.t.entries[slot as usize];
-        if let Some(h) = e.handle.take() {
-            self.backend.free_blas(h, frame);
+        let e = &mut self.tables.entries[key];
+        if let Some(handle) = e.handle.take() {
+            self.backend.free_blas(handle, frame);
             self.live_bytes -= e.bytes;
             self.retiring.push_back((frame, e.bytes));
             self.retiring_bytes += e.bytes;
             self.built_count -= 1;
-            tracing::trace!(slot, bytes = e.bytes, "blas released");
+            tracing::trace!(entry = ?key, bytes = e.bytes, "blas released");
         }
         e.state = EntryState::Idle;
         e.bytes = 0;
-        self.t.drop_entry(slot);
+        self.tables.drop_entry(key);
     }
 }
 

@@ -95,8 +95,8 @@ pub struct Registrar {
     pub(crate) pending: Arc<Mutex<Pending>>,
 }
 
-fn finite(t: &Affine3A) -> bool {
-    t.matrix3.is_finite() && t.translation.is_finite()
+fn finite(transform: &Affine3A) -> bool {
+    transform.matrix3.is_finite() && transform.translation.is_finite()
 }
 
 impl Registrar {

@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use super::journal::{CompactUndo, RefitUndo};
-use super::state::{EntryState, NONE};
+use super::state::{EntryKey, EntryState, Tables};
 use super::AsManager;
 use crate::backend::{
     AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef,
@@ -22,19 +22,19 @@ enum PoseSrc {
 
 /// One admitted build, with what it needs from the mesh (kept alive by `Arc`).
 struct Admitted {
-    slot: u32,
+    entry: EntryKey,
     geometry: LodGeometry,
     pose: Option<PoseSrc>,
     class: BlasClass,
     opaque: bool,
 }
 
-/// A refit: (entry slot, geometry, pose, rebuild, opaque).
-type RefitJob = (u32, LodGeometry, Option<PoseSrc>, bool, bool);
+/// A refit: (entry, geometry, pose, rebuild, opaque).
+type RefitJob = (EntryKey, LodGeometry, Option<PoseSrc>, bool, bool);
 
-/// The pose of instance `owner` (NONE: none).
-fn pose_of(t: &super::state::Tables, owner: u32) -> Option<PoseSrc> {
-    let i = t.instances.get(owner as usize)?.as_ref()?;
+/// The pose of instance `owner`, if it has one.
+fn pose_of(tables: &super::state::Tables, owner: Option<u32>) -> Option<PoseSrc> {
+    let i = tables.instances.get(owner? as usize)?.as_ref()?;
     match (&i.pose, i.device_pose) {
         (_, Some(d)) => Some(PoseSrc::Device(d)),
         (Some(p), None) => Some(PoseSrc::Cpu(p.clone())),
@@ -69,8 +69,8 @@ fn geometry_ref<'a>(
 
 impl<B: AsBackend> AsManager<B> {
     /// Build priority: lower is sooner. Distance, minus a bonus when in view, minus aging.
-    fn priority(&self, slot: u32) -> f32 {
-        let e = &self.t.entries[slot as usize];
+    fn priority(&self, key: EntryKey) -> f32 {
+        let e = &self.tables.entries[key];
         let b = &self.config.build;
         let dist = if e.dist_frame == self.frame {
             e.min_dist
@@ -84,9 +84,9 @@ impl<B: AsBackend> AsManager<B> {
     /// Eviction order: not near any camera this frame first, then farthest, then least
     /// recently in the TLAS. Larger is evicted first.
     /// Far-field proxies come last, whatever their distance.
-    fn eviction_score(&self, slot: u32) -> (bool, bool, f32, u64) {
-        let e = &self.t.entries[slot as usize];
-        let proxy = self.t.meshes[e.mesh as usize]
+    fn eviction_score(&self, key: EntryKey) -> (bool, bool, f32, u64) {
+        let e = &self.tables.entries[key];
+        let proxy = self.tables.meshes[e.mesh as usize]
             .as_ref()
             .is_some_and(|m| m.proxy);
         let near = e.dist_frame == self.frame;
@@ -116,13 +116,13 @@ impl<B: AsBackend> AsManager<B> {
         } else {
             self.config.residency.min_resident_frames as u64
         };
-        let mut cands: Vec<(bool, bool, f32, u64, u32)> = self
-            .t
+        let mut cands: Vec<(bool, bool, f32, u64, EntryKey)> = self
+            .tables
             .active
             .iter()
             .copied()
             .filter(|&s| {
-                let e = &self.t.entries[s as usize];
+                let e = &self.tables.entries[s];
                 e.state == EntryState::Built && self.frame.saturating_sub(e.created) >= min_life
             })
             .map(|s| {
@@ -159,35 +159,37 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Builds queued entries within the per-frame budget (`budgeted`), memory permitting.
     pub(crate) fn schedule_builds(&mut self, budgeted: bool) -> Result<()> {
-        let mut queue: Vec<(f32, u32)> = self
-            .t
+        let mut queue: Vec<(f32, EntryKey)> = self
+            .tables
             .active
             .iter()
             .copied()
-            .filter(|&s| self.t.entries[s as usize].state == EntryState::Queued)
+            .filter(|&s| self.tables.entries[s].state == EntryState::Queued)
             .map(|s| (self.priority(s), s))
             .collect();
         // Far-field proxies first, within their share of the budget; then near detail.
-        let is_proxy = |t: &super::state::Tables, s: u32| {
-            t.meshes[t.entries[s as usize].mesh as usize]
+        let is_proxy = |tables: &Tables, key: EntryKey| {
+            tables.meshes[tables.entries[key].mesh as usize]
                 .as_ref()
                 .is_some_and(|m| m.proxy)
         };
         queue.sort_by(|a, b| {
-            is_proxy(&self.t, b.1)
-                .cmp(&is_proxy(&self.t, a.1))
+            is_proxy(&self.tables, b.1)
+                .cmp(&is_proxy(&self.tables, a.1))
                 .then(a.0.total_cmp(&b.0))
+                // Ties by key: slotmap orders keys by slot, the order the hand-written slot
+                // table broke ties in (any fixed order would do: runs must be deterministic).
                 .then(a.1.cmp(&b.1))
         });
         let proxy_ms_max = f64::from(self.config.far_field.build_share.clamp(0.0, 1.0));
         let mut proxy_bytes: u64 = if budgeted && self.config.far_field.enabled {
-            self.t
+            self.tables
                 .active
                 .iter()
                 .filter(|&&s| {
-                    self.t.entries[s as usize].state == EntryState::Built && is_proxy(&self.t, s)
+                    self.tables.entries[s].state == EntryState::Built && is_proxy(&self.tables, s)
                 })
-                .map(|&s| self.t.entries[s as usize].bytes)
+                .map(|&s| self.tables.entries[s].bytes)
                 .sum()
         } else {
             0
@@ -211,12 +213,14 @@ impl<B: AsBackend> AsManager<B> {
         let build_ms = (b.max_gpu_ms as f64 - self.gpu_reserved_ms).max(0.0);
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
-        for &(prio, slot) in &queue {
+        for &(prio, key) in &queue {
             let (mesh_ix, lod, owner, tris) = {
-                let e = &self.t.entries[slot as usize];
+                let e = &self.tables.entries[key];
                 (e.mesh, e.lod as usize, e.owner, e.triangles)
             };
-            let mesh = self.t.meshes[mesh_ix as usize].as_ref().expect("live mesh");
+            let mesh = self.tables.meshes[mesh_ix as usize]
+                .as_ref()
+                .expect("live mesh");
             let kind = mesh.kind();
             let class = if kind == MeshKind::Skinned {
                 BlasClass::Skinned
@@ -226,16 +230,12 @@ impl<B: AsBackend> AsManager<B> {
             let geometry = mesh.desc.lods[lod].geometry.clone();
             if !geometry.is_buildable() && self.backend.needs_geometry() {
                 // Its data was evicted since it was queued: wait for it (or another LOD).
-                self.t.entries[slot as usize].state = EntryState::Idle;
+                self.tables.entries[key].state = EntryState::Idle;
                 continue;
             }
             let opaque = mesh.desc.opaque;
             let nlods = mesh.nlods as usize;
-            let pose = if owner != NONE {
-                pose_of(&self.t, owner)
-            } else {
-                None
-            };
+            let pose = pose_of(&self.tables, owner);
             let op = if class == BlasClass::Skinned {
                 CostOp::BuildSkinned
             } else {
@@ -245,7 +245,7 @@ impl<B: AsBackend> AsManager<B> {
             let size = self
                 .backend
                 .blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
-            let proxy = is_proxy(&self.t, slot);
+            let proxy = is_proxy(&self.tables, key);
             let oversized = !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
             if budgeted && proxy {
                 // Proxies: their share of the build budget; the first one of a frame always
@@ -279,7 +279,7 @@ impl<B: AsBackend> AsManager<B> {
                 if self.memory_in_use() + bytes + size.as_bytes > build_budget {
                     // Coarser LOD first, then evict what matters less.
                     if kind == MeshKind::Static && lod + 1 < nlods {
-                        let m = self.t.meshes[mesh_ix as usize].as_mut().expect("live");
+                        let m = self.tables.meshes[mesh_ix as usize].as_mut().expect("live");
                         if (m.lod_floor as usize) <= lod {
                             m.lod_floor = lod as u8 + 1;
                             m.floor_since = self.frame;
@@ -288,10 +288,10 @@ impl<B: AsBackend> AsManager<B> {
                             }
                             self.stats.lod_fallbacks += 1;
                         }
-                        self.t.entries[slot as usize].state = EntryState::Idle;
+                        self.tables.entries[key].state = EntryState::Idle;
                         continue;
                     }
-                    let dist = self.t.entries[slot as usize].min_dist;
+                    let dist = self.tables.entries[key].min_dist;
                     if !self.make_room(bytes + size.as_bytes, Some(dist), build_budget, false) {
                         self.stats.memory_refused += 1;
                         continue;
@@ -309,7 +309,7 @@ impl<B: AsBackend> AsManager<B> {
                 bytes += size.as_bytes;
                 self.stats.oversized_admitted |= oversized;
                 admitted.push(Admitted {
-                    slot,
+                    entry: key,
                     geometry,
                     pose,
                     class,
@@ -324,7 +324,7 @@ impl<B: AsBackend> AsManager<B> {
                 ms += est;
                 bytes += size.as_bytes;
                 admitted.push(Admitted {
-                    slot,
+                    entry: key,
                     geometry,
                     pose,
                     class,
@@ -349,11 +349,11 @@ impl<B: AsBackend> AsManager<B> {
         match self.backend.build_blases(&builds) {
             Ok(handles) => {
                 drop(builds);
-                for ((a, s), h) in admitted.iter().zip(&sizes).zip(handles) {
+                for ((a, s), handle) in admitted.iter().zip(&sizes).zip(handles) {
                     let frame = self.frame;
                     let pose_version = if a.class == BlasClass::Skinned {
-                        let owner = self.t.entries[a.slot as usize].owner;
-                        self.t.instances[owner as usize]
+                        let owner = self.tables.entries[a.entry].owner.expect("skinned: owned");
+                        self.tables.instances[owner as usize]
                             .as_ref()
                             .map_or(0, |i| i.pose_version)
                     } else {
@@ -368,9 +368,9 @@ impl<B: AsBackend> AsManager<B> {
                         }
                         _ => None,
                     };
-                    let e = &mut self.t.entries[a.slot as usize];
+                    let e = &mut self.tables.entries[a.entry];
                     e.state = EntryState::Built;
-                    e.handle = Some(h);
+                    e.handle = Some(handle);
                     e.bytes = s.as_bytes;
                     e.sizes = *s;
                     e.created = frame;
@@ -381,13 +381,12 @@ impl<B: AsBackend> AsManager<B> {
                     e.gpu_ratio = None;
                     e.needs_compaction = a.class == BlasClass::Static;
                     if e.needs_compaction {
-                        let key = (a.slot, e.generation);
-                        self.compact_pending.push(key);
+                        self.compact_pending.push(a.entry);
                     }
                     self.live_bytes += s.as_bytes;
                     self.built_count += 1;
-                    self.journal.built.push((a.slot, h));
-                    tracing::trace!(slot = a.slot, bytes = s.as_bytes, "blas built");
+                    self.journal.built.push((a.entry, handle));
+                    tracing::trace!(entry = ?a.entry, bytes = s.as_bytes, "blas built");
                 }
                 self.stats.builds = admitted.len() as u32;
                 self.stats.build_primitives = prims;
@@ -421,13 +420,14 @@ impl<B: AsBackend> AsManager<B> {
     /// measured quality ratio exceeds the bound.
     pub(crate) fn schedule_refits(&mut self, budgeted: bool) -> Result<()> {
         self.take_gpu_quality();
-        let mut dirty: Vec<(u64, u32)> = Vec::new();
-        for &s in &self.t.active {
-            let e = &self.t.entries[s as usize];
-            if e.owner == NONE || e.state != EntryState::Built {
+        let mut dirty: Vec<(u64, EntryKey)> = Vec::new();
+        for &s in &self.tables.active {
+            let e = &self.tables.entries[s];
+            let Some(owner) = e.owner else { continue };
+            if e.state != EntryState::Built {
                 continue;
             }
-            if let Some(inst) = self.t.instances[e.owner as usize].as_ref() {
+            if let Some(inst) = self.tables.instances[owner as usize].as_ref() {
                 if inst.pose_version > e.pose_version {
                     dirty.push((e.refit_frame, s));
                 }
@@ -442,17 +442,19 @@ impl<B: AsBackend> AsManager<B> {
         let mut prims = 0u64;
         let mut jobs: Vec<RefitJob> = Vec::new();
         for &(_, s) in &dirty {
-            let e = &self.t.entries[s as usize];
+            let e = &self.tables.entries[s];
             let tris = e.triangles as u64;
             if budgeted && !jobs.is_empty() && prims + tris > max {
                 continue;
             }
-            let mesh = self.t.meshes[e.mesh as usize].as_ref().expect("live mesh");
+            let mesh = self.tables.meshes[e.mesh as usize]
+                .as_ref()
+                .expect("live mesh");
             let geometry = mesh.desc.lods[e.lod as usize].geometry.clone();
             if !geometry.is_buildable() && self.backend.needs_geometry() {
                 continue; // LOD data evicted: keep the last refit until it is back or released
             }
-            let pose = pose_of(&self.t, e.owner);
+            let pose = pose_of(&self.tables, e.owner);
             let mut rebuild = false;
             let mut ratio = e.last_ratio;
             match (&e.quality, &pose, geometry.data()) {
@@ -470,10 +472,9 @@ impl<B: AsBackend> AsManager<B> {
                 _ => {}
             }
             prims += tris;
-            let e = &mut self.t.entries[s as usize];
+            let e = &mut self.tables.entries[s];
             self.journal.refitted.push(RefitUndo {
-                slot: s,
-                generation: e.generation,
+                entry: s,
                 pose_version: e.pose_version,
                 refit_frame: e.refit_frame,
                 quality: e.quality.clone(),
@@ -493,7 +494,7 @@ impl<B: AsBackend> AsManager<B> {
         let refits: Vec<BlasRefit<'_>> = jobs
             .iter()
             .map(|(s, g, p, rebuild, opaque)| BlasRefit {
-                blas: self.t.entries[*s as usize].handle.expect("built"),
+                blas: self.tables.entries[*s].handle.expect("built"),
                 geometry: geometry_ref(g, p.as_ref(), *opaque),
                 rebuild: *rebuild,
             })
@@ -509,11 +510,11 @@ impl<B: AsBackend> AsManager<B> {
         drop(refits);
         let frame = self.frame;
         for (s, g, p, rebuild, _) in jobs {
-            let owner = self.t.entries[s as usize].owner;
-            let version = self.t.instances[owner as usize]
+            let owner = self.tables.entries[s].owner.expect("refitted: owned");
+            let version = self.tables.instances[owner as usize]
                 .as_ref()
                 .map_or(0, |i| i.pose_version);
-            let e = &mut self.t.entries[s as usize];
+            let e = &mut self.tables.entries[s];
             e.pose_version = version;
             e.refit_frame = frame;
             if rebuild {
@@ -538,19 +539,19 @@ impl<B: AsBackend> AsManager<B> {
             return;
         }
         // One pass over the built skinned entries, not one per report.
-        let by_handle: std::collections::HashMap<_, u32> = self
-            .t
+        let by_handle: std::collections::HashMap<_, EntryKey> = self
+            .tables
             .active
             .iter()
             .filter_map(|&s| {
-                let e = &self.t.entries[s as usize];
-                let skinned = e.owner != NONE && e.state == EntryState::Built;
+                let e = &self.tables.entries[s];
+                let skinned = e.owner.is_some() && e.state == EntryState::Built;
                 skinned.then_some((e.handle?, s))
             })
             .collect();
         for (h, ratio) in reports {
             if let Some(&s) = by_handle.get(&h) {
-                let e = &mut self.t.entries[s as usize];
+                let e = &mut self.tables.entries[s];
                 e.gpu_ratio = Some(ratio);
                 self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(ratio);
             }
@@ -577,17 +578,17 @@ impl<B: AsBackend> AsManager<B> {
             if failure.is_some() {
                 return true;
             }
-            if !self.t.built(key) {
+            if !self.tables.built(Some(key)) {
                 return false;
             }
-            let e = &self.t.entries[key.0 as usize];
-            let h = e.handle.expect("built");
-            let Some(size) = self.backend.compacted_size(h) else {
+            let e = &self.tables.entries[key];
+            let handle = e.handle.expect("built");
+            let Some(size) = self.backend.compacted_size(handle) else {
                 return true;
             };
             let keep = 1.0 - f64::from(self.config.build.min_compaction_saving);
             if size > 0 && size as f64 > e.bytes as f64 * keep {
-                self.t.entries[key.0 as usize].needs_compaction = false;
+                self.tables.entries[key].needs_compaction = false;
                 return false; // nothing worth saving (e.g. lavapipe)
             }
             let est = self.costs.estimate(CostOp::Compact, e.bytes);
@@ -597,14 +598,14 @@ impl<B: AsBackend> AsManager<B> {
             if self.memory_in_use() + size > self.budget() {
                 return true;
             }
-            match self.backend.compact_blas(h) {
+            match self.backend.compact_blas(handle) {
                 Ok(new) => {
                     let frame = self.frame;
-                    let e = &mut self.t.entries[key.0 as usize];
+                    let e = &mut self.tables.entries[key];
                     // The source is freed when the frame commits (a failed frame keeps it).
                     self.journal.compacted.push(CompactUndo {
-                        slot: key.0,
-                        old: h,
+                        entry: key,
+                        old: handle,
                         old_bytes: e.bytes,
                         new,
                     });
@@ -641,7 +642,7 @@ impl<B: AsBackend> AsManager<B> {
             return;
         }
         let frame = self.frame;
-        let meshes = &mut self.t.meshes;
+        let meshes = &mut self.tables.meshes;
         self.floors.retain(|&m| {
             let Some(Some(mesh)) = meshes.get_mut(m as usize) else {
                 return false;

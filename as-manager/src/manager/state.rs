@@ -1,15 +1,26 @@
-//! The manager's tables: meshes, instances and BLAS entries (slot vectors).
+//! The manager's tables: meshes and instances (slot vectors indexed by their ids' dense
+//! indices) and BLAS entries (a `slotmap` keyed by [`EntryKey`]).
 
 use std::sync::Arc;
 
 use glam::Vec3;
+use slotmap::SlotMap;
 
 use crate::backend::{BlasHandle, BlasSizes};
 use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
 use crate::quality::RefitQuality;
 use crate::record::TlasInstance;
 
-pub(crate) const NONE: u32 = u32::MAX;
+slotmap::new_key_type! {
+    /// A BLAS entry in [`Tables::entries`]. Dropping the entry makes its key stale: a key kept
+    /// elsewhere (an instance's shown BLAS, a pending compaction) is checked, never trusted.
+    pub(crate) struct EntryKey;
+}
+
+/// `InstanceHot::group` when the instance has no far-field group. A sentinel, not an
+/// `Option<u32>`: the option would take 4 more bytes and push `InstanceHot` past its 104-byte
+/// bound (the residency and cull passes stream through these records).
+pub(crate) const NO_GROUP: u32 = u32::MAX;
 
 #[derive(Debug)]
 pub(crate) struct MeshState {
@@ -20,8 +31,8 @@ pub(crate) struct MeshState {
     pub errors: [f32; MAX_LODS],
     /// Triangles per LOD.
     pub lod_tris: [u32; MAX_LODS],
-    /// Static: the shared entry per LOD (NONE if none).
-    pub lod_entry: [u32; MAX_LODS],
+    /// Static: the shared entry per LOD.
+    pub lod_entry: [Option<EntryKey>; MAX_LODS],
     /// Memory fallback: finest LOD allowed now.
     pub lod_floor: u8,
     pub floor_since: u64,
@@ -81,12 +92,10 @@ pub(crate) enum EntryState {
 
 #[derive(Debug)]
 pub(crate) struct BlasEntry {
-    pub live: bool,
-    pub generation: u32,
     pub mesh: u32,
     pub lod: u8,
-    /// Owning instance slot for skinned BLASes, NONE for shared static ones.
-    pub owner: u32,
+    /// Owning instance slot for skinned BLASes, `None` for shared static ones.
+    pub owner: Option<u32>,
     pub state: EntryState,
     pub handle: Option<BlasHandle>,
     pub bytes: u64,
@@ -119,27 +128,28 @@ pub(crate) struct BlasEntry {
     pub active_index: u32,
 }
 
-/// Per-instance state a frame touches, stored in the spatial index's cells (see
-/// `spatial::GridEntry::data`) so the residency/cull/assembly passes stream through memory.
+/// Per-instance state a frame touches (the hot half of an instance; [`InstanceState`] is the
+/// cold half), stored in the spatial index's cells (see `spatial::GridEntry::data`) so the
+/// residency/cull/assembly passes stream through memory.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Hot {
+pub(crate) struct InstanceHot {
     /// The record with `blas_address` 0 (transform, customIndex, mask, SBT offset, flags).
     pub template: TlasInstance,
     pub mesh: u32,
     pub scale: f32,
-    /// Entry shown in the TLAS (slot, generation).
-    pub shown: (u32, u32),
-    /// Skinned: own entry for the current LOD target (slot, generation).
-    pub own: (u32, u32),
+    /// Entry shown in the TLAS (may be stale: check it against `Tables::entries`).
+    pub shown: Option<EntryKey>,
+    /// Skinned: own entry for the current LOD target (may be stale).
+    pub own: Option<EntryKey>,
     pub last_visit: u64,
-    /// Far-field leaf group slot (NONE if none); here, in the struct's padding, so the
-    /// residency pass needs no cold lookup.
+    /// Far-field leaf group slot ([`NO_GROUP`] if none); here, in the struct's padding, so
+    /// the residency pass needs no cold lookup.
     pub group: u32,
     pub lod_target: u8,
     pub culled: bool,
 }
 
-const _: () = assert!(std::mem::size_of::<Hot>() <= 104);
+const _: () = assert!(std::mem::size_of::<InstanceHot>() <= 104);
 
 /// Per-instance state touched only on changes (and by the baselines' full passes).
 #[derive(Debug)]
@@ -163,64 +173,32 @@ pub(crate) struct InstanceState {
 pub(crate) struct Tables {
     pub meshes: Vec<Option<MeshState>>,
     pub instances: Vec<Option<InstanceState>>,
-    pub entries: Vec<BlasEntry>,
-    pub free_entries: Vec<u32>,
-    /// Live entry slots.
-    pub active: Vec<u32>,
+    /// BLAS entries. A removed entry's slot is reused last-freed-first, as the hand-written
+    /// free list before it did, so the decisions (which break ties by key) did not change.
+    pub entries: SlotMap<EntryKey, BlasEntry>,
+    /// Live entries in the order the passes visit them (`BlasEntry::active_index` is each
+    /// one's place; removal swaps the last one in). Not `entries`' own order: that is slot
+    /// order, and the passes' decisions depend on this one.
+    pub active: Vec<EntryKey>,
 }
 
 impl Tables {
-    pub fn entry_valid(&self, (slot, gen): (u32, u32)) -> bool {
-        slot != NONE && (slot as usize) < self.entries.len() && {
-            let e = &self.entries[slot as usize];
-            e.live && e.generation == gen
-        }
+    /// Whether `key` names a live, built entry.
+    pub fn built(&self, key: Option<EntryKey>) -> bool {
+        key.and_then(|k| self.entries.get(k))
+            .is_some_and(|e| e.state == EntryState::Built)
     }
 
-    pub fn built(&self, key: (u32, u32)) -> bool {
-        self.entry_valid(key) && self.entries[key.0 as usize].state == EntryState::Built
-    }
-
-    pub fn new_entry(&mut self, mesh: u32, lod: u8, owner: u32, triangles: u32, frame: u64) -> u32 {
-        let slot = self.free_entries.pop().unwrap_or_else(|| {
-            self.entries.push(BlasEntry {
-                live: false,
-                generation: 0,
-                mesh: 0,
-                lod: 0,
-                owner: NONE,
-                state: EntryState::Idle,
-                handle: None,
-                bytes: 0,
-                sizes: BlasSizes::default(),
-                triangles: 0,
-                streak_start: 0,
-                last_request: 0,
-                last_keep: 0,
-                created: 0,
-                last_in_tlas: None,
-                min_dist: f32::INFINITY,
-                dist_frame: 0,
-                in_view: false,
-                queued_since: 0,
-                needs_compaction: false,
-                pose_version: 0,
-                refit_frame: 0,
-                quality: None,
-                last_ratio: 1.0,
-                gpu_ratio: None,
-                refs: 0,
-                active_index: 0,
-            });
-            (self.entries.len() - 1) as u32
-        });
+    pub fn new_entry(
+        &mut self,
+        mesh: u32,
+        lod: u8,
+        owner: Option<u32>,
+        triangles: u32,
+        frame: u64,
+    ) -> EntryKey {
         let active_index = self.active.len() as u32;
-        self.active.push(slot);
-        let e = &mut self.entries[slot as usize];
-        let generation = e.generation;
-        *e = BlasEntry {
-            live: true,
-            generation,
+        let key = self.entries.insert(BlasEntry {
             mesh,
             lod,
             owner,
@@ -246,34 +224,52 @@ impl Tables {
             gpu_ratio: None,
             refs: 0,
             active_index,
-        };
-        slot
+        });
+        self.active.push(key);
+        key
     }
 
     /// Drops a non-built entry (the caller freed any handle first) and unlinks it.
-    pub fn drop_entry(&mut self, slot: u32) {
-        let (mesh, lod, owner, ai) = {
-            let e = &mut self.entries[slot as usize];
-            debug_assert!(e.live && e.handle.is_none());
-            e.live = false;
-            e.generation = e.generation.wrapping_add(1);
-            (e.mesh, e.lod, e.owner, e.active_index)
-        };
+    pub fn drop_entry(&mut self, key: EntryKey) {
+        let e = self.entries.remove(key).expect("live entry");
+        debug_assert!(e.handle.is_none());
+        let ai = e.active_index;
         self.active.swap_remove(ai as usize);
         if let Some(&moved) = self.active.get(ai as usize) {
-            self.entries[moved as usize].active_index = ai;
+            self.entries[moved].active_index = ai;
         }
-        if owner == NONE {
-            if let Some(Some(m)) = self.meshes.get_mut(mesh as usize) {
-                if m.lod_entry[lod as usize] == slot {
-                    m.lod_entry[lod as usize] = NONE;
+        if e.owner.is_none() {
+            if let Some(Some(m)) = self.meshes.get_mut(e.mesh as usize) {
+                if m.lod_entry[e.lod as usize] == Some(key) {
+                    m.lod_entry[e.lod as usize] = None;
                 }
             }
         }
-        self.free_entries.push(slot);
     }
+}
 
-    pub fn key(&self, slot: u32) -> (u32, u32) {
-        (slot, self.entries[slot as usize].generation)
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dropped_entry_goes_stale_and_leaves_the_active_list() {
+        let mut tables = Tables::default();
+        let a = tables.new_entry(0, 0, None, 12, 1);
+        let b = tables.new_entry(0, 1, Some(3), 12, 1);
+        assert!(!tables.built(Some(a)) && !tables.built(None));
+        tables.entries[a].state = EntryState::Built;
+        assert!(tables.built(Some(a)));
+        tables.entries[a].state = EntryState::Idle;
+        tables.drop_entry(a);
+        assert!(!tables.entries.contains_key(a));
+        assert_eq!(tables.active, vec![b]);
+        assert_eq!(tables.entries[b].active_index, 0);
+        // The slot comes back under a new key: the old one never aliases the new entry.
+        let c = tables.new_entry(0, 0, None, 12, 2);
+        assert_ne!(a, c);
+        tables.entries[c].state = EntryState::Built;
+        assert!(!tables.built(Some(a)) && tables.built(Some(c)));
+        assert_eq!(tables.active, vec![b, c]);
     }
 }
