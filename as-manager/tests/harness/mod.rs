@@ -6,6 +6,7 @@
 use std::sync::Arc;
 
 use super::rtm::backend::model::ModelBackend;
+#[cfg(feature = "vulkan")]
 use super::rtm::backend::vulkan::VulkanBackend;
 use super::rtm::backend::{self, AsBackend, BackendError, FaultPoint};
 use super::rtm::synth::{counts_chain, grid_geometry};
@@ -59,6 +60,7 @@ impl Probe for ModelBackend {
     }
 }
 
+#[cfg(feature = "vulkan")]
 impl Probe for VulkanBackend {
     const NEEDS_DATA: bool = true;
     fn lifetime_violations(&self) -> u64 {
