@@ -6,7 +6,6 @@
 use std::sync::Arc;
 
 use super::rtm::backend::model::ModelBackend;
-#[cfg(feature = "vulkan")]
 use super::rtm::backend::vulkan::VulkanBackend;
 use super::rtm::backend::{self, AsBackend, BackendError, FaultPoint};
 use super::rtm::synth::{counts_chain, grid_geometry};
@@ -60,7 +59,6 @@ impl Probe for ModelBackend {
     }
 }
 
-#[cfg(feature = "vulkan")]
 impl Probe for VulkanBackend {
     const NEEDS_DATA: bool = true;
     fn lifetime_violations(&self) -> u64 {
