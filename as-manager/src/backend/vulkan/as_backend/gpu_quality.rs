@@ -14,7 +14,7 @@
 //! a spatially coherent order; what the ratio measures, boxes of triangles that were together
 //! at the build growing apart, is the same.
 
-use std::io::Cursor;
+use crate::backend::vulkan::render::compute::create_compute_pipeline;
 
 use super::*;
 use crate::mesh::{DeviceVertices, IndexType, VertexFormat};
@@ -72,8 +72,6 @@ pub(super) struct GpuQuality {
 
 impl QualityPipeline {
     fn new(ctx: &VulkanContext) -> VkResult<Self> {
-        let code = ash::util::read_spv(&mut Cursor::new(SPIRV))
-            .map_err(|e| VulkanError::Unsupported(format!("refit quality: bad SPIR-V: {e}")))?;
         let dev = &ctx.device;
         let ranges = [vk::PushConstantRange::default()
             .stage_flags(vk::ShaderStageFlags::COMPUTE)
@@ -87,34 +85,12 @@ impl QualityPipeline {
             )
         }
         .op("vkCreatePipelineLayout")?;
-        // SAFETY: as above; the module is destroyed right after pipeline creation.
-        let module = match unsafe {
-            dev.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&code), None)
-        } {
-            Ok(m) => m,
+        let raw = match create_compute_pipeline(ctx, layout, SPIRV, "refit quality") {
+            Ok(p) => p,
             Err(e) => {
                 // SAFETY: nothing uses the layout.
                 unsafe { dev.destroy_pipeline_layout(layout, None) };
-                return Err(VulkanError::from_vk("vkCreateShaderModule", e));
-            }
-        };
-        let stage = vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::COMPUTE)
-            .module(module)
-            .name(c"main");
-        let info = [vk::ComputePipelineCreateInfo::default()
-            .stage(stage)
-            .layout(layout)];
-        // SAFETY: as above.
-        let raw = unsafe { dev.create_compute_pipelines(vk::PipelineCache::null(), &info, None) };
-        // SAFETY: the module is not needed once the pipeline exists (or failed).
-        unsafe { dev.destroy_shader_module(module, None) };
-        let raw = match raw {
-            Ok(p) => p[0],
-            Err((_, e)) => {
-                // SAFETY: nothing uses the layout.
-                unsafe { dev.destroy_pipeline_layout(layout, None) };
-                return Err(VulkanError::from_vk("vkCreateComputePipelines", e));
+                return Err(e);
             }
         };
         ctx.set_name(raw, "refit quality");

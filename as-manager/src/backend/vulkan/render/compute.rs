@@ -55,8 +55,6 @@ impl ComputePipeline {
         bindings: &[BindingKind],
         push_size: u32,
     ) -> VkResult<Self> {
-        let code = ash::util::read_spv(&mut Cursor::new(spirv))
-            .map_err(|e| VulkanError::Unsupported(format!("{name}: bad SPIR-V: {e}")))?;
         let dev = &ctx.device;
         let layout_bindings: Vec<_> = bindings
             .iter()
@@ -89,23 +87,7 @@ impl ComputePipeline {
         // SAFETY: see above.
         let layout =
             unsafe { dev.create_pipeline_layout(&pl_info, None) }.op("vkCreatePipelineLayout")?;
-        // SAFETY: see above.
-        let module = unsafe {
-            dev.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&code), None)
-        }
-        .op("vkCreateShaderModule")?;
-        let stage = vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::COMPUTE)
-            .module(module)
-            .name(c"main");
-        let info = [vk::ComputePipelineCreateInfo::default()
-            .stage(stage)
-            .layout(layout)];
-        // SAFETY: see above.
-        let raw = unsafe { dev.create_compute_pipelines(vk::PipelineCache::null(), &info, None) };
-        // SAFETY: the module is no longer needed once the pipeline exists (or failed).
-        unsafe { dev.destroy_shader_module(module, None) };
-        let raw = raw.map_err(|(_, e)| VulkanError::from_vk("vkCreateComputePipelines", e))?[0];
+        let raw = create_compute_pipeline(ctx, layout, spirv, name)?;
         let sets = match SetRing::new(ctx, set_layout, bindings, name) {
             Ok(s) => s,
             Err(e) => {
@@ -242,6 +224,38 @@ impl ComputePipeline {
         }
         self.sets.destroy(ctx);
     }
+}
+
+/// A compute pipeline over `layout` from SPIR-V bytes (entry point `main`); the shader module
+/// lives only for the creation. The one place both compute pipelines (the renderer's passes and
+/// the backend's refit-quality pass) turn SPIR-V into a pipeline.
+pub(crate) fn create_compute_pipeline(
+    ctx: &VulkanContext,
+    layout: vk::PipelineLayout,
+    spirv: &[u8],
+    name: &str,
+) -> VkResult<vk::Pipeline> {
+    let code = ash::util::read_spv(&mut Cursor::new(spirv))
+        .map_err(|e| VulkanError::Unsupported(format!("{name}: bad SPIR-V: {e}")))?;
+    let dev = &ctx.device;
+    // SAFETY: valid device; the create-info points to `code`, which outlives the call; the
+    // module is destroyed below.
+    let module = unsafe {
+        dev.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&code), None)
+    }
+    .op("vkCreateShaderModule")?;
+    let stage = vk::PipelineShaderStageCreateInfo::default()
+        .stage(vk::ShaderStageFlags::COMPUTE)
+        .module(module)
+        .name(c"main");
+    let info = [vk::ComputePipelineCreateInfo::default()
+        .stage(stage)
+        .layout(layout)];
+    // SAFETY: `layout` is a valid pipeline layout of this device; `info` outlives the call.
+    let raw = unsafe { dev.create_compute_pipelines(vk::PipelineCache::null(), &info, None) };
+    // SAFETY: the module is no longer needed once the pipeline exists (or failed).
+    unsafe { dev.destroy_shader_module(module, None) };
+    Ok(raw.map_err(|(_, e)| VulkanError::from_vk("vkCreateComputePipelines", e))?[0])
 }
 
 /// Writes `bound` into `set`, binding `i` = `bound[i]`, checked against the layout's `bindings`.
