@@ -14,6 +14,8 @@
 mod charts;
 #[path = "support/cli.rs"]
 mod cli;
+#[path = "support/profile.rs"]
+mod profile;
 
 use anyhow::Context;
 use clap::Parser;
@@ -31,11 +33,18 @@ struct Cli {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+    /// Time `update`'s phases (the manager's and the backend's tracing spans), print the
+    /// per-phase table and write the spans' self times to this file as folded stacks (for
+    /// `inferno-flamegraph`).
+    #[arg(long, value_name = "FILE")]
+    profile: Option<std::path::PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
-    cli::init_tracing();
     let cli = Cli::parse();
+    let profiler = cli.profile.as_ref().map(|_| profile::PhaseProfile::new());
+    let profile_data = profiler.as_ref().map(profile::PhaseProfile::data);
+    cli::init_tracing_with(profiler);
     let config = cli.run.run_config()?;
     eprintln!(
         "fly-through: {} world (seed {:#x}), {} frames, stream radius {} m, {}; out: {}",
@@ -79,6 +88,13 @@ fn main() -> anyhow::Result<()> {
         )? {
             println!("wrote {}", f.display());
         }
+    }
+    if let (Some(path), Some(data)) = (&cli.profile, profile_data) {
+        let data = data.lock();
+        data.print();
+        std::fs::write(path, data.folded())
+            .with_context(|| format!("writing {}", path.display()))?;
+        println!("wrote {} (folded stacks, µs)", path.display());
     }
     if cli.json {
         println!("{}", report.json());

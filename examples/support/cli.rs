@@ -308,11 +308,29 @@ impl RunArgs {
 
 /// Logs to stderr, `RUST_LOG` or warnings.
 pub fn init_tracing() {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+    init_tracing_with(None::<tracing_subscriber::layer::Identity>);
+}
+
+/// [`init_tracing`] plus an extra layer that sees every span at any level (a profiler), and
+/// no events.
+pub fn init_tracing_with<L>(extra: Option<L>)
+where
+    L: tracing_subscriber::Layer<tracing_subscriber::Registry> + Send + Sync + 'static,
+{
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    use tracing_subscriber::Layer;
+    let spans = tracing_subscriber::filter::filter_fn(|m| m.is_span());
+    tracing_subscriber::registry()
+        .with(extra.map(|l| l.with_filter(spans)))
+        .with(
+            tracing_subscriber::fmt::layer()
+                .with_writer(std::io::stderr)
+                .with_filter(
+                    tracing_subscriber::EnvFilter::try_from_default_env()
+                        .unwrap_or_else(|_| "warn".into()),
+                ),
         )
-        .with_writer(std::io::stderr)
         .init();
 }
 

@@ -536,6 +536,8 @@ pub fn run_cached(
             let max_prims = p.manager.config().build.max_primitives;
             p.bridge.apply(&p.manager, &events);
             p.bridge.pose_skinned(&p.manager, &world, time, 2);
+            // Names the policy for a profiler of the manager's spans (examples' `--profile`).
+            let _policy = tracing::trace_span!("policy", name = p.name).entered();
             let t = Instant::now();
             let out = p.manager.update(FrameInput {
                 frame,

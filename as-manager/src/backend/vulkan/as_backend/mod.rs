@@ -602,6 +602,7 @@ impl AsBackend for VulkanBackend {
         if self.lost {
             return Err(BackendError::DeviceLost);
         }
+        let _s = tracing::trace_span!("begin_frame").entered();
         self.check_slot_done(frame)?;
         self.begin_frame_inner(frame).map_err(|e| {
             let e = backend_err(e);
@@ -648,10 +649,12 @@ impl AsBackend for VulkanBackend {
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
+        let _s = tracing::trace_span!("build_blases").entered();
         self.record_blas_builds(builds)
     }
 
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
+        let _s = tracing::trace_span!("refit_blases").entered();
         self.record_refits(refits)
     }
 
@@ -660,6 +663,7 @@ impl AsBackend for VulkanBackend {
     }
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
+        let _s = tracing::trace_span!("compact_blas").entered();
         self.record_compaction(blas)
     }
 
@@ -676,10 +680,12 @@ impl AsBackend for VulkanBackend {
     }
 
     fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+        let _s = tracing::trace_span!("build_tlas").entered();
         self.record_tlas(instances)
     }
 
     fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
+        let _s = tracing::trace_span!("end_frame").entered();
         self.end_and_submit(frame)
     }
 
