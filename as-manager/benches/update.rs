@@ -58,12 +58,14 @@ struct Run {
 }
 
 impl Run {
-    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize, far: bool, keep: f32) -> Self {
+    /// `far`: the far field on with its default configuration (a group tree over the world,
+    /// proxies and landmarks); off: the near field alone.
+    fn new(world: &SynthWorld, policy: PolicyKind, cams: usize, far: bool) -> Self {
         let mut config = Config {
             policy,
             ..Config::default()
         };
-        config.far_field.keep_angle = keep.to_radians();
+        config.far_field.enabled = far;
         let manager = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
         if far {
             // The default world's level blocks: 2x2 levels of 71 m, four depths.
@@ -126,11 +128,10 @@ fn bench_update(c: &mut Criterion) {
         .warm_up_time(Duration::from_millis(500))
         .measurement_time(Duration::from_secs(3));
     for (wname, world) in [("default", default), ("million", million)] {
-        for (pname, policy, far, keep) in [
-            ("managed", PolicyKind::Managed, false, 0.0),
-            ("managed_far", PolicyKind::Managed, true, 0.0),
-            ("managed_far_keep1deg", PolicyKind::Managed, true, 1.0),
-            ("seed_r1r2", PolicyKind::SeedR1R2, false, 0.0),
+        for (pname, policy, far) in [
+            ("managed", PolicyKind::Managed, false),
+            ("managed_far", PolicyKind::Managed, true),
+            ("seed_r1r2", PolicyKind::SeedR1R2, false),
         ] {
             for cams in [1usize, 4, 5] {
                 if (wname == "million" && cams != 1)
@@ -149,16 +150,17 @@ fn bench_update(c: &mut Criterion) {
                 let id = BenchmarkId::new(format!("{wname}/{pname}"), &cam_label);
                 g.bench_function(id, |b| {
                     let run = run.get_or_insert_with(|| {
-                        let mut r = Run::new(world, policy, cams, far, keep);
+                        let mut r = Run::new(world, policy, cams, far);
                         let n = if policy == PolicyKind::Managed { 2000 } else if wname == "million" { 30 } else { 200 };
                         r.per_frame(&format!("{wname}/{pname}/{cam_label}"), n);
                         let s = r.manager.stats().clone();
                         eprintln!(
-                            "[{wname}/{pname}/{cam_label}] instances {} visited {} tlas {} (proxies {}) blas {} bytes {:.1} MiB",
+                            "[{wname}/{pname}/{cam_label}] instances {} visited {} tlas {} (proxies {}, landmarks {}) blas {} bytes {:.1} MiB",
                             s.instances,
                             s.instances_visited,
                             s.tlas_instances,
                             s.proxy_instances,
+                            s.landmark_instances,
                             s.blas_count,
                             s.memory_in_use() as f64 / (1 << 20) as f64
                         );
@@ -171,7 +173,7 @@ fn bench_update(c: &mut Criterion) {
     }
     let mut naive: Option<Run> = None;
     g.bench_function(BenchmarkId::new("default/naive", "1cam"), |b| {
-        let run = naive.get_or_insert_with(|| Run::new(default, PolicyKind::Naive, 1, false, 0.0));
+        let run = naive.get_or_insert_with(|| Run::new(default, PolicyKind::Naive, 1, false));
         b.iter(|| black_box(run.step()))
     });
     g.finish();

@@ -88,7 +88,7 @@ impl TlasInstance {
     }
 }
 
-/// Fills `out` with `n` records from `f(i)`, split into `threads` chunks on rayon's pool
+/// Appends `n` records from `f(i)` to `out`, split into `threads` chunks on rayon's pool
 /// (created once per process, not per frame) when `n >= parallel_threshold`.
 pub fn assemble<F>(
     n: usize,
@@ -99,15 +99,16 @@ pub fn assemble<F>(
 ) where
     F: Fn(usize) -> TlasInstance + Sync,
 {
-    out.clear();
     if n < parallel_threshold || threads <= 1 {
         out.extend((0..n).map(&f));
         return;
     }
-    out.resize(n, TlasInstance::zeroed());
+    let start = out.len();
+    out.resize(start + n, TlasInstance::zeroed());
     let chunk = n.div_ceil(threads);
     use rayon::prelude::*;
-    out.par_chunks_mut(chunk)
+    out[start..]
+        .par_chunks_mut(chunk)
         .enumerate()
         .for_each(|(c, slice)| {
             let base = c * chunk;
@@ -164,5 +165,10 @@ mod tests {
         assemble(1000, &mut a, 1, usize::MAX, f);
         assemble(1000, &mut b, 3, 10, f);
         assert_eq!(a, b);
+        // Appends after what is there.
+        assemble(10, &mut a, 1, usize::MAX, f);
+        assemble(10, &mut b, 3, 2, f);
+        assert_eq!(a, b);
+        assert_eq!((a.len(), a[1000].custom_index()), (1010, 0));
     }
 }

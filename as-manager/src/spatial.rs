@@ -52,9 +52,6 @@ impl Hasher for CellHasher {
 /// `GridLoc::cell` of an entry in the large list (not in a cell).
 const LARGE: u32 = u32::MAX;
 
-/// Coarse cells per side of a block of [`GridIndex::query_tall`]'s index.
-const TALL_BLOCK: i32 = 8;
-
 /// The grid. See the module docs.
 #[derive(Debug)]
 pub struct GridIndex<T = ()> {
@@ -71,19 +68,6 @@ pub struct GridIndex<T = ()> {
     len: usize,
     /// Largest radius among the in-cell entries (<= cell size): the query's slack.
     max_small_radius: f32,
-    /// Entries at least this large are also in `tall_cells` (see [`GridIndex::query_tall`]).
-    tall_radius: f32,
-    tall_cell: f32,
-    tall_inv_cell: f32,
-    /// Coarse cells of the tall entries: (radius, slot), largest first.
-    tall_cells: HashMap<u64, Vec<(f32, u32)>, BuildHasherDefault<CellHasher>>,
-    tall_len: usize,
-    /// Largest tall radius ever indexed (a bound on how far a landmark can be seen).
-    tall_max_radius: f32,
-    /// Blocks of `TALL_BLOCK` x `TALL_BLOCK` coarse cells: the largest radius ever indexed in
-    /// each (never lowered, so a bound), to skip whole blocks too far for their largest entry.
-    tall_blocks: HashMap<u64, f32, BuildHasherDefault<CellHasher>>,
-    tall_scratch: Vec<u32>,
 }
 
 fn key(x: i32, z: i32) -> u64 {
@@ -105,172 +89,7 @@ impl<T: Copy> GridIndex<T> {
             scratch: Vec::new(),
             len: 0,
             max_small_radius: 0.0,
-            tall_radius: f32::INFINITY,
-            tall_cell: 1.0,
-            tall_inv_cell: 1.0,
-            tall_cells: HashMap::default(),
-            tall_len: 0,
-            tall_max_radius: 0.0,
-            tall_blocks: HashMap::default(),
-            tall_scratch: Vec::new(),
         }
-    }
-
-    /// Indexes the entries whose radius is at least `radius` a second time, in coarse cells of
-    /// `cell_size` sorted by radius, for [`GridIndex::query_tall`] (none with infinity, the
-    /// default). A pass over every entry: call it on configuration changes, not per frame.
-    pub fn set_tall_radius(&mut self, radius: f32, cell_size: f32) {
-        assert!(cell_size > 0.0 && cell_size.is_finite());
-        self.tall_radius = radius;
-        self.tall_inv_cell = 1.0 / cell_size;
-        self.tall_cell = cell_size;
-        self.tall_cells.clear();
-        self.tall_blocks.clear();
-        self.tall_len = 0;
-        let all: Vec<([f32; 3], f32, u32)> = self
-            .cell_entries
-            .iter()
-            .flatten()
-            .chain(&self.large)
-            .map(|e| (e.center, e.radius, e.slot))
-            .collect();
-        for (c, r, slot) in all {
-            self.track_tall(c, r, slot);
-        }
-    }
-
-    fn tall_key(&self, c: [f32; 3]) -> u64 {
-        let k = |v: f32| (v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32;
-        key(k(c[0]), k(c[2]))
-    }
-
-    fn tall_block_key(&self, c: [f32; 3]) -> u64 {
-        let k = |v: f32| {
-            ((v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32).div_euclid(TALL_BLOCK)
-        };
-        key(k(c[0]), k(c[2]))
-    }
-
-    fn track_tall(&mut self, center: [f32; 3], radius: f32, slot: u32) {
-        if radius < self.tall_radius {
-            return;
-        }
-        self.tall_max_radius = self.tall_max_radius.max(radius);
-        let block = self.tall_block_key(center);
-        let b = self.tall_blocks.entry(block).or_insert(0.0);
-        *b = b.max(radius);
-        let v = self.tall_cells.entry(self.tall_key(center)).or_default();
-        // Largest first, so a query stops at the first entry too small for its cell.
-        let at = v.partition_point(|&(r, _)| r >= radius);
-        v.insert(at, (radius, slot));
-        self.tall_len += 1;
-    }
-
-    fn untrack_tall(&mut self, center: [f32; 3], radius: f32, slot: u32) {
-        if radius < self.tall_radius {
-            return;
-        }
-        let k = self.tall_key(center);
-        if let Some(v) = self.tall_cells.get_mut(&k) {
-            if let Some(i) = v.iter().position(|&(_, s)| s == slot) {
-                v.remove(i);
-                self.tall_len -= 1;
-            }
-            if v.is_empty() {
-                self.tall_cells.remove(&k);
-            }
-        }
-    }
-
-    /// Number of tall entries (see [`GridIndex::set_tall_radius`]).
-    pub fn tall_len(&self) -> usize {
-        self.tall_len
-    }
-
-    /// Calls `visit` for the tall entries that may subtend more than `atan(tan)` from one of
-    /// `cameras` (radius > `tan` x distance, measured in XZ to the entry's coarse cell) within
-    /// `range` metres: far-away landmarks a radius query would not reach. Each entry is
-    /// visited at most once; the caller does the exact test. Costs the coarse cells within
-    /// `range` plus the entries that pass the cell's test, not the grid's size.
-    pub fn query_tall(
-        &mut self,
-        cameras: &[Vec3],
-        tan: f32,
-        range: f32,
-        mut visit: impl FnMut(GridLoc, &mut GridEntry<T>),
-    ) {
-        if self.tall_len == 0 || tan <= 0.0 {
-            return;
-        }
-        // Nothing beyond this distance is large enough.
-        let range = range.min(self.tall_max_radius / tan);
-        let mut slots = std::mem::take(&mut self.tall_scratch);
-        slots.clear();
-        let cs = self.tall_cell;
-        let k = |v: f32| (v * self.tall_inv_cell).floor().clamp(-1e9, 1e9) as i32;
-        let bs = cs * TALL_BLOCK as f32;
-        // Nearest camera to the XZ rectangle [x0, x1] x [z0, z1] (metres).
-        let nearest = |x0: f32, x1: f32, z0: f32, z1: f32| {
-            cameras
-                .iter()
-                .map(|c| {
-                    let dx = (x0 - c.x).max(c.x - x1).max(0.0);
-                    let dz = (z0 - c.z).max(c.z - z1).max(0.0);
-                    (dx * dx + dz * dz).sqrt()
-                })
-                .fold(f32::INFINITY, f32::min)
-        };
-        for (ci, cam) in cameras.iter().enumerate() {
-            let (x0, x1) = (k(cam.x - range), k(cam.x + range));
-            let (z0, z1) = (k(cam.z - range), k(cam.z + range));
-            let (bx0, bx1) = (x0.div_euclid(TALL_BLOCK), x1.div_euclid(TALL_BLOCK));
-            let (bz0, bz1) = (z0.div_euclid(TALL_BLOCK), z1.div_euclid(TALL_BLOCK));
-            for bx in bx0..=bx1 {
-                for bz in bz0..=bz1 {
-                    // A block whose largest entry is too small for its distance: skip its cells.
-                    let Some(&max_r) = self.tall_blocks.get(&key(bx, bz)) else {
-                        continue;
-                    };
-                    let (fx, fz) = (bx as f32 * bs, bz as f32 * bs);
-                    if max_r <= tan * nearest(fx, fx + bs, fz, fz + bs) {
-                        continue;
-                    }
-                    let xs = (bx * TALL_BLOCK).max(x0)..=((bx + 1) * TALL_BLOCK - 1).min(x1);
-                    for x in xs {
-                        let zs = (bz * TALL_BLOCK).max(z0)..=((bz + 1) * TALL_BLOCK - 1).min(z1);
-                        for z in zs {
-                            let Some(v) = self.tall_cells.get(&key(x, z)) else {
-                                continue;
-                            };
-                            // Nearest camera to the cell (XZ): an entry's centre is no nearer.
-                            let (cx, cz) = (x as f32 * cs, z as f32 * cs);
-                            let d = nearest(cx, cx + cs, cz, cz + cs);
-                            // Visit a cell from the first camera whose range reaches it only.
-                            let first = cameras[..ci].iter().any(|c| {
-                                (c.x - range) <= cx + cs
-                                    && (c.x + range) >= cx
-                                    && (c.z - range) <= cz + cs
-                                    && (c.z + range) >= cz
-                            });
-                            if first || d > range {
-                                continue;
-                            }
-                            for &(r, slot) in v {
-                                if r <= tan * d {
-                                    break;
-                                }
-                                slots.push(slot);
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        for &slot in &slots {
-            let loc = self.locs[slot as usize].expect("a tall entry is indexed");
-            visit(loc, self.at_mut(loc));
-        }
-        self.tall_scratch = slots;
     }
 
     /// Entries indexed.
@@ -323,7 +142,6 @@ impl<T: Copy> GridIndex<T> {
             });
             v.push(e);
         }
-        self.track_tall(center.to_array(), radius, slot);
         self.len += 1;
     }
 
@@ -370,12 +188,11 @@ impl<T: Copy> GridIndex<T> {
         } else {
             &mut self.cell_entries[c as usize]
         };
-        let gone = v.swap_remove(i as usize);
+        v.swap_remove(i as usize);
         if let Some(moved) = v.get(i as usize) {
             self.locs[moved.slot as usize] = Some(GridLoc { cell: c, index: i });
         }
         self.locs[slot as usize] = None;
-        self.untrack_tall(gone.center, gone.radius, slot);
         self.len -= 1;
     }
 
@@ -507,36 +324,6 @@ mod tests {
         seen.sort_unstable();
         seen.dedup();
         assert_eq!(n, seen.len(), "visited once");
-        g.set_tall_radius(20.0, 64.0);
-        assert_eq!(g.tall_len(), 20);
-        // Everything tall within 1 km that may subtend more than tan = 0.05 (radius 25 m:
-        // within 500 m of the nearer camera).
-        let mut tall = Vec::new();
-        g.query_tall(&cams, 0.05, 1000.0, |_, e| tall.push(e.slot));
-        let n = tall.len();
-        tall.sort_unstable();
-        tall.dedup();
-        assert_eq!(n, tall.len(), "visited once");
-        for (i, (p, r)) in pts.iter().enumerate() {
-            let d = cams
-                .iter()
-                .map(|c| Vec3::new(c.x - p.x, 0.0, c.z - p.z).length())
-                .fold(f32::INFINITY, f32::min);
-            let listed = tall.binary_search(&(i as u32)).is_ok();
-            if i % 5 == 0 || *r < 20.0 {
-                assert!(!listed, "{i} is not tall or was removed");
-            } else if *r > 0.05 * d {
-                assert!(listed, "tall {i} at {d:.0} m missed");
-            }
-        }
-        assert!(!tall.is_empty());
-        g.remove(101);
-        g.insert(7, pts[7].0, 30.0, ());
-        assert_eq!(g.tall_len(), 20);
-        let mut tall2 = Vec::new();
-        g.query_tall(&cams, 1e-6, 1e4, |_, e| tall2.push(e.slot));
-        assert!(!tall2.contains(&101) && tall2.contains(&7));
-        assert_eq!(tall2.len(), 20);
         for (i, (p, r)) in pts.iter().enumerate() {
             let near = cams.iter().any(|c| (c.distance(*p) - r).max(0.0) <= 50.0);
             if near && i % 5 != 0 {

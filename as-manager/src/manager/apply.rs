@@ -26,6 +26,9 @@ fn world_sphere(desc: &MeshDesc, transform: &Affine3A) -> (glam::Vec3, f32, f32)
 impl<B: AsBackend> AsManager<B> {
     pub(crate) fn apply_commands(&mut self) {
         let commands = std::mem::take(&mut self.registrar.pending.lock().commands);
+        // Last frame's near and proxy records go (a removed landmark's record is taken out
+        // of the landmark records at the front).
+        self.records.truncate(self.landmarks.len());
         self.stats.commands_applied = commands.len() as u32;
         let mut dead_meshes = Vec::new();
         let mut dead_instances = Vec::new();
@@ -44,7 +47,11 @@ impl<B: AsBackend> AsManager<B> {
                     }
                 }
                 Command::SetLodGeometry(id, lod, geometry, error) => {
-                    self.set_lod_now(id.index, lod, geometry, error);
+                    // New data or none: the landmarks see it in what their selection
+                    // resolves to; new errors change the selection itself.
+                    if self.set_lod_now(id.index, lod, geometry, error) {
+                        self.landmarks.mesh_changed(id.index);
+                    }
                 }
                 Command::RegisterGroup(id, desc) => self.far.register(id, desc),
                 Command::SetGroupProxy(id, proxy) => {
@@ -115,14 +122,22 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     /// A LOD's new geometry (and error): the estimates follow it. An unbuilt entry of the LOD
-    /// takes the new triangle count; a built one keeps what it was built from.
-    fn set_lod_now(&mut self, mesh: u32, lod: usize, geometry: LodGeometry, error: Option<f32>) {
+    /// takes the new triangle count; a built one keeps what it was built from. Returns whether
+    /// the mesh's errors changed.
+    fn set_lod_now(
+        &mut self,
+        mesh: u32,
+        lod: usize,
+        geometry: LodGeometry,
+        error: Option<f32>,
+    ) -> bool {
         let Some(Some(m)) = self.tables.meshes.get_mut(mesh as usize) else {
-            return;
+            return false;
         };
         if lod >= m.nlods as usize {
-            return;
+            return false;
         }
+        let errors_before = m.errors;
         let tris = geometry.triangles();
         let d = Arc::make_mut(&mut m.desc);
         d.lods[lod].geometry = geometry;
@@ -141,12 +156,14 @@ impl<B: AsBackend> AsManager<B> {
                 d.lods[l].geometric_error = m.errors[l];
             }
         }
+        let errors_changed = m.errors != errors_before;
         if let Some(key) = m.lod_entry[lod] {
             let e = &mut self.tables.entries[key];
             if e.state != EntryState::Built {
                 e.triangles = tris;
             }
         }
+        errors_changed
     }
 
     /// Removes the mesh's instances and BLASes; returns the instance slots removed.
@@ -182,6 +199,7 @@ impl<B: AsBackend> AsManager<B> {
                 0
             };
         let mesh_pos = mesh.instances.len() as u32;
+        let mesh_kind = mesh.kind;
         mesh.instances.push(id.index);
         let slot = id.index as usize;
         if self.tables.instances.len() <= slot {
@@ -222,6 +240,8 @@ impl<B: AsBackend> AsManager<B> {
             culled: true,
         };
         self.grid.insert(id.index, center, radius, hot);
+        let is_static = mesh_kind == MeshKind::Static;
+        self.landmarks.track(id.index, radius, is_static, group);
         self.live_instances += 1;
     }
 
@@ -241,7 +261,10 @@ impl<B: AsBackend> AsManager<B> {
         let mut hot = grid_entry.data;
         hot.template.transform = crate::record::transform_rows(&transform);
         hot.scale = scale;
+        let is_static = mesh.kind == MeshKind::Static;
+        let group = hot.group;
         self.grid.insert(id.index, center, radius, hot);
+        self.landmarks.track(id.index, radius, is_static, group);
     }
 
     /// Removes an instance's state; returns whether it existed.
@@ -288,6 +311,7 @@ impl<B: AsBackend> AsManager<B> {
                 self.release_entry(key);
             }
         }
+        self.landmarks.remove(slot, &mut self.records);
         self.grid.remove(slot);
         self.tables.instances[slot as usize] = None;
         self.live_instances -= 1;

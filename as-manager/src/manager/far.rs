@@ -73,6 +73,9 @@ pub(crate) struct FarField {
     unready_leaves: Vec<u32>,
     /// Nodes of this frame's display cut.
     picks: Vec<u32>,
+    /// Leaves that changed hand-over side (or were registered or unregistered) since the
+    /// landmarks last looked (`landmarks.rs` drains it).
+    pub flipped: Vec<u32>,
     /// Far-field frames so far (one per `far_prepare`); 0: none yet.
     epoch: u64,
     /// Live nodes.
@@ -90,6 +93,7 @@ impl FarField {
     }
 
     pub fn register(&mut self, id: GroupId, desc: GroupDesc) {
+        self.flipped.push(id.index);
         let i = id.index as usize;
         if self.nodes.len() <= i {
             self.nodes.resize(i + 1, None);
@@ -129,6 +133,7 @@ impl FarField {
     }
 
     pub fn unregister(&mut self, id: GroupId) {
+        self.flipped.push(id.index);
         if !self.is_live(id) {
             return;
         }
@@ -293,11 +298,14 @@ impl<B: AsBackend> AsManager<B> {
         // Distances are computed for the nodes a walk visits, not for the whole tree; a leaf's
         // hand-over side changes only near the cameras (visited) or for leaves that were near
         // (listed), so both are updated and the rest keep `near == false`.
+        // Returns whether the leaf changed sides (the landmarks of its instances are looked at
+        // again).
         let visit = |n: &mut GroupNode| {
             if n.dist_epoch != e {
                 n.dist = node_distance(n, &cams);
                 n.dist_epoch = e;
             }
+            let was = n.near;
             if n.children.is_empty() {
                 if n.dist <= r2 {
                     n.near = true;
@@ -305,11 +313,14 @@ impl<B: AsBackend> AsManager<B> {
                     n.near = false;
                 }
             }
+            n.near != was
         };
         let listed = std::mem::take(&mut far.near_leaves);
         for i in listed {
             if let Some(Some(n)) = far.nodes.get_mut(i as usize) {
-                visit(n);
+                if visit(n) {
+                    far.flipped.push(i);
+                }
                 if n.near && n.listed != e {
                     n.listed = e;
                     far.near_leaves.push(i);
@@ -320,7 +331,9 @@ impl<B: AsBackend> AsManager<B> {
         let mut stack = far.roots();
         while let Some(i) = stack.pop() {
             let n = far.nodes[i as usize].as_mut().expect("live group");
-            visit(n);
+            if visit(n) {
+                far.flipped.push(i);
+            }
             if n.children.is_empty() && n.near && n.listed != e {
                 n.listed = e;
                 far.near_leaves.push(i);

@@ -81,6 +81,9 @@ impl<B: AsBackend> AsManager<B> {
         let frame = self.frame;
         // First: the backend forgets the frame's recorded work (its TLAS used nothing).
         self.backend.abort_frame();
+        // The landmarks are a cache of decisions the retry makes again: all are looked at.
+        self.records.clear();
+        self.landmarks.invalidate();
         let mut j = std::mem::take(&mut self.journal);
         for c in j.compacted.drain(..).rev() {
             let mut new_bytes = 0;

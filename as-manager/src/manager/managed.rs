@@ -18,6 +18,7 @@ impl<B: AsBackend> AsManager<B> {
         {
             let _s = tracing::trace_span!("residency").entered();
             self.far_prepare();
+            self.landmarks_residency();
             self.residency_pass();
             self.upkeep_entries();
         }
@@ -32,6 +33,7 @@ impl<B: AsBackend> AsManager<B> {
         {
             let _s = tracing::trace_span!("cull").entered();
             self.select_and_cull();
+            self.landmarks_cull();
             self.far_select();
         }
         let _s = tracing::trace_span!("assemble").entered();
@@ -40,9 +42,9 @@ impl<B: AsBackend> AsManager<B> {
         Ok(())
     }
 
-    /// Visits instances within r2 of any camera (and the far field's landmarks, see
-    /// `FarFieldConfig::keep_angle`); picks LODs; marks request/keep. One pass through the
-    /// grid cells near the cameras (the per-instance state lives there).
+    /// Visits instances within r2 of any camera (and beyond it in near far-field leaves);
+    /// picks LODs; marks request/keep. One pass through the grid cells near the cameras (the
+    /// per-instance state lives there). The landmarks beyond are `landmarks.rs`'s.
     fn residency_pass(&mut self) {
         let r2 = self.config.residency.r2;
         let far_on = self.config.far_field.enabled;
@@ -54,7 +56,6 @@ impl<B: AsBackend> AsManager<B> {
         } else {
             boxes.clear();
         }
-        let keep_tan = self.config.far_field.keep_angle.tan();
         let Self {
             grid,
             visits,
@@ -66,6 +67,7 @@ impl<B: AsBackend> AsManager<B> {
             config,
             frame,
             backend,
+            landmarks,
             ..
         } = self;
         visits.clear();
@@ -86,28 +88,14 @@ impl<B: AsBackend> AsManager<B> {
             if beyond_r2 && !far.is_near_leaf(grid_entry.data.group) {
                 return;
             }
-            pass.visit(loc, grid_entry, d2.sqrt(), beyond_r2, false);
+            debug_assert!(
+                !landmarks.is_member(grid_entry.slot),
+                "a landmark is never near"
+            );
+            pass.visit(loc, grid_entry, d2.sqrt(), beyond_r2);
         });
-        if far_on && keep_tan > 0.0 {
-            // Landmarks: exactly the tall entries the query rejected or never reached.
-            let far_radius = config.far_field.far_radius.min(config.far_field.keep_range);
-            grid.query_tall(pass.cams, keep_tan * 0.9, far_radius, |loc, grid_entry| {
-                let (d2, beyond_r2) = pass.distance(grid_entry);
-                if !beyond_r2 || far.is_near_leaf(grid_entry.data.group) {
-                    return;
-                }
-                let d = d2.sqrt();
-                // 10 % hysteresis on the angle for a landmark shown last frame.
-                let was = grid_entry.data.last_visit == pass.frame.wrapping_sub(1);
-                let tan = if was { keep_tan * 0.9 } else { keep_tan };
-                if d - grid_entry.radius > far_radius || grid_entry.radius <= tan * d {
-                    return;
-                }
-                pass.visit(loc, grid_entry, d, true, true);
-            });
-        }
         self.near_boxes = boxes;
-        self.stats.instances_visited = self.visits.len() as u32;
+        self.stats.instances_visited = self.visits.len() as u32 + self.landmarks.examined;
     }
 
     /// Creation after `create_threshold` requested frames; release after `release_threshold`
@@ -165,12 +153,7 @@ impl<B: AsBackend> AsManager<B> {
             let v = self.visits[vi];
             let grid_entry = self.grid.at_mut(v.loc);
             let radius = grid_entry.radius;
-            // A landmark stands beside its group's proxy: never covered, never handing over.
-            let group = if far && !v.landmark {
-                grid_entry.data.group
-            } else {
-                NO_GROUP
-            };
+            let group = if far { grid_entry.data.group } else { NO_GROUP };
             let hot = &mut grid_entry.data;
             let tables = &mut self.tables;
             let mesh = tables.meshes[hot.mesh as usize]
@@ -200,11 +183,7 @@ impl<B: AsBackend> AsManager<B> {
             } else {
                 None
             };
-            // A landmark passed its own test (the far keep angle, with hysteresis) in the
-            // residency pass; the culling angle is the near field's.
-            let culled = if v.landmark {
-                false
-            } else if v.beyond_r2 {
+            let culled = if v.beyond_r2 {
                 self.culler.cull_small(radius, v.center_dist, hot.culled)
             } else {
                 self.culler.cull(radius, v.center_dist, hot.culled)
@@ -244,7 +223,9 @@ impl<B: AsBackend> AsManager<B> {
     }
 
     /// Writes the records for `tlas_list` (parallel when large).
+    /// (After the landmarks' records, which stay from frame to frame.)
     pub(crate) fn assemble_records(&mut self) {
+        self.records.truncate(self.landmarks.len());
         let list = &self.tlas_list;
         let grid = &self.grid;
         let a = &self.config.assembly;
@@ -291,7 +272,7 @@ impl ResidencyPass<'_> {
         (d2, d2 > reach * reach)
     }
 
-    /// Picks the instance's LOD by projected error (a `landmark` too), creates its entry, and marks
+    /// Picks the instance's LOD by projected error, creates its entry, and marks
     /// the entry requested (within r1, beyond r2) and kept.
     fn visit(
         &mut self,
@@ -299,7 +280,6 @@ impl ResidencyPass<'_> {
         grid_entry: &mut GridEntry<InstanceHot>,
         center_dist: f32,
         beyond_r2: bool,
-        landmark: bool,
     ) {
         let (tables, frame) = (&mut *self.tables, self.frame);
         let c = Vec3::from(grid_entry.center);
@@ -308,14 +288,10 @@ impl ResidencyPass<'_> {
         let mesh = tables.meshes[hot.mesh as usize]
             .as_ref()
             .expect("instance of a live mesh");
-        if landmark && mesh.kind != MeshKind::Static {
-            return;
-        }
         self.visits.push(Visit {
             loc,
             center_dist,
             beyond_r2,
-            landmark,
         });
         let was_visited = hot.last_visit == frame.wrapping_sub(1);
         let current = if was_visited {
@@ -323,9 +299,6 @@ impl ResidencyPass<'_> {
         } else {
             mesh.nlods as usize - 1
         };
-        // A landmark picks its LOD by projected error like the near field: its BLAS is still
-        // the mesh's shared one for that LOD (memory stays per mesh, not per instance), and
-        // the coarsest LOD's silhouette was the far field's largest error (docs/RESULTS.md).
         let lodi = self.lod.select(
             mesh.errors(),
             hot.scale,

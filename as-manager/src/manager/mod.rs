@@ -10,6 +10,7 @@ mod apply;
 mod baseline;
 mod far;
 mod journal;
+mod landmarks;
 mod managed;
 mod registrar;
 mod schedule;
@@ -125,6 +126,8 @@ pub struct FrameStats {
     pub oom_events: u32,
     /// Far-field proxy records in the TLAS.
     pub proxy_instances: u32,
+    /// Far-field landmark records in the TLAS (see `FarFieldConfig::keep_angle`).
+    pub landmark_instances: u32,
     /// Bytes of the proxies' BLASes in the TLAS.
     pub proxy_blas_bytes: u64,
     /// Proxy BLASes evicted (memory) this frame: near detail goes first, proxies last.
@@ -174,15 +177,9 @@ pub(crate) struct Visit {
     pub loc: GridLoc,
     /// Distance from the nearest camera to the centre.
     pub center_dist: f32,
-    /// Beyond r2, visited because its far-field group is near or it is a landmark (angle
-    /// culling only).
+    /// Beyond r2, visited because its far-field group is near (angle culling only).
     pub beyond_r2: bool,
-    /// A far-field landmark (see `FarFieldConfig::keep_angle`).
-    pub landmark: bool,
 }
-
-/// Side of the coarse cells that index landmark candidates (see `GridIndex::query_tall`).
-const LANDMARK_CELL_M: f32 = 128.0;
 
 /// Radius from which an instance may be a far-field landmark (infinite: none).
 fn landmark_radius(c: &Config) -> f32 {
@@ -225,6 +222,8 @@ pub struct AsManager<B: AsBackend> {
     costs: CostModel,
     /// The far-field group tree.
     far: far::FarField,
+    /// The far-field landmarks, kept incrementally (their records lead `records`).
+    landmarks: landmarks::Landmarks,
     /// Leaf group of each `tlas_list` entry, for the far field.
     tlas_groups: Vec<Option<u32>>,
     /// Near far-field leaves reaching beyond r2 (XZ boxes), for the residency query.
@@ -263,10 +262,11 @@ impl<B: AsBackend> AsManager<B> {
     /// A manager with a validated `config` driving `backend`.
     pub fn new(config: Config, backend: B) -> Result<Self> {
         config.validate()?;
-        let mut grid = GridIndex::new(config.residency.cell_size);
-        grid.set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
+        let mut landmarks = landmarks::Landmarks::default();
+        landmarks.set_min_radius(landmark_radius(&config));
         Ok(Self {
-            grid,
+            grid: GridIndex::new(config.residency.cell_size),
+            landmarks,
             lod: LodSelector::new(&config.lod),
             culler: InstanceCuller::new(&config.cull),
             costs: config.cost_prior,
@@ -421,20 +421,34 @@ impl<B: AsBackend> AsManager<B> {
         }
         if config.residency.cell_size != self.config.residency.cell_size {
             let mut grid = GridIndex::new(config.residency.cell_size);
-            grid.set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
             for (slot, inst) in self.tables.instances.iter().enumerate() {
                 if let (Some(inst), Some(grid_entry)) = (inst, self.grid.get(slot as u32)) {
                     grid.insert(slot as u32, inst.center, inst.radius, grid_entry.data);
                 }
             }
             self.grid = grid;
-        } else if landmark_radius(&config) != landmark_radius(&self.config) {
-            self.grid
-                .set_tall_radius(landmark_radius(&config), LANDMARK_CELL_M);
+        }
+        // Whatever a landmark decision reads: every candidate is looked at again.
+        let landmarks_read = |c: &Config| {
+            (
+                landmark_radius(c),
+                c.residency.r2,
+                c.far_field.far_radius,
+                c.far_field.keep_range,
+                c.lod.clone(),
+            )
+        };
+        let retrack = landmark_radius(&config) != self.landmarks.min_radius();
+        if retrack || landmarks_read(&config) != landmarks_read(&self.config) {
+            self.records.clear();
+            self.landmarks.invalidate();
         }
         self.lod = LodSelector::new(&config.lod);
         self.culler = InstanceCuller::new(&config.cull);
         self.config = config;
+        if retrack {
+            self.track_landmark_candidates();
+        }
         Ok(())
     }
 
@@ -480,6 +494,7 @@ impl<B: AsBackend> AsManager<B> {
     // Hidden: a test fixture (tests outside the crate call it every frame), not product API.
     #[doc(hidden)]
     pub fn check_invariants(&self) -> std::result::Result<(), String> {
+        self.landmarks.check(&self.records)?;
         let mut bytes = 0;
         let mut built = 0;
         let mut seen = std::collections::HashSet::new();
@@ -687,6 +702,31 @@ impl<B: AsBackend> AsManager<B> {
         }
     }
 
+    /// Indexes every live instance again as a landmark candidate (or not) under the
+    /// configuration's radius: a pass over the instances, on configuration changes only.
+    fn track_landmark_candidates(&mut self) {
+        self.landmarks.clear();
+        self.landmarks.set_min_radius(landmark_radius(&self.config));
+        if !self.landmarks.min_radius().is_finite() {
+            return;
+        }
+        for (slot, inst) in self.tables.instances.iter().enumerate() {
+            let Some(inst) = inst else { continue };
+            let is_static = self
+                .tables
+                .meshes
+                .get(inst.mesh as usize)
+                .and_then(|m| m.as_ref())
+                .is_some_and(|m| m.kind == crate::MeshKind::Static);
+            let group = self
+                .grid
+                .get(slot as u32)
+                .map_or(state::NO_GROUP, |g| g.data.group);
+            self.landmarks
+                .track(slot as u32, inst.radius, is_static, group);
+        }
+    }
+
     /// Frees a built entry's handle (retired after this frame) and drops the entry.
     pub(crate) fn release_entry(&mut self, key: EntryKey) {
         let frame = self.frame;
@@ -707,6 +747,8 @@ impl<B: AsBackend> AsManager<B> {
 
 #[cfg(test)]
 mod far_tests;
+#[cfg(test)]
+mod landmark_tests;
 #[cfg(test)]
 mod lod_geometry_tests;
 #[cfg(test)]

@@ -283,6 +283,7 @@ impl<B: AsBackend> AsManager<B> {
                         if (m.lod_floor as usize) <= lod {
                             m.lod_floor = lod as u8 + 1;
                             m.floor_since = self.frame;
+                            self.landmarks.mesh_changed(mesh_ix);
                             if !self.floors.contains(&mesh_ix) {
                                 self.floors.push(mesh_ix);
                             }
@@ -643,6 +644,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         let frame = self.frame;
         let meshes = &mut self.tables.meshes;
+        let landmarks = &mut self.landmarks;
         self.floors.retain(|&m| {
             let Some(Some(mesh)) = meshes.get_mut(m as usize) else {
                 return false;
@@ -650,6 +652,7 @@ impl<B: AsBackend> AsManager<B> {
             if frame.saturating_sub(mesh.floor_since) >= 60 {
                 mesh.lod_floor = mesh.lod_floor.saturating_sub(1);
                 mesh.floor_since = frame;
+                landmarks.mesh_changed(m);
             }
             mesh.lod_floor > 0
         });

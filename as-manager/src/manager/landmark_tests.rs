@@ -1,0 +1,426 @@
+//! The incremental landmark set (`landmarks.rs`) against the rule it keeps, applied to every
+//! candidate every frame: the same landmarks at the same LODs, frame after frame, through
+//! walks at any speed, oscillations across every threshold, a teleport, a second camera, leaf
+//! groups flipping, instances added, moved and removed, a memory floor, and a failed frame.
+
+use std::collections::{HashMap, HashSet};
+
+use glam::{Affine3A, Vec3};
+use rtstream_stats::Rng;
+
+use super::state::NO_GROUP;
+use crate::backend::model::ModelBackend;
+use crate::backend::{AsBackend, BackendError, FaultPoint};
+use crate::synth::{counts_chain, grid_geometry};
+use crate::*;
+
+const SIDE: f32 = 1600.0;
+const LEAF_M: f32 = 100.0;
+
+struct Scene {
+    m: AsManager<ModelBackend>,
+    meshes: Vec<MeshId>,
+    leaves: Vec<GroupId>,
+    live: Vec<InstanceId>,
+    rng: Rng,
+    next_ci: u32,
+    /// LOD data comes and goes (a backend that builds only from data).
+    data_churn: bool,
+}
+
+fn config() -> Config {
+    let mut c = Config::default();
+    c.freeze_cost_model = true;
+    // A keep range inside the map, so its threshold is crossed too.
+    c.far_field.keep_range = 900.0;
+    c
+}
+
+fn scene(config: Config) -> Scene {
+    let m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
+    let rng = Rng::new(0x1a4d_3a4c);
+    // Radii from 0.5 m (never a candidate) to 40 m, LOD chains of 1 to 5 LODs.
+    let meshes: Vec<MeshId> = (0..24)
+        .map(|i| {
+            let radius = 0.5 + 40.0 * (i as f32 / 23.0).powi(2);
+            let lods = 1 + i % 5;
+            m.register_mesh(MeshDesc::new(
+                format!("m{i}"),
+                MeshKind::Static,
+                radius,
+                counts_chain(4000, lods, 0.01 * radius),
+            ))
+            .unwrap()
+        })
+        .collect();
+    let n = (SIDE / LEAF_M) as i32;
+    let mut leaves = Vec::new();
+    for x in 0..n {
+        for z in 0..n {
+            let lo = [x as f32 * LEAF_M, -10.0, z as f32 * LEAF_M];
+            leaves.push(
+                m.register_group(GroupDesc {
+                    parent: None,
+                    bounds_min: lo,
+                    bounds_max: [lo[0] + LEAF_M, 80.0, lo[2] + LEAF_M],
+                    custom_index: 1_000_000 + leaves.len() as u32,
+                    mask: 0xff,
+                })
+                .unwrap(),
+            );
+        }
+    }
+    let mut s = Scene {
+        m,
+        meshes,
+        leaves,
+        live: Vec::new(),
+        rng,
+        next_ci: 0,
+        data_churn: false,
+    };
+    for _ in 0..900 {
+        s.add_random();
+    }
+    s
+}
+
+impl Scene {
+    fn random_transform(&mut self) -> Affine3A {
+        let p = Vec3::new(self.rng.range(0.0, SIDE), 0.0, self.rng.range(0.0, SIDE));
+        Affine3A::from_scale_rotation_translation(
+            Vec3::splat(self.rng.range(0.5, 2.0)),
+            glam::Quat::IDENTITY,
+            p,
+        )
+    }
+
+    fn add_random(&mut self) {
+        let mesh = self.meshes[self.rng.below(self.meshes.len())];
+        let t = self.random_transform();
+        let p = t.translation;
+        let leaf = (p.x / LEAF_M) as usize * (SIDE / LEAF_M) as usize + (p.z / LEAF_M) as usize;
+        let mut d = InstanceDesc::new(mesh, t);
+        d.custom_index = self.next_ci;
+        self.next_ci += 1;
+        // Most instances in a leaf group; some in none.
+        if self.rng.below(5) > 0 {
+            d.group = self.leaves.get(leaf).copied();
+        }
+        self.live.push(self.m.add_instance(d).unwrap());
+    }
+
+    /// Swaps a few LODs between data and counts.
+    fn swap_data(&mut self) {
+        for _ in 0..8 {
+            let mesh = self.meshes[self.rng.below(self.meshes.len())];
+            let lods = self.m.mesh_lods(mesh).map_or(1, |l| l.len());
+            let lod = self.rng.below(lods);
+            let g = if self.rng.below(2) == 0 {
+                LodGeometry::Data(grid_geometry(8, 1.0))
+            } else {
+                LodGeometry::Counts {
+                    vertices: 81,
+                    triangles: 128,
+                }
+            };
+            self.m.set_lod_geometry(mesh, lod, g).unwrap();
+        }
+    }
+
+    /// Adds, moves and removes a few instances.
+    fn churn(&mut self) {
+        for _ in 0..6 {
+            self.add_random();
+            let i = self.rng.below(self.live.len());
+            let t = self.random_transform();
+            self.m.set_transform(self.live[i], t).unwrap();
+            let j = self.rng.below(self.live.len());
+            let id = self.live.swap_remove(j);
+            self.m.remove_instance(id).unwrap();
+        }
+    }
+}
+
+/// The rule of `landmarks.rs` applied to every candidate, with its own memory of the last
+/// frame (who was a landmark, who the residency pass visited, their LODs).
+#[derive(Default)]
+struct Reference {
+    /// slot -> LOD of last frame's landmarks.
+    landmarks: HashMap<u32, u8>,
+}
+
+impl Reference {
+    /// This frame's landmarks (slot -> LOD) by the rule, from the state before `update`
+    /// (`before`: slot -> (LOD target, visited last frame)) and the cameras.
+    fn frame(
+        &mut self,
+        m: &AsManager<ModelBackend>,
+        before: &HashMap<u32, (u8, bool)>,
+        cams: &[Vec3],
+        frame: u64,
+        floors: &[u8],
+        built: &[Vec<bool>],
+    ) -> HashMap<u32, u8> {
+        let need_data = m.backend().needs_geometry();
+        let c = m.config();
+        let kt = c.far_field.keep_angle.tan();
+        let range = c.far_field.far_radius.min(c.far_field.keep_range);
+        let min_r = super::landmark_radius(c);
+        let mut now = HashMap::new();
+        for (slot, inst) in m.tables.instances.iter().enumerate() {
+            let slot = slot as u32;
+            let Some(inst) = inst else { continue };
+            let Some(ge) = m.grid.get(slot) else { continue };
+            let mesh = m.tables.meshes[inst.mesh as usize].as_ref().unwrap();
+            if mesh.kind != MeshKind::Static || ge.radius < min_r {
+                continue;
+            }
+            let d2 = cams
+                .iter()
+                .map(|p| p.distance_squared(Vec3::from(ge.center)))
+                .fold(f32::INFINITY, f32::min);
+            let reach = c.residency.r2 + ge.radius;
+            let near_leaf = ge.data.group != NO_GROUP && m.far.is_near_leaf(ge.data.group);
+            if d2 <= reach * reach || near_leaf {
+                continue;
+            }
+            let d = d2.sqrt();
+            // Added this frame: its state as `apply_add` makes it (the last visit u64::MAX reads
+            // as "last frame" at frame 0).
+            let (lod_before, visited) = before
+                .get(&slot)
+                .copied()
+                .unwrap_or(((crate::MAX_LODS - 1) as u8, frame == 0));
+            let member = self.landmarks.get(&slot).copied();
+            let was = member.is_some() || visited;
+            let tan = if was { kt * 0.9 } else { kt };
+            if d - ge.radius > range || ge.radius <= tan * d {
+                continue;
+            }
+            let n = mesh.nlods as usize;
+            let current = match member {
+                Some(l) => l as usize,
+                None if was => lod_before as usize,
+                None => n - 1,
+            };
+            let surface = (d - ge.radius).max(0.0);
+            let lod = m.lod.select(
+                mesh.errors(),
+                ge.data.scale,
+                surface,
+                current,
+                // The floor the residency pass saw (this frame's schedule may raise it).
+                floors.get(inst.mesh as usize).copied().unwrap_or(0) as usize,
+            );
+            // What it resolves to with the data there now and the BLASes built before.
+            let was_built = |l: usize| {
+                built
+                    .get(inst.mesh as usize)
+                    .and_then(|b| b.get(l))
+                    .copied()
+                    .unwrap_or(false)
+            };
+            if let Some(lod) = mesh.with_data(lod, need_data, was_built) {
+                now.insert(slot, lod as u8);
+            }
+        }
+        self.landmarks = now.clone();
+        now
+    }
+}
+
+/// The set's landmarks now (slot -> LOD target).
+fn incremental(m: &AsManager<ModelBackend>) -> HashMap<u32, u8> {
+    m.tables
+        .instances
+        .iter()
+        .enumerate()
+        .filter(|(slot, i)| i.is_some() && m.landmarks.is_member(*slot as u32))
+        .map(|(slot, _)| {
+            let slot = slot as u32;
+            (slot, m.grid.get(slot).unwrap().data.lod_target)
+        })
+        .collect()
+}
+
+/// Where the camera is at `frame`: walks at speeds from 0.2 to 40 m a frame, oscillations
+/// across a point, a teleport, and a stretch with a second camera.
+fn cameras(frame: u64) -> Vec<Vec3> {
+    let f = frame as f32;
+    let at = |t: f32| {
+        Vec3::new(
+            SIDE * 0.5 + 600.0 * (t * 0.9).sin(),
+            0.0,
+            SIDE * 0.5 + 500.0 * (t * 0.6).cos(),
+        )
+    };
+    match frame {
+        0..=149 => vec![at(f * 0.002)],                  // ~1 m a frame
+        150..=249 => vec![at(0.3 + (f - 150.0) * 0.05)], // ~30-40 m a frame
+        250..=349 => {
+            // Oscillating by 3 m around a point (across whatever threshold is near it).
+            let p = at(5.3);
+            vec![p + Vec3::X * if frame % 2 == 0 { 3.0 } else { -3.0 }]
+        }
+        350..=449 => vec![at(5.3) + Vec3::new(0.2 * (f - 350.0), 0.0, 0.0)],
+        450 => vec![Vec3::new(100.0, 0.0, 1500.0)], // teleport
+        451..=549 => vec![
+            Vec3::new(100.0 + 2.0 * (f - 451.0), 0.0, 1500.0),
+            at(2.0 + (f - 451.0) * 0.004),
+        ],
+        _ => vec![Vec3::new(
+            300.0 + 5.0 * (f - 550.0),
+            0.0,
+            1500.0 - 7.0 * (f - 550.0),
+        )],
+    }
+}
+
+/// Runs `frames` frames, comparing every one; returns the LOD fallbacks (memory floors) seen.
+fn run_and_compare(mut s: Scene, frames: u64, fail_at: Option<u64>) -> u32 {
+    let mut fallbacks = 0;
+    let mut reference = Reference::default();
+    let mut compared = 0usize;
+    let mut shown = 0usize;
+    for frame in 0..frames {
+        if frame % 40 == 39 {
+            s.churn();
+        }
+        if s.data_churn && frame % 10 == 5 {
+            s.swap_data();
+        }
+        if Some(frame) == fail_at {
+            s.m.backend_mut()
+                .inject_fault(FaultPoint::BuildTlas, BackendError::Other("test".into()));
+        }
+        let before: HashMap<u32, (u8, bool)> =
+            s.m.tables
+                .instances
+                .iter()
+                .enumerate()
+                .filter_map(|(slot, i)| {
+                    i.as_ref()?;
+                    let hot = s.m.grid.get(slot as u32)?.data;
+                    Some((
+                        slot as u32,
+                        (hot.lod_target, hot.last_visit == frame.wrapping_sub(1)),
+                    ))
+                })
+                .collect();
+        let floors: Vec<u8> =
+            s.m.tables
+                .meshes
+                .iter()
+                .map(|m| m.as_ref().map_or(0, |m| m.lod_floor))
+                .collect();
+        let built: Vec<Vec<bool>> =
+            s.m.tables
+                .meshes
+                .iter()
+                .map(|m| {
+                    m.as_ref().map_or(Vec::new(), |m| {
+                        (0..m.nlods as usize)
+                            .map(|l| s.m.tables.built(m.lod_entry[l]))
+                            .collect()
+                    })
+                })
+                .collect();
+        let cams: Vec<Vec3> = cameras(frame);
+        let vps: Vec<Viewpoint> = cams.iter().map(|&p| Viewpoint::new(p, Vec3::X)).collect();
+        let out = s.m.update(FrameInput {
+            frame,
+            cameras: &vps,
+        });
+        if Some(frame) == fail_at {
+            assert!(out.is_err(), "the injected fault fails the frame");
+            // A failed frame forgets the landmarks; the reference forgets them too (the
+            // retry's hysteresis starts afresh), and the retry must match it again.
+            reference.landmarks.clear();
+            continue;
+        }
+        let out = out.unwrap();
+        // Each instance at most once in the TLAS (landmarks lead, the near field follows).
+        let mut seen = HashSet::new();
+        for r in out
+            .instances
+            .iter()
+            .filter(|r| r.custom_index() < 1_000_000)
+        {
+            assert!(
+                seen.insert(r.custom_index()),
+                "frame {frame}: instance {} twice in the TLAS",
+                r.custom_index()
+            );
+        }
+        let (landmark_records, lod_fallbacks) =
+            (out.stats.landmark_instances, out.stats.lod_fallbacks);
+        s.m.check_invariants().unwrap();
+        let want = reference.frame(&s.m, &before, &cams, frame, &floors, &built);
+        let got = incremental(&s.m);
+        if want != got {
+            let mut diff: Vec<String> = want
+                .iter()
+                .filter(|(k, v)| got.get(k) != Some(v))
+                .map(|(k, v)| format!("slot {k}: rule LOD {v}, set {:?}", got.get(k)))
+                .chain(
+                    got.iter()
+                        .filter(|(k, _)| !want.contains_key(k))
+                        .map(|(k, v)| format!("slot {k}: set LOD {v}, not by the rule")),
+                )
+                .collect();
+            diff.sort();
+            panic!(
+                "frame {frame}: {} landmarks by the rule, {} in the set; first differences: {:?}",
+                want.len(),
+                got.len(),
+                &diff[..diff.len().min(8)]
+            );
+        }
+        compared += want.len();
+        shown += landmark_records as usize;
+        fallbacks += lod_fallbacks;
+    }
+    // The walk met many landmarks, and showed them once built.
+    assert!(compared > 20_000, "{compared} landmark-frames compared");
+    assert!(shown > compared / 2, "{shown} shown of {compared}");
+    fallbacks
+}
+
+#[test]
+fn incremental_landmarks_match_the_rule_every_frame() {
+    run_and_compare(scene(config()), 650, None);
+}
+
+#[test]
+fn after_a_failed_frame_the_landmarks_match_the_rule_again() {
+    run_and_compare(scene(config()), 260, Some(170));
+}
+
+#[test]
+fn a_memory_floor_changes_landmark_lods_as_the_rule_does() {
+    // A budget that forces LOD fallbacks (floors) while landmarks are shown.
+    let mut c = config();
+    c.memory.blas_bytes = 6 << 20;
+    let s = scene(c);
+    let fallbacks = run_and_compare(s, 300, None);
+    assert!(fallbacks > 0, "the budget forced no LOD fallback");
+}
+
+#[test]
+fn lod_data_coming_and_going_resolves_as_the_rule_does() {
+    let mut s = scene(config());
+    s.m.backend_mut().require_geometry = true;
+    // About half the LODs have data at the start; some come and go every 10 frames.
+    for i in 0..s.meshes.len() {
+        let mesh = s.meshes[i];
+        for lod in 0..s.m.mesh_lods(mesh).map_or(1, |l| l.len()).max(1 + i % 5) {
+            if s.rng.below(2) == 0 {
+                let _ =
+                    s.m.set_lod_geometry(mesh, lod, LodGeometry::Data(grid_geometry(8, 1.0)));
+            }
+        }
+    }
+    s.data_churn = true;
+    run_and_compare(s, 400, None);
+}
