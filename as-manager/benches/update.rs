@@ -155,9 +155,10 @@ fn bench_update(c: &mut Criterion) {
                         r.per_frame(&format!("{wname}/{pname}/{cam_label}"), n);
                         let s = r.manager.stats().clone();
                         eprintln!(
-                            "[{wname}/{pname}/{cam_label}] instances {} visited {} tlas {} (proxies {}, landmarks {}) blas {} bytes {:.1} MiB",
+                            "[{wname}/{pname}/{cam_label}] instances {} visited {} (landmark candidates {}) tlas {} (proxies {}, landmarks {}) blas {} bytes {:.1} MiB",
                             s.instances,
                             s.instances_visited,
+                            s.landmarks_examined,
                             s.tlas_instances,
                             s.proxy_instances,
                             s.landmark_instances,

@@ -209,6 +209,28 @@ pub enum FaultPoint {
 /// `Result` for backend calls.
 pub type BackendResult<T> = std::result::Result<T, BackendError>;
 
+/// Which of a TLAS's records equal the previous `build_tlas` call's record at the same index:
+/// every index below `stable` that `changed` does not list. The manager keeps the far field's
+/// landmarks at the front of its records and lists what joined, left or changed, so a backend
+/// can write the records that changed instead of all of them. [`TlasDelta::ALL`] promises
+/// nothing (everything may have changed).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct TlasDelta<'a> {
+    /// Records below this index are unchanged unless listed in `changed`.
+    pub stable: usize,
+    /// Indices below `stable` whose record changed (any order; repeats and indices at or past
+    /// `stable` are allowed and mean nothing more).
+    pub changed: &'a [u32],
+}
+
+impl TlasDelta<'_> {
+    /// Nothing is known to be unchanged.
+    pub const ALL: TlasDelta<'static> = TlasDelta {
+        stable: 0,
+        changed: &[],
+    };
+}
+
 /// What the manager needs from a GPU (or a model of one). See the module docs for the frame
 /// contract. Only the thread that owns the manager calls it.
 pub trait AsBackend: Send {
@@ -239,8 +261,14 @@ pub trait AsBackend: Send {
     fn free_blas(&mut self, blas: BlasHandle, last_used_frame: u64);
     /// The BLAS device address for `accelerationStructureReference`.
     fn blas_address(&self, blas: BlasHandle) -> u64;
-    /// Records the frame's TLAS build from its 64-byte instance records.
-    fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle>;
+    /// Records the frame's TLAS build from its 64-byte instance records. `delta` says which
+    /// records equal the previous call's (a backend may write only the others; see
+    /// [`TlasDelta`]).
+    fn build_tlas(
+        &mut self,
+        instances: &[TlasInstance],
+        delta: TlasDelta<'_>,
+    ) -> BackendResult<TlasHandle>;
     /// Records in the last TLAS built, where the backend adds its own (a mesh split into
     /// parts has one record per part); `None`: exactly the instances given.
     fn tlas_records(&self) -> Option<usize> {

@@ -15,13 +15,15 @@
 //! ```
 
 use std::collections::{HashMap, VecDeque};
+use std::hash::BuildHasherDefault;
 
 pub use super::calibration::{CostModel, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, FaultPoint, GeometryRef, Measurement, TlasHandle,
+    CostOp, FaultPoint, GeometryRef, Measurement, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
+use crate::spatial::CellHasher;
 
 #[derive(Debug, Clone)]
 struct ModelBlas {
@@ -89,6 +91,10 @@ pub struct ModelBackend {
     tlas_instances: usize,
     /// This frame's TLAS marks (BLAS, its previous mark), undone by `abort_frame`.
     tlas_marks: Vec<(BlasHandle, Option<u64>)>,
+    /// The last `build_tlas` call's records, and how many of them name each BLAS: kept up to
+    /// date through the calls' `TlasDelta`, so a frame costs what changed.
+    records: Vec<TlasInstance>,
+    record_refs: HashMap<BlasHandle, u32, BuildHasherDefault<CellHasher>>,
 }
 
 impl ModelBackend {
@@ -113,7 +119,57 @@ impl ModelBackend {
             counters: ModelCounters::default(),
             tlas_instances: 0,
             tlas_marks: Vec::new(),
+            records: Vec::new(),
+            record_refs: HashMap::default(),
         }
+    }
+
+    /// Brings `records` and `record_refs` to `instances`, writing what `delta` does not
+    /// promise unchanged (in debug builds, checks the promise).
+    fn track_records(&mut self, instances: &[TlasInstance], delta: TlasDelta<'_>) {
+        let stable = delta.stable.min(instances.len()).min(self.records.len());
+        #[cfg(debug_assertions)]
+        {
+            let mut listed = vec![false; stable];
+            for &i in delta.changed {
+                if let Some(l) = listed.get_mut(i as usize) {
+                    *l = true;
+                }
+            }
+            for (i, listed) in listed.iter().enumerate() {
+                assert!(
+                    *listed || self.records[i] == instances[i],
+                    "TlasDelta: record {i} changed but is not listed"
+                );
+            }
+        }
+        let refs = &mut self.record_refs;
+        let mut set = |old: Option<&TlasInstance>, new: Option<&TlasInstance>| {
+            if let Some(o) = old {
+                let h = BlasHandle(o.blas_address >> 8);
+                if let Some(n) = refs.get_mut(&h) {
+                    *n -= 1;
+                    if *n == 0 {
+                        refs.remove(&h);
+                    }
+                }
+            }
+            if let Some(n) = new {
+                *refs.entry(BlasHandle(n.blas_address >> 8)).or_insert(0) += 1;
+            }
+        };
+        for &i in delta.changed {
+            let i = i as usize;
+            if i < stable {
+                set(Some(&self.records[i]), Some(&instances[i]));
+                self.records[i] = instances[i];
+            }
+        }
+        for i in stable..self.records.len().max(instances.len()) {
+            set(self.records.get(i), instances.get(i));
+        }
+        self.records.truncate(stable);
+        self.records.extend_from_slice(&instances[stable..]);
     }
 
     /// Lavapipe presets.
@@ -365,18 +421,24 @@ impl AsBackend for ModelBackend {
         blas.0 << 8
     }
 
-    fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+    fn build_tlas(
+        &mut self,
+        instances: &[TlasInstance],
+        delta: TlasDelta<'_>,
+    ) -> BackendResult<TlasHandle> {
         self.check(FaultPoint::BuildTlas)?;
         self.tlas_instances = instances.len();
         let frame = self.frame;
-        for r in instances {
-            let h = BlasHandle(r.blas_address >> 8);
+        self.track_records(instances, delta);
+        // Every BLAS the records name is used by this frame (a dead one is a violation per
+        // record naming it): one look per BLAS, not per record.
+        for (&h, &n) in &self.record_refs {
             match self.blases.get_mut(&h) {
                 Some(b) => {
                     self.tlas_marks.push((h, b.last_tlas));
                     b.last_tlas = Some(frame);
                 }
-                None => self.counters.lifetime_violations += 1,
+                None => self.counters.lifetime_violations += u64::from(n),
             }
         }
         let units = instances.len() as u64;

@@ -4,6 +4,7 @@ use std::sync::Arc;
 
 use glam::Affine3A;
 
+use super::landmarks::CandSphere;
 use super::registrar::{Command, InstanceDesc};
 use super::state::{EntryKey, EntryState, InstanceHot, InstanceState, MeshState, NO_GROUP};
 use super::AsManager;
@@ -241,7 +242,13 @@ impl<B: AsBackend> AsManager<B> {
         };
         self.grid.insert(id.index, center, radius, hot);
         let is_static = mesh_kind == MeshKind::Static;
-        self.landmarks.track(id.index, radius, is_static, group);
+        let sphere = CandSphere {
+            center,
+            radius,
+            mesh: desc.mesh.index,
+            scale,
+        };
+        self.landmarks.track(id.index, sphere, is_static, group);
         self.live_instances += 1;
     }
 
@@ -264,7 +271,13 @@ impl<B: AsBackend> AsManager<B> {
         let is_static = mesh.kind == MeshKind::Static;
         let group = hot.group;
         self.grid.insert(id.index, center, radius, hot);
-        self.landmarks.track(id.index, radius, is_static, group);
+        let sphere = CandSphere {
+            center,
+            radius,
+            mesh: inst.mesh,
+            scale,
+        };
+        self.landmarks.track(id.index, sphere, is_static, group);
     }
 
     /// Removes an instance's state; returns whether it existed.

@@ -29,8 +29,10 @@ struct Scene {
 }
 
 fn config() -> Config {
-    let mut c = Config::default();
-    c.freeze_cost_model = true;
+    let mut c = Config {
+        freeze_cost_model: true,
+        ..Config::default()
+    };
     // A keep range inside the map, so its threshold is crossed too.
     c.far_field.keep_range = 900.0;
     c

@@ -41,6 +41,7 @@
 //! at every frame.
 
 use std::collections::HashMap;
+use std::hash::BuildHasherDefault;
 
 use glam::Vec3;
 
@@ -50,7 +51,7 @@ use crate::backend::AsBackend;
 use crate::lod::LodSelector;
 use crate::mesh::MeshKind;
 use crate::record::TlasInstance;
-use crate::spatial::GridIndex;
+use crate::spatial::{CellHasher, GridIndex};
 
 const NONE: u32 = u32::MAX;
 const NONE_LOD: u8 = u8::MAX;
@@ -61,7 +62,8 @@ const BUCKET_M: f64 = 1.0;
 /// Buckets in the ring (16 km of travel ahead); farther ones wait in the overflow list.
 const RING: u64 = 1 << 14;
 
-/// When each candidate is due, as camera travel: a ring of one-metre buckets.
+/// When each candidate is due, as camera travel: a ring of one-metre buckets of (candidate
+/// index, stamp).
 #[derive(Debug)]
 struct DueQueue {
     ring: Vec<Vec<(u32, u32)>>,
@@ -127,9 +129,15 @@ impl DueQueue {
     }
 }
 
-/// A candidate: a static instance large enough to be a landmark somewhere.
+/// A candidate: a static instance large enough to be a landmark somewhere. Its sphere is
+/// kept here too, so that the looks that find it near or out touch nothing else.
 #[derive(Debug, Clone, Copy)]
 struct Cand {
+    center: Vec3,
+    radius: f32,
+    /// Its mesh slot and transform scale (for the LOD selection).
+    mesh: u32,
+    scale: f32,
     slot: u32,
     /// Queue entries with another stamp are stale.
     stamp: u32,
@@ -228,7 +236,10 @@ pub(crate) struct Landmarks {
     all_due: bool,
     /// Per instance slot: index in `cands` (NONE: not a candidate).
     index: Vec<u32>,
+    /// The candidates, in a slab: an index stays the candidate's while it is one (the queue
+    /// names candidates by index; a vacant entry has slot NONE), vacant ones in `free_cands`.
     cands: Vec<Cand>,
+    free_cands: Vec<u32>,
     queue: DueQueue,
     next_stamp: u32,
     /// Slots due now by an event.
@@ -245,15 +256,18 @@ pub(crate) struct Landmarks {
     /// their indices.
     pairs: Vec<Option<PairUse>>,
     free_pairs: Vec<u32>,
-    pair_index: HashMap<(u32, u8), u32>,
+    pair_index: HashMap<u64, u32, BuildHasherDefault<CellHasher>>,
     /// Members whose shown BLAS is chosen again this frame.
     rechoose: Vec<u32>,
     /// Members choosing again next frame (their target is not built).
     unsettled: Vec<u32>,
     scratch: Vec<u32>,
+    queued_scratch: Vec<u32>,
     due_scratch: Vec<(u32, u32)>,
     /// Candidates looked at this frame.
     pub examined: u32,
+    /// Indices of the landmark records written since the last TLAS build (`TlasDelta`).
+    pub changed: Vec<u32>,
 }
 
 impl Default for Landmarks {
@@ -265,6 +279,7 @@ impl Default for Landmarks {
             all_due: true,
             index: Vec::new(),
             cands: Vec::new(),
+            free_cands: Vec::new(),
             queue: DueQueue::default(),
             next_stamp: 0,
             now: Vec::new(),
@@ -274,14 +289,25 @@ impl Default for Landmarks {
             record_slots: Vec::new(),
             pairs: Vec::new(),
             free_pairs: Vec::new(),
-            pair_index: HashMap::new(),
+            pair_index: HashMap::default(),
             rechoose: Vec::new(),
             unsettled: Vec::new(),
             scratch: Vec::new(),
+            queued_scratch: Vec::new(),
             due_scratch: Vec::new(),
             examined: 0,
+            changed: Vec::new(),
         }
     }
+}
+
+/// A candidate's instance as `Landmarks::track` is told of it.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct CandSphere {
+    pub center: Vec3,
+    pub radius: f32,
+    pub mesh: u32,
+    pub scale: f32,
 }
 
 /// What a frame's look at the candidates reads of the configuration.
@@ -338,6 +364,8 @@ impl Landmarks {
         self.rechoose.clear();
         self.unsettled.clear();
         self.queue.clear();
+        // Every record is pushed again (and listed) when the landmarks come back.
+        self.changed.clear();
         for c in &mut self.cands {
             c.member = NONE;
             c.waiting = false;
@@ -350,6 +378,7 @@ impl Landmarks {
         self.invalidate();
         self.index.clear();
         self.cands.clear();
+        self.free_cands.clear();
         self.groups.clear();
         self.now.clear();
         self.meshes_changed.clear();
@@ -357,11 +386,17 @@ impl Landmarks {
 
     /// An instance was added or moved: a candidate when static and at least `min_radius`
     /// large; due now (a moved landmark writes its record again).
-    pub fn track(&mut self, slot: u32, radius: f32, is_static: bool, group: u32) {
+    pub fn track(&mut self, slot: u32, sphere: CandSphere, is_static: bool, group: u32) {
+        let CandSphere {
+            center,
+            radius,
+            mesh,
+            scale,
+        } = sphere;
         let wanted = is_static && radius >= self.min_radius;
-        let known = self.cand(slot).is_some();
-        if known {
+        if let Some(c) = self.cand_mut(slot) {
             // Removed when looked at if it no longer qualifies (`evaluate`).
+            (c.center, c.radius, c.scale) = (center, radius, scale);
             self.now.push(slot);
             if self.is_member(slot) {
                 self.rechoose.push(slot);
@@ -374,7 +409,6 @@ impl Landmarks {
         if self.index.len() <= slot as usize {
             self.index.resize(slot as usize + 1, NONE);
         }
-        self.index[slot as usize] = self.cands.len() as u32;
         let group_pos = if group == NO_GROUP {
             NONE
         } else {
@@ -382,7 +416,11 @@ impl Landmarks {
             v.push(slot);
             (v.len() - 1) as u32
         };
-        self.cands.push(Cand {
+        let cand = Cand {
+            center,
+            radius,
+            mesh,
+            scale,
             slot,
             stamp: 0,
             member: NONE,
@@ -390,7 +428,18 @@ impl Landmarks {
             group_pos,
             seen: u64::MAX,
             waiting: false,
-        });
+        };
+        let ci = match self.free_cands.pop() {
+            Some(ci) => {
+                self.cands[ci as usize] = cand;
+                ci
+            }
+            None => {
+                self.cands.push(cand);
+                (self.cands.len() - 1) as u32
+            }
+        };
+        self.index[slot as usize] = ci;
         self.now.push(slot);
     }
 
@@ -407,7 +456,7 @@ impl Landmarks {
 
     /// The pair of (mesh, LOD), created when missing.
     fn pair_of(&mut self, mesh: u32, lod: u8) -> u32 {
-        if let Some(&i) = self.pair_index.get(&(mesh, lod)) {
+        if let Some(&i) = self.pair_index.get(&pair_key(mesh, lod)) {
             return i;
         }
         let p = Some(PairUse::new(mesh, lod));
@@ -421,7 +470,7 @@ impl Landmarks {
                 (self.pairs.len() - 1) as u32
             }
         };
-        self.pair_index.insert((mesh, lod), i);
+        self.pair_index.insert(pair_key(mesh, lod), i);
         i
     }
 
@@ -429,7 +478,7 @@ impl Landmarks {
     fn release_pair(&mut self, i: u32) {
         let p = self.pairs[i as usize].as_ref().expect("a live pair");
         if p.is_unused() {
-            self.pair_index.remove(&(p.mesh, p.lod));
+            self.pair_index.remove(&pair_key(p.mesh, p.lod));
             self.pairs[i as usize] = None;
             self.free_pairs.push(i);
         }
@@ -458,6 +507,7 @@ impl Landmarks {
         if let Some(&moved) = self.record_slots.get(r as usize) {
             let mi = self.member_of(moved);
             self.members[mi].record = r;
+            self.changed.push(r);
         }
         self.members[m].record = NONE;
     }
@@ -540,10 +590,11 @@ impl Landmarks {
                 }
             }
         }
-        self.cands.swap_remove(ci);
-        if let Some(moved) = self.cands.get(ci) {
-            self.index[moved.slot as usize] = ci as u32;
-        }
+        // Vacant: its queue entries go stale with the new stamp.
+        self.next_stamp = self.next_stamp.wrapping_add(1);
+        self.cands[ci].slot = NONE;
+        self.cands[ci].stamp = self.next_stamp;
+        self.free_cands.push(ci as u32);
         self.index[slot as usize] = NONE;
     }
 
@@ -575,15 +626,17 @@ impl Landmarks {
         need_data: bool,
         groups_flipped: &mut Vec<u32>,
         out: &mut Vec<u32>,
+        queued: &mut Vec<u32>,
     ) {
         out.clear();
+        queued.clear();
         if self.all_due {
             self.all_due = false;
             self.queue.clear();
             self.now.clear();
             self.meshes_changed.clear();
             groups_flipped.clear();
-            out.extend(self.cands.iter().map(|c| c.slot));
+            out.extend(self.cands.iter().map(|c| c.slot).filter(|&s| s != NONE));
             return;
         }
         out.append(&mut self.now);
@@ -623,28 +676,27 @@ impl Landmarks {
         let mut due = std::mem::take(&mut self.due_scratch);
         due.clear();
         self.queue.pop_due(self.odo, &mut due);
-        out.extend(
+        let cands = &self.cands;
+        queued.extend(
             due.iter()
-                .filter(|&&(slot, stamp)| self.cand(slot).is_some_and(|c| c.stamp == stamp))
-                .map(|&(slot, _)| slot),
+                .filter(|&&(ci, stamp)| cands[ci as usize].stamp == stamp)
+                .map(|&(ci, _)| ci),
         );
         self.due_scratch = due;
     }
 
     /// Looks at the candidate again once the cameras travelled `slack` more metres (never,
     /// for an infinite slack: only an event makes it due).
-    fn due_after(&mut self, slot: u32, slack: f32, d: f32) {
+    fn due_after(&mut self, ci: u32, slack: f32, d: f32) {
         self.next_stamp = self.next_stamp.wrapping_add(1);
         let stamp = self.next_stamp;
-        if let Some(c) = self.cand_mut(slot) {
-            c.stamp = stamp;
-        }
+        self.cands[ci as usize].stamp = stamp;
         if !slack.is_finite() {
             return;
         }
         // A margin for rounding in the distances (f32) and the odometer.
         let slack = (slack - 0.01 - 1e-4 * d).max(0.0);
-        self.queue.push(self.odo + f64::from(slack), slot, stamp);
+        self.queue.push(self.odo + f64::from(slack), ci, stamp);
     }
 
     /// Invariants (for `check_invariants`).
@@ -686,7 +738,7 @@ impl Landmarks {
             if p.targets != t || p.selecting.len() as u32 != s || p.showing.len() as u32 != w {
                 return Err(format!("pair ({}, {}) counts are off", p.mesh, p.lod));
             }
-            if self.pair_index.get(&(p.mesh, p.lod)) != Some(&(i as u32)) {
+            if self.pair_index.get(&pair_key(p.mesh, p.lod)) != Some(&(i as u32)) {
                 return Err(format!("pair ({}, {}) not indexed", p.mesh, p.lod));
             }
         }
@@ -695,6 +747,10 @@ impl Landmarks {
         }
         Ok(())
     }
+}
+
+fn pair_key(mesh: u32, lod: u8) -> u64 {
+    (u64::from(mesh) << 8) | u64::from(lod)
 }
 
 /// Squared distance from the nearest camera to `c` (as the residency pass computes it, so
@@ -719,67 +775,96 @@ struct Look<'a> {
 
 impl Landmarks {
     /// Looks at candidate `slot`: joins, updates or leaves the set, and says when to look next.
-    fn evaluate(&mut self, slot: u32, x: &mut Look<'_>) {
+    fn evaluate(&mut self, ci: u32, x: &mut Look<'_>) {
         let frame = x.p.frame;
-        let Some(loc) = x.grid.loc(slot) else {
-            self.remove(slot, x.records);
-            return;
-        };
-        let ge = x.grid.at_mut(loc);
-        let (c, radius) = (Vec3::from(ge.center), ge.radius);
-        let hot = &mut ge.data;
-        let Some(Some(mesh)) = x.tables.meshes.get(hot.mesh as usize) else {
-            self.remove(slot, x.records);
-            return;
-        };
-        if mesh.kind != MeshKind::Static || radius < self.min_radius {
+        let cand = self.cands[ci as usize];
+        let slot = cand.slot;
+        if cand.radius < self.min_radius {
+            // Moved and shrank (`track`).
             self.remove(slot, x.records);
             return;
         }
         self.examined += 1;
-        let is_member = self.is_member(slot);
+        let is_member = cand.member != NONE;
+        let (c, radius) = (cand.center, cand.radius);
         let d2 = nearest2(x.cams, c);
         let d = d2.sqrt();
         let reach = x.p.r2 + radius;
         let within_r2 = d2 <= reach * reach;
-        if within_r2 || x.far.is_near_leaf(hot.group) {
+        if within_r2 || x.far.is_near_leaf(cand.group) {
             // Near field now (within r2, or its leaf is on the detail side): shown by the
             // residency pass, which continues from the landmark's LOD and cull state.
             if is_member {
-                hot.last_visit = frame.wrapping_sub(1);
-                hot.culled = false;
+                if let Some(ge) = x.grid.get_mut(slot) {
+                    ge.data.last_visit = frame.wrapping_sub(1);
+                    ge.data.culled = false;
+                }
                 self.leave(slot, x.records);
             }
             // The leaf flipping back is an event; within r2, leaving it is the threshold.
             let slack = if within_r2 { reach - d } else { f32::INFINITY };
-            self.due_after(slot, slack, d);
+            self.due_after(ci, slack, d);
             return;
         }
-        let was = is_member || hot.last_visit == frame.wrapping_sub(1);
         let (kt, range) = (x.p.keep_tan, x.p.range);
+        if d - radius > range || radius <= kt * 0.9 * d {
+            // Out even with the hysteresis: no need to look at the instance.
+            if is_member {
+                self.leave(slot, x.records);
+            }
+            let join = (radius / kt).min(range + radius);
+            self.due_after(ci, d - join, d);
+            return;
+        }
+        let mesh_ix = cand.mesh;
+        let Some(Some(mesh)) = x.tables.meshes.get(mesh_ix as usize) else {
+            self.remove(slot, x.records);
+            return;
+        };
+        if mesh.kind != MeshKind::Static {
+            self.remove(slot, x.records);
+            return;
+        }
+        // A landmark continues from its LOD (kept here, not in the grid: a look at a landmark
+        // touches no instance state); any other candidate from the instance's last visit.
+        let (was, last_lod) = if is_member {
+            let m = self.members[cand.member as usize];
+            (
+                true,
+                self.pairs[m.target as usize].as_ref().expect("live").lod,
+            )
+        } else {
+            let Some(ge) = x.grid.get(slot) else {
+                self.remove(slot, x.records);
+                return;
+            };
+            (
+                ge.data.last_visit == frame.wrapping_sub(1),
+                ge.data.lod_target,
+            )
+        };
         let tan = if was { kt * 0.9 } else { kt };
-        if d - radius > range || radius <= tan * d {
+        if radius <= tan * d {
             if is_member {
                 self.leave(slot, x.records);
             }
             // Not shown next frame either: it joins once within both limits (no hysteresis).
             let join = (radius / kt).min(range + radius);
-            self.due_after(slot, d - join, d);
+            self.due_after(ci, d - join, d);
             return;
         }
         let surface = (d - radius).max(0.0);
         let n = mesh.nlods as usize;
-        let current = if was { hot.lod_target as usize } else { n - 1 };
+        let current = if was { last_lod as usize } else { n - 1 };
         let selected = x.lod.select(
             mesh.errors(),
-            hot.scale,
+            cand.scale,
             surface,
             current,
             mesh.lod_floor as usize,
         );
         let built = |l: usize| x.tables.built(mesh.lod_entry[l]);
         let resolved = mesh.with_data(selected, x.p.need_data, built);
-        let mesh_ix = hot.mesh;
         let sel_pair = self.pair_of(mesh_ix, selected as u8);
         self.pair(sel_pair).resolved = resolved.map_or(NONE_LOD, |l| l as u8);
         let Some(lodi) = resolved else {
@@ -787,24 +872,30 @@ impl Landmarks {
             if is_member {
                 self.leave(slot, x.records);
             }
-            let c = self.cand_mut(slot).expect("a candidate");
+            let c = &mut self.cands[ci as usize];
             if !c.waiting {
                 c.waiting = true;
                 self.pair(sel_pair).unusable.push(slot);
             }
-            self.due_after(slot, f32::INFINITY, d);
+            self.due_after(ci, f32::INFINITY, d);
             return;
         };
         // Next time `current` is this LOD: the selection holds while the surface distance
         // stays within `lod_slack`.
         let lod_slack = x
             .lod
-            .stable_distance(mesh.errors(), hot.scale, lodi, surface);
+            .stable_distance(mesh.errors(), cand.scale, lodi, surface);
         let tris = mesh.lod_tris[lodi];
         let in_view = x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
-        hot.lod_target = lodi as u8;
-        hot.last_visit = frame;
-        hot.culled = false;
+        if !is_member {
+            // Joins: the instance's LOD and cull state as a visit leaves them (a landmark's
+            // LOD is written back when it changes, in `landmarks_cull`).
+            if let Some(ge) = x.grid.get_mut(slot) {
+                ge.data.lod_target = lodi as u8;
+                ge.data.last_visit = frame;
+                ge.data.culled = false;
+            }
+        }
         // Its target entry exists from now on (as the residency pass creates it).
         if mesh.lod_entry[lodi].is_none() {
             let key = x.tables.new_entry(mesh_ix, lodi as u8, None, tris, frame);
@@ -826,7 +917,7 @@ impl Landmarks {
                 chosen: u64::MAX,
             });
             let m = self.members.len() - 1;
-            self.cand_mut(slot).expect("a candidate").member = m as u32;
+            self.cands[ci as usize].member = m as u32;
             self.pair(target).targets += 1;
             self.select_pair(m, sel_pair);
             self.rechoose.push(slot);
@@ -865,7 +956,7 @@ impl Landmarks {
         // Next look: the nearest threshold (shown next frame: the hysteresis one).
         let leave_at = (radius / (kt * 0.9)).min(range + radius);
         let slack = (leave_at - d).min(d - reach).min(lod_slack);
-        self.due_after(slot, slack, d);
+        self.due_after(ci, slack, d);
     }
 }
 
@@ -908,7 +999,8 @@ impl<B: AsBackend> AsManager<B> {
         } = self;
         landmarks.advance(cam_pos);
         let mut due = std::mem::take(&mut landmarks.scratch);
-        landmarks.collect_due(tables, p.need_data, &mut far.flipped, &mut due);
+        let mut queued = std::mem::take(&mut landmarks.queued_scratch);
+        landmarks.collect_due(tables, p.need_data, &mut far.flipped, &mut due, &mut queued);
         // Landmarks whose target is not built yet are looked at (the distances of unbuilt
         // entries are exact; see the module docs) and choose their BLAS every frame.
         landmarks.rechoose.extend_from_slice(&landmarks.unsettled);
@@ -923,18 +1015,24 @@ impl<B: AsBackend> AsManager<B> {
             records,
             p,
         };
-        for &slot in &due {
-            let Some(c) = landmarks.cand_mut(slot) else {
+        // Events name instances (slots), the queue names candidates (indices).
+        for x in due.iter_mut() {
+            *x = landmarks.index.get(*x as usize).copied().unwrap_or(NONE);
+        }
+        due.extend_from_slice(&queued);
+        for &ci in &due {
+            let Some(c) = landmarks.cands.get_mut(ci as usize) else {
                 continue;
             };
-            if c.seen == p.frame {
+            if c.slot == NONE || c.seen == p.frame {
                 continue;
             }
             c.seen = p.frame;
             c.waiting = false;
-            landmarks.evaluate(slot, &mut look);
+            landmarks.evaluate(ci, &mut look);
         }
         landmarks.scratch = due;
+        landmarks.queued_scratch = queued;
         // The marks every landmark would set on its target and shown entries.
         let frame = p.frame;
         let odo = landmarks.odo;
@@ -1049,6 +1147,7 @@ impl<B: AsBackend> AsManager<B> {
                 continue;
             };
             let hot = &mut ge.data;
+            hot.lod_target = target_lod;
             let mesh = tables.meshes[mesh_ix as usize]
                 .as_ref()
                 .expect("a landmark's mesh is live");
@@ -1104,8 +1203,10 @@ impl<B: AsBackend> AsManager<B> {
                         records.push(record);
                         landmarks.record_slots.push(slot);
                         landmarks.members[mi].record = at as u32;
-                    } else {
+                        landmarks.changed.push(at as u32);
+                    } else if records[r as usize] != record {
                         records[r as usize] = record;
+                        landmarks.changed.push(r);
                     }
                 }
                 None => landmarks.drop_record(mi, records),

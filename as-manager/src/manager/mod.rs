@@ -128,6 +128,9 @@ pub struct FrameStats {
     pub proxy_instances: u32,
     /// Far-field landmark records in the TLAS (see `FarFieldConfig::keep_angle`).
     pub landmark_instances: u32,
+    /// Landmark candidates looked at this frame (the landmarks are kept incrementally: a
+    /// candidate is looked at only when the cameras may have crossed one of its thresholds).
+    pub landmarks_examined: u32,
     /// Bytes of the proxies' BLASes in the TLAS.
     pub proxy_blas_bytes: u64,
     /// Proxy BLASes evicted (memory) this frame: near detail goes first, proxies last.
@@ -650,7 +653,12 @@ impl<B: AsBackend> AsManager<B> {
             PolicyKind::SeedR1R2 => self.seed_frame()?,
         }
         let _s = tracing::trace_span!("record").entered();
-        let tlas = self.backend.build_tlas(&self.records)?;
+        let delta = crate::backend::TlasDelta {
+            stable: self.landmarks.len(),
+            changed: &self.landmarks.changed,
+        };
+        let tlas = self.backend.build_tlas(&self.records, delta)?;
+        self.landmarks.changed.clear();
         self.backend.end_frame(frame)?;
         Ok(tlas)
     }
@@ -718,12 +726,17 @@ impl<B: AsBackend> AsManager<B> {
                 .get(inst.mesh as usize)
                 .and_then(|m| m.as_ref())
                 .is_some_and(|m| m.kind == crate::MeshKind::Static);
-            let group = self
-                .grid
-                .get(slot as u32)
-                .map_or(state::NO_GROUP, |g| g.data.group);
+            let Some(hot) = self.grid.get(slot as u32).map(|g| g.data) else {
+                continue;
+            };
+            let sphere = landmarks::CandSphere {
+                center: inst.center,
+                radius: inst.radius,
+                mesh: inst.mesh,
+                scale: hot.scale,
+            };
             self.landmarks
-                .track(slot as u32, inst.radius, is_static, group);
+                .track(slot as u32, sphere, is_static, hot.group);
         }
     }
 

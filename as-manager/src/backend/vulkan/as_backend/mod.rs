@@ -65,7 +65,7 @@ use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, GeometryRef, Measurement, TlasHandle,
+    CostOp, GeometryRef, Measurement, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -254,6 +254,9 @@ struct Slot {
     tlas: Option<AccelStruct>,
     tlas_capacity: u32,
     instances: Option<GpuBuffer>,
+    /// The `build_tlas` call (`VulkanBackend::tlas_calls`) whose records `instances` holds
+    /// record for record (0: unknown, or expanded with split parts).
+    instances_call: u64,
     /// TLAS records of this slot's frame.
     records: u32,
     /// Primitive bases of this frame's TLAS records (see `primitive_bases`).
@@ -305,6 +308,11 @@ pub struct VulkanCounters {
     pub device_geometry_builds: u64,
     /// Refit-quality ratios measured on the GPU and reported to the manager.
     pub gpu_quality_reports: u64,
+    /// TLAS instance records written into the frames' instance buffers (a record unchanged
+    /// since the buffer's last use is not written again; see `TlasDelta`).
+    pub tlas_records_written: u64,
+    /// TLAS instance records built from (split parts included).
+    pub tlas_records_built: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.
@@ -333,6 +341,12 @@ pub struct VulkanBackend {
     counters: VulkanCounters,
     expanded: Vec<TlasInstance>,
     bases: Vec<u32>,
+    /// `build_tlas` calls so far, and the last calls' deltas (call, stable, changed), oldest
+    /// first: what a slot's instance buffer lacks since the call it was last written at.
+    tlas_calls: u64,
+    tlas_history: VecDeque<(u64, usize, Vec<u32>)>,
+    /// Records of the last TLAS built (split parts included).
+    tlas_len: usize,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
@@ -475,6 +489,7 @@ impl VulkanBackend {
                 frame: 0,
                 tlas: None,
                 tlas_capacity: 0,
+                instances_call: 0,
                 records: 0,
                 instances: None,
                 bases: None,
@@ -512,6 +527,9 @@ impl VulkanBackend {
             lost: false,
             counters: VulkanCounters::default(),
             expanded: Vec::new(),
+            tlas_calls: 0,
+            tlas_history: VecDeque::new(),
+            tlas_len: 0,
             bases: Vec::new(),
             faults: Vec::new(),
             engine_done: None,
@@ -676,12 +694,16 @@ impl AsBackend for VulkanBackend {
     }
 
     fn tlas_records(&self) -> Option<usize> {
-        Some(self.expanded.len())
+        Some(self.tlas_len)
     }
 
-    fn build_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+    fn build_tlas(
+        &mut self,
+        instances: &[TlasInstance],
+        delta: TlasDelta<'_>,
+    ) -> BackendResult<TlasHandle> {
         let _s = tracing::trace_span!("build_tlas").entered();
-        self.record_tlas(instances)
+        self.record_tlas(instances, delta)
     }
 
     fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
@@ -690,6 +712,9 @@ impl AsBackend for VulkanBackend {
     }
 
     fn abort_frame(&mut self) {
+        // The next TLAS writes every record (the aborted call's deltas are forgotten).
+        self.tlas_history.clear();
+        self.slots.iter_mut().for_each(|s| s.instances_call = 0);
         let s = &mut self.slots[self.current];
         // The command buffer is reset by the next begin_frame of this slot; the queries
         // recorded into it were never written, so nothing may wait on them.

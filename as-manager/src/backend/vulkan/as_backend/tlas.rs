@@ -69,15 +69,53 @@ impl VulkanBackend {
             .map(|s| s.records as usize * std::mem::size_of::<TlasInstance>())
     }
 
-    pub(super) fn record_tlas(&mut self, instances: &[TlasInstance]) -> BackendResult<TlasHandle> {
+    /// Which records the current slot's instance buffer lacks, when it holds an earlier
+    /// call's records: `Some((from, listed))` means every record at or after `from`, and the
+    /// `listed` ones before it (the deltas since, see `TlasDelta`). `None`: write them all.
+    fn stale_records(&self, call: u64) -> Option<(usize, Vec<u32>)> {
+        let since = self.slots[self.current].instances_call;
+        if since == 0 {
+            return None;
+        }
+        let deltas: Vec<&(u64, usize, Vec<u32>)> =
+            self.tlas_history.iter().filter(|d| d.0 > since).collect();
+        if deltas.len() as u64 != call - since {
+            return None;
+        }
+        let from = deltas.iter().map(|d| d.1).min().unwrap_or(0);
+        let listed = deltas
+            .iter()
+            .flat_map(|d| d.2.iter().copied())
+            .filter(|&i| (i as usize) < from)
+            .collect();
+        Some((from, listed))
+    }
+
+    pub(super) fn record_tlas(
+        &mut self,
+        instances: &[TlasInstance],
+        delta: TlasDelta<'_>,
+    ) -> BackendResult<TlasHandle> {
         self.fault(FaultPoint::BuildTlas)?;
         let cmd = self.cmd()?;
+        self.tlas_calls += 1;
+        let call = self.tlas_calls;
+        self.tlas_history.push_back((
+            call,
+            delta.stable.min(instances.len()),
+            delta.changed.to_vec(),
+        ));
+        while self.tlas_history.len() > self.slots.len() + 1 {
+            self.tlas_history.pop_front();
+        }
+        // Split meshes add records per part (and a primitive-base table): all are written.
         let mut records = std::mem::take(&mut self.expanded);
         records.clear();
-        records.extend_from_slice(instances);
         let mut bases = std::mem::take(&mut self.bases);
         bases.clear();
-        if !self.split_parts.is_empty() {
+        let split = !self.split_parts.is_empty();
+        if split {
+            records.extend_from_slice(instances);
             for r in instances {
                 if let Some(parts) = self.split_parts.get(&r.blas_address) {
                     if bases.is_empty() {
@@ -91,6 +129,7 @@ impl VulkanBackend {
                 }
             }
         }
+        let records_now: &[TlasInstance] = if split { &records } else { instances };
         let s = self.current;
         self.slots[s].bases_address = 0;
         if !bases.is_empty() {
@@ -115,7 +154,7 @@ impl VulkanBackend {
             self.slots[s].bases_address = b.address;
         }
         self.bases = bases;
-        let n = records.len().max(1) as u32;
+        let n = records_now.len().max(1) as u32;
         let bytes = u64::from(n) * 64;
         if self.slots[s]
             .instances
@@ -135,6 +174,7 @@ impl VulkanBackend {
             if let Some(old) = self.slots[s].instances.replace(buf) {
                 self.retire_now(Retired::Buffer(old));
             }
+            self.slots[s].instances_call = 0;
         }
         if self.slots[s].tlas_capacity < n {
             let cap = n.next_power_of_two().max(1024);
@@ -162,15 +202,43 @@ impl VulkanBackend {
             self.ctx.info().min_scratch_alignment,
         ))?;
         let scratch = self.scratch_alloc(sizes.build_scratch);
+        // The slot's buffer holds the records of the call it was last written at (its frame
+        // completed: `begin_frame` waited for it): write what changed since, or everything.
+        let stale = if split {
+            None
+        } else {
+            self.stale_records(call)
+        };
         let slot = &mut self.slots[s];
         let ibuf = slot.instances.as_mut().expect("allocated above");
-        ibuf.write(0, bytemuck::cast_slice(&records));
+        const RECORD: usize = std::mem::size_of::<TlasInstance>();
+        let written = match stale {
+            None => {
+                ibuf.write(0, bytemuck::cast_slice(records_now));
+                records_now.len()
+            }
+            Some((from, listed)) => {
+                let from = from.min(records_now.len());
+                ibuf.write(from * RECORD, bytemuck::cast_slice(&records_now[from..]));
+                for &i in &listed {
+                    let i = i as usize;
+                    ibuf.write(i * RECORD, bytemuck::bytes_of(&records_now[i]));
+                }
+                records_now.len() - from + listed.len()
+            }
+        };
+        self.counters.tlas_records_written += written as u64;
+        self.counters.tlas_records_built += records_now.len() as u64;
+        let slot = &mut self.slots[s];
+        let ibuf = slot.instances.as_mut().expect("allocated above");
+        slot.instances_call = if split { 0 } else { call };
         let (iaddr, tlas) = (
             ibuf.address,
             slot.tlas.as_ref().expect("allocated above").raw,
         );
-        let count = records.len() as u32;
+        let count = records_now.len() as u32;
         slot.records = count;
+        self.tlas_len = count as usize;
         self.expanded = records;
         let t = self.timestamp_begin(CostOp::Tlas, u64::from(count));
         // SAFETY: recording; the barrier orders this frame's BLAS builds/refits/compactions
