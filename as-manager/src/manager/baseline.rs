@@ -120,7 +120,7 @@ impl<B: AsBackend> AsManager<B> {
             if let Some(key) = key.filter(|&k| self.tables.built(Some(k))) {
                 let e = &mut self.tables.entries[key];
                 e.last_in_tlas = Some(self.frame);
-                let addr = self.backend.blas_address(e.handle.expect("built"));
+                let addr = e.record_address(&self.backend);
                 self.tlas_list.push((loc, addr));
             }
         }
@@ -260,7 +260,7 @@ impl<B: AsBackend> AsManager<B> {
             }
             let e = &mut self.tables.entries[shown];
             e.last_in_tlas = Some(frame);
-            let addr = self.backend.blas_address(e.handle.expect("built"));
+            let addr = e.record_address(&self.backend);
             self.tlas_list.push((loc, addr));
         }
         self.stats.culled = culled;

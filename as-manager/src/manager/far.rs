@@ -424,7 +424,8 @@ impl<B: AsBackend> AsManager<B> {
         if e.state != EntryState::Built {
             return None;
         }
-        Some((key, self.backend.blas_address(e.handle?)))
+        e.handle?;
+        Some((key, e.record_address(&self.backend)))
     }
 
     /// Picks of the display cut under `i`: (group, entry, address). `None` when some far

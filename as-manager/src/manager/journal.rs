@@ -93,6 +93,7 @@ impl<B: AsBackend> AsManager<B> {
                     self.live_bytes = self.live_bytes - e.bytes + c.old_bytes;
                     e.bytes = c.old_bytes;
                     e.handle = Some(c.old);
+                    e.address = self.backend.blas_address(c.old);
                     e.needs_compaction = true;
                     self.compact_pending.push(c.entry);
                 }
@@ -123,6 +124,7 @@ impl<B: AsBackend> AsManager<B> {
                 if e.handle == Some(handle) {
                     bytes = e.bytes;
                     e.handle = None;
+                    e.address = 0;
                     e.state = EntryState::Queued;
                     e.needs_compaction = false;
                     self.live_bytes -= e.bytes;

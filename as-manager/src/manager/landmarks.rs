@@ -1103,9 +1103,7 @@ impl<B: AsBackend> AsManager<B> {
         } = self;
         let address_of = |tables: &Tables, key: Option<EntryKey>| -> u64 {
             match key.and_then(|k| tables.entries.get(k)) {
-                Some(e) if e.state == EntryState::Built => {
-                    backend.blas_address(e.handle.expect("built entry has a handle"))
-                }
+                Some(e) if e.state == EntryState::Built => e.record_address(&*backend),
                 _ => 0,
             }
         };

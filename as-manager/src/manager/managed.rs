@@ -211,9 +211,8 @@ impl<B: AsBackend> AsManager<B> {
                     let e = &mut tables.entries[chosen];
                     e.last_in_tlas = Some(frame);
                     e.last_keep = frame;
-                    let handle = e.handle.expect("built entry has a handle");
                     self.tlas_list
-                        .push((v.loc, self.backend.blas_address(handle)));
+                        .push((v.loc, e.record_address(&self.backend)));
                     self.tlas_groups.push((group != NO_GROUP).then_some(group));
                 }
             }

@@ -745,6 +745,7 @@ impl<B: AsBackend> AsManager<B> {
         let frame = self.frame;
         let e = &mut self.tables.entries[key];
         if let Some(handle) = e.handle.take() {
+            e.address = 0;
             self.backend.free_blas(handle, frame);
             self.live_bytes -= e.bytes;
             self.retiring.push_back((frame, e.bytes));

@@ -372,6 +372,7 @@ impl<B: AsBackend> AsManager<B> {
                     let e = &mut self.tables.entries[a.entry];
                     e.state = EntryState::Built;
                     e.handle = Some(handle);
+                    e.address = self.backend.blas_address(handle);
                     e.bytes = s.as_bytes;
                     e.sizes = *s;
                     e.created = frame;
@@ -615,6 +616,7 @@ impl<B: AsBackend> AsManager<B> {
                     self.live_bytes = self.live_bytes - e.bytes + size;
                     e.bytes = size;
                     e.handle = Some(new);
+                    e.address = self.backend.blas_address(new);
                     e.needs_compaction = false;
                     done += 1;
                     ms += est;

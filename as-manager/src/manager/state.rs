@@ -80,6 +80,16 @@ impl MeshState {
     }
 }
 
+impl BlasEntry {
+    /// The BLAS address an instance record of this (built) entry names; see `address`.
+    pub fn record_address(&self, backend: &impl crate::backend::AsBackend) -> u64 {
+        match (self.owner, self.handle) {
+            (Some(_), Some(h)) => backend.blas_address(h),
+            _ => self.address,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum EntryState {
     /// Known (requested/kept recently), not queued, not built.
@@ -98,6 +108,10 @@ pub(crate) struct BlasEntry {
     pub owner: Option<u32>,
     pub state: EntryState,
     pub handle: Option<BlasHandle>,
+    /// The BLAS device address of `handle` (0 without one), asked once per handle: the
+    /// records of every instance that shows the entry name it. A static BLAS keeps its
+    /// address; a skinned one may move on each refit (refit rings), so it is asked anew.
+    pub address: u64,
     pub bytes: u64,
     pub sizes: BlasSizes,
     pub triangles: u32,
@@ -204,6 +218,7 @@ impl Tables {
             owner,
             state: EntryState::Idle,
             handle: None,
+            address: 0,
             bytes: 0,
             sizes: BlasSizes::default(),
             triangles,
