@@ -112,6 +112,24 @@ impl Scene {
         self.live.push(self.m.add_instance(d).unwrap());
     }
 
+    /// Takes every LOD's data of one mesh away (its landmarks have no usable LOD), or gives
+    /// it all back.
+    fn strip_or_restore_mesh(&mut self, restore: bool) {
+        let mesh = self.meshes[self.rng.below(self.meshes.len())];
+        let lods = self.m.mesh_lods(mesh).map_or(1, |l| l.len());
+        for lod in 0..lods {
+            let g = if restore {
+                LodGeometry::Data(grid_geometry(8, 1.0))
+            } else {
+                LodGeometry::Counts {
+                    vertices: 81,
+                    triangles: 128,
+                }
+            };
+            self.m.set_lod_geometry(mesh, lod, g).unwrap();
+        }
+    }
+
     /// Swaps a few LODs between data and counts.
     fn swap_data(&mut self) {
         for _ in 0..8 {
@@ -292,6 +310,9 @@ fn run_and_compare(mut s: Scene, frames: u64, fail_at: Option<u64>) -> u32 {
         if s.data_churn && frame % 10 == 5 {
             s.swap_data();
         }
+        if s.data_churn && frame % 15 == 7 {
+            s.strip_or_restore_mesh(frame % 30 == 22);
+        }
         if Some(frame) == fail_at {
             s.m.backend_mut()
                 .inject_fault(FaultPoint::BuildTlas, BackendError::Other("test".into()));
@@ -425,4 +446,26 @@ fn lod_data_coming_and_going_resolves_as_the_rule_does() {
     }
     s.data_churn = true;
     run_and_compare(s, 400, None);
+}
+
+#[test]
+fn memory_floors_with_lod_data_coming_and_going_match_the_rule() {
+    // Fallbacks for data and for memory at once: a landmark's selection, its target and what
+    // it shows all move between pairs.
+    let mut c = config();
+    c.memory.blas_bytes = 160 << 10; // the data LODs are small (128 triangles)
+    let mut s = scene(c);
+    s.m.backend_mut().require_geometry = true;
+    for i in 0..s.meshes.len() {
+        let mesh = s.meshes[i];
+        for lod in 0..1 + i % 5 {
+            if s.rng.below(3) > 0 {
+                let _ =
+                    s.m.set_lod_geometry(mesh, lod, LodGeometry::Data(grid_geometry(8, 1.0)));
+            }
+        }
+    }
+    s.data_churn = true;
+    let fallbacks = run_and_compare(s, 400, None);
+    assert!(fallbacks > 0, "the budget forced no LOD fallback");
 }

@@ -514,13 +514,16 @@ impl Landmarks {
 
     fn unselect(&mut self, m: usize) {
         let mb = self.members[m];
-        if let Some(moved) =
-            Self::list_remove(&mut self.pair(mb.selected).selecting, mb.selected_pos)
-        {
+        self.unselect_at(mb.selected, mb.selected_pos);
+    }
+
+    /// Takes the member at `pos` of `pair`'s selecting list out of it.
+    fn unselect_at(&mut self, pair: u32, pos: u32) {
+        if let Some(moved) = Self::list_remove(&mut self.pair(pair).selecting, pos) {
             let mi = self.member_of(moved);
-            self.members[mi].selected_pos = mb.selected_pos;
+            self.members[mi].selected_pos = pos;
         }
-        self.release_pair(mb.selected);
+        self.release_pair(pair);
     }
 
     fn select_pair(&mut self, m: usize, pair: u32) {
@@ -865,13 +868,13 @@ impl Landmarks {
         );
         let built = |l: usize| x.tables.built(mesh.lod_entry[l]);
         let resolved = mesh.with_data(selected, x.p.need_data, built);
-        let sel_pair = self.pair_of(mesh_ix, selected as u8);
-        self.pair(sel_pair).resolved = resolved.map_or(NONE_LOD, |l| l as u8);
         let Some(lodi) = resolved else {
             // No LOD has data: nothing to show until the selection resolves to one.
             if is_member {
                 self.leave(slot, x.records);
             }
+            let sel_pair = self.pair_of(mesh_ix, selected as u8);
+            self.pair(sel_pair).resolved = NONE_LOD;
             let c = &mut self.cands[ci as usize];
             if !c.waiting {
                 c.waiting = true;
@@ -905,6 +908,7 @@ impl Landmarks {
                 .lod_entry[lodi] = Some(key);
         }
         let target = self.pair_of(mesh_ix, lodi as u8);
+        let sel_pair = self.pair_of(mesh_ix, selected as u8);
         if !is_member {
             self.members.push(Member {
                 slot,
@@ -922,19 +926,22 @@ impl Landmarks {
             self.select_pair(m, sel_pair);
             self.rechoose.push(slot);
         } else {
+            // The new references first, then the old ones go: a pair freed in between could
+            // be one of the new ones.
             let m = self.member_of(slot);
             let old = self.members[m];
+            if old.selected != sel_pair {
+                self.select_pair(m, sel_pair);
+                self.unselect_at(old.selected, old.selected_pos);
+            }
             if old.target != target {
                 self.pair(target).targets += 1;
-                self.untarget(old.target);
                 self.members[m].target = target;
+                self.untarget(old.target);
                 self.rechoose.push(slot);
             }
-            if old.selected != sel_pair {
-                self.unselect(m);
-                self.select_pair(m, sel_pair);
-            }
         }
+        self.pair(sel_pair).resolved = lodi as u8;
         let key = surface as f64 + self.odo;
         let pair = self.pair(target);
         if pair.targets == 1 {
