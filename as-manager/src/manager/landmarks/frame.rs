@@ -1,0 +1,274 @@
+//! The landmarks' two steps of the manager's frame: looking at the due candidates (with the
+//! residency marks), and choosing what they show (with the records).
+
+use super::look::Look;
+use super::*;
+use crate::backend::AsBackend;
+use crate::manager::state::{EntryKey, EntryState, Tables};
+use crate::manager::AsManager;
+
+impl<B: AsBackend> AsManager<B> {
+    fn landmark_params(&self) -> Option<LandmarkParams> {
+        let f = &self.config.far_field;
+        if !self.landmarks.min_radius().is_finite() {
+            return None;
+        }
+        Some(LandmarkParams {
+            r2: self.config.residency.r2,
+            keep_tan: f.keep_angle.tan(),
+            range: f.far_radius.min(f.keep_range),
+            frame: self.frame,
+            need_data: self.backend.needs_geometry(),
+        })
+    }
+
+    /// Residency step of the landmarks (after `far_prepare`, before the residency pass): looks
+    /// at the due candidates and sets the residency marks of the pairs the landmarks use.
+    pub(crate) fn landmarks_residency(&mut self) {
+        self.landmarks.examined = 0;
+        let Some(p) = self.landmark_params() else {
+            self.far.flipped.clear();
+            return;
+        };
+        let _s = tracing::trace_span!("landmarks").entered();
+        // Last frame's near and proxy records go; the landmarks' stay at the front.
+        self.records.truncate(self.landmarks.len());
+        let Self {
+            landmarks,
+            grid,
+            tables,
+            lod,
+            far,
+            cam_pos,
+            cam_fwd,
+            records,
+            ..
+        } = self;
+        landmarks.advance(cam_pos);
+        let mut due = std::mem::take(&mut landmarks.scratch);
+        let mut queued = std::mem::take(&mut landmarks.queued_scratch);
+        landmarks.collect_due(tables, p.need_data, &mut far.flipped, &mut due, &mut queued);
+        // Landmarks whose target is not built yet are looked at (the distances of unbuilt
+        // entries are exact; see the module docs) and choose their BLAS every frame.
+        landmarks.rechoose.extend_from_slice(&landmarks.unsettled);
+        due.append(&mut landmarks.unsettled);
+        let mut look = Look {
+            grid,
+            tables,
+            lod,
+            far,
+            cams: cam_pos,
+            fwds: cam_fwd,
+            records,
+            p,
+        };
+        // Events name instances (slots), the queue names candidates (indices).
+        for x in due.iter_mut() {
+            *x = landmarks.index.get(*x as usize).copied().unwrap_or(NONE);
+        }
+        due.extend_from_slice(&queued);
+        for &ci in &due {
+            let Some(c) = landmarks.cands.get_mut(ci as usize) else {
+                continue;
+            };
+            if c.slot == NONE || c.seen == p.frame {
+                continue;
+            }
+            c.seen = p.frame;
+            c.waiting = false;
+            landmarks.evaluate(ci, &mut look);
+        }
+        landmarks.scratch = due;
+        landmarks.queued_scratch = queued;
+        // The marks every landmark would set on its target and shown entries.
+        let frame = p.frame;
+        let odo = landmarks.odo;
+        for pair in landmarks.pairs.iter().flatten() {
+            let (mesh, lod) = (pair.mesh, pair.lod as usize);
+            let Some(Some(m)) = tables.meshes.get(mesh as usize) else {
+                continue;
+            };
+            let key = match m.lod_entry[lod] {
+                Some(k) => k,
+                None if pair.targets > 0 => {
+                    // Released since (evicted): the targets ask for it again.
+                    let tris = m.lod_tris[lod];
+                    let k = tables.new_entry(mesh, lod as u8, None, tris, frame);
+                    tables.meshes[mesh as usize]
+                        .as_mut()
+                        .expect("live mesh")
+                        .lod_entry[lod] = Some(k);
+                    k
+                }
+                None => continue,
+            };
+            let e = &mut tables.entries[key];
+            if pair.targets == 0 && pair.showing.is_empty() {
+                continue;
+            }
+            e.last_keep = frame;
+            if pair.targets == 0 {
+                continue;
+            }
+            if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
+                e.streak_start = frame;
+            }
+            e.last_request = frame;
+            let (dist, in_view) = if e.state != EntryState::Built && pair.frame == frame {
+                (pair.frame_min, pair.frame_in_view)
+            } else {
+                ((pair.min_key - odo).max(0.0) as f32, pair.in_view)
+            };
+            if e.dist_frame != frame {
+                e.dist_frame = frame;
+                e.min_dist = dist;
+                e.in_view = in_view;
+            } else {
+                e.min_dist = e.min_dist.min(dist);
+                e.in_view |= in_view;
+            }
+        }
+    }
+
+    /// Cull step of the landmarks (after the frame's builds): the BLAS each landmark that
+    /// joined, changed LOD or waits for its target shows (its target if built, else what it
+    /// showed, else the nearest built LOD), the records of landmarks whose BLAS changed, and
+    /// the marks of the shown entries.
+    pub(crate) fn landmarks_cull(&mut self) {
+        if self.landmark_params().is_none() {
+            return;
+        }
+        let _s = tracing::trace_span!("landmarks_cull").entered();
+        let frame = self.frame;
+        let Self {
+            landmarks,
+            grid,
+            tables,
+            backend,
+            records,
+            ..
+        } = self;
+        let address_of = |tables: &Tables, key: Option<EntryKey>| -> u64 {
+            match key.and_then(|k| tables.entries.get(k)) {
+                Some(e) if e.state == EntryState::Built => e.record_address(&*backend),
+                _ => 0,
+            }
+        };
+        let entry_of = |tables: &Tables, mesh: u32, lod: u8| {
+            tables
+                .meshes
+                .get(mesh as usize)
+                .and_then(|m| m.as_ref())
+                .and_then(|m| m.lod_entry[lod as usize])
+        };
+        // Pairs whose BLAS changed (built, compacted, released): their landmarks choose again.
+        let mut rechoose = std::mem::take(&mut landmarks.rechoose);
+        for pair in landmarks.pairs.iter_mut().flatten() {
+            if pair.showing.is_empty() {
+                continue;
+            }
+            let address = address_of(tables, entry_of(tables, pair.mesh, pair.lod));
+            if address != pair.address {
+                pair.address = address;
+                rechoose.extend_from_slice(&pair.showing);
+            }
+        }
+        for &slot in &rechoose {
+            let Some(c) = landmarks.cand(slot) else {
+                continue;
+            };
+            let mi = c.member;
+            if mi == NONE || landmarks.members[mi as usize].chosen == frame {
+                continue;
+            }
+            let mi = mi as usize;
+            landmarks.members[mi].chosen = frame;
+            let mb = landmarks.members[mi];
+            let (mesh_ix, target_lod) = {
+                let p = landmarks.pairs[mb.target as usize].as_ref().expect("live");
+                (p.mesh, p.lod)
+            };
+            let Some(ge) = grid.get_mut(slot) else {
+                continue;
+            };
+            let hot = &mut ge.data;
+            hot.lod_target = target_lod;
+            let mesh = tables.meshes[mesh_ix as usize]
+                .as_ref()
+                .expect("a landmark's mesh is live");
+            let target = mesh.lod_entry[target_lod as usize];
+            let chosen = if tables.built(target) {
+                target
+            } else if tables.built(hot.shown)
+                && hot
+                    .shown
+                    .is_some_and(|k| tables.entries[k].mesh == hot.mesh)
+            {
+                hot.shown
+            } else {
+                let (tl, n) = (target_lod as usize, mesh.nlods as usize);
+                (tl..n)
+                    .chain((0..tl).rev())
+                    .map(|l| mesh.lod_entry[l])
+                    .find(|&k| tables.built(k))
+                    .flatten()
+            };
+            hot.shown = chosen;
+            if chosen != target {
+                landmarks.unsettled.push(slot);
+            }
+            let shown_pair = chosen.map(|k| {
+                let lod = tables.entries[k].lod;
+                landmarks.pair_of(mesh_ix, lod)
+            });
+            if shown_pair != (mb.shown != NONE).then_some(mb.shown) {
+                landmarks.unshow(mi);
+                if let Some(sp) = shown_pair {
+                    let address = address_of(tables, chosen);
+                    let p = landmarks.pair(sp);
+                    if p.showing.is_empty() {
+                        p.address = address;
+                    }
+                    p.showing.push(slot);
+                    let pos = (p.showing.len() - 1) as u32;
+                    landmarks.members[mi].shown = sp;
+                    landmarks.members[mi].shown_pos = pos;
+                }
+            }
+            match chosen {
+                Some(k) => {
+                    let record = TlasInstance {
+                        blas_address: address_of(tables, Some(k)),
+                        ..hot.template
+                    };
+                    let r = landmarks.members[mi].record;
+                    if r == NONE {
+                        let at = landmarks.record_slots.len();
+                        debug_assert_eq!(records.len(), at, "landmark records come first");
+                        records.push(record);
+                        landmarks.record_slots.push(slot);
+                        landmarks.members[mi].record = at as u32;
+                        landmarks.changed.push(at as u32);
+                    } else if records[r as usize] != record {
+                        records[r as usize] = record;
+                        landmarks.changed.push(r);
+                    }
+                }
+                None => landmarks.drop_record(mi, records),
+            }
+        }
+        rechoose.clear();
+        landmarks.rechoose = rechoose;
+        for pair in landmarks.pairs.iter().flatten() {
+            if pair.showing.is_empty() {
+                continue;
+            }
+            let key = entry_of(tables, pair.mesh, pair.lod);
+            if let Some(e) = key.and_then(|k| tables.entries.get_mut(k)) {
+                e.last_in_tlas = Some(frame);
+                e.last_keep = frame;
+            }
+        }
+        self.stats.landmark_instances = self.landmarks.len() as u32;
+    }
+}

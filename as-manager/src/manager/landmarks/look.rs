@@ -1,0 +1,323 @@
+//! Looking at candidates: the odometer, which candidates are due, and the look itself.
+
+use glam::Vec3;
+
+use super::*;
+use crate::lod::LodSelector;
+use crate::manager::state::{InstanceHot, Tables};
+use crate::mesh::MeshKind;
+use crate::spatial::GridIndex;
+
+impl Landmarks {
+    /// Counts this frame's camera travel; a change of camera count makes everything due.
+    pub(super) fn advance(&mut self, cams: &[Vec3]) {
+        if cams.len() != self.cams.len() {
+            self.all_due = true;
+        } else {
+            let moved = cams
+                .iter()
+                .zip(&self.cams)
+                .map(|(a, b)| a.distance(*b))
+                .fold(0.0f32, f32::max);
+            if moved.is_finite() {
+                self.odo += f64::from(moved);
+            } else {
+                self.all_due = true;
+            }
+        }
+        self.cams.clear();
+        self.cams.extend_from_slice(cams);
+    }
+
+    /// Which candidates are due this frame, in a deterministic order, into `out`
+    /// (duplicates allowed: the caller skips the ones seen this frame).
+    pub(super) fn collect_due(
+        &mut self,
+        tables: &Tables,
+        need_data: bool,
+        groups_flipped: &mut Vec<u32>,
+        out: &mut Vec<u32>,
+        queued: &mut Vec<u32>,
+    ) {
+        out.clear();
+        queued.clear();
+        if self.all_due {
+            self.all_due = false;
+            self.queue.clear();
+            self.now.clear();
+            self.meshes_changed.clear();
+            groups_flipped.clear();
+            out.extend(self.cands.iter().map(|c| c.slot).filter(|&s| s != NONE));
+            return;
+        }
+        out.append(&mut self.now);
+        for g in groups_flipped.drain(..) {
+            if let Some(v) = self.groups.get(&g) {
+                out.extend_from_slice(v);
+            }
+        }
+        for m in self.meshes_changed.drain(..) {
+            if let Some(Some(mesh)) = tables.meshes.get(m as usize) {
+                out.extend(
+                    mesh.instances
+                        .iter()
+                        .copied()
+                        .filter(|&s| self.index.get(s as usize).is_some_and(|&i| i != NONE)),
+                );
+            }
+        }
+        // Selections whose resolution changed (data or BLASes of the mesh came or went).
+        for p in self.pairs.iter_mut().flatten() {
+            if p.selecting.is_empty() && p.unusable.is_empty() {
+                continue;
+            }
+            let Some(Some(mesh)) = tables.meshes.get(p.mesh as usize) else {
+                continue;
+            };
+            let built = |l: usize| tables.built(mesh.lod_entry[l]);
+            let resolved = mesh
+                .with_data(p.lod as usize, need_data, built)
+                .map_or(NONE_LOD, |l| l as u8);
+            if resolved != p.resolved {
+                p.resolved = resolved;
+                out.extend_from_slice(&p.selecting);
+                out.append(&mut p.unusable);
+            }
+        }
+        let mut due = std::mem::take(&mut self.due_scratch);
+        due.clear();
+        self.queue.pop_due(self.odo, &mut due);
+        let cands = &self.cands;
+        queued.extend(
+            due.iter()
+                .filter(|&&(ci, stamp)| cands[ci as usize].stamp == stamp)
+                .map(|&(ci, _)| ci),
+        );
+        self.due_scratch = due;
+    }
+
+    /// Looks at the candidate again once the cameras travelled `slack` more metres (never,
+    /// for an infinite slack: only an event makes it due).
+    pub(super) fn due_after(&mut self, ci: u32, slack: f32, d: f32) {
+        self.next_stamp = self.next_stamp.wrapping_add(1);
+        let stamp = self.next_stamp;
+        self.cands[ci as usize].stamp = stamp;
+        if !slack.is_finite() {
+            return;
+        }
+        // A margin for rounding in the distances (f32) and the odometer.
+        let slack = (slack - 0.01 - 1e-4 * d).max(0.0);
+        self.queue.push(self.odo + f64::from(slack), ci, stamp);
+    }
+}
+
+/// Squared distance from the nearest camera to `c` (as the residency pass computes it, so
+/// both agree on which side of r2 an instance is).
+fn nearest2(cams: &[Vec3], c: Vec3) -> f32 {
+    cams.iter()
+        .map(|p| p.distance_squared(c))
+        .fold(f32::INFINITY, f32::min)
+}
+
+/// The look at one candidate (see `Landmarks::evaluate`), with what it borrows.
+pub(super) struct Look<'a> {
+    pub(super) grid: &'a mut GridIndex<InstanceHot>,
+    pub(super) tables: &'a mut Tables,
+    pub(super) lod: &'a LodSelector,
+    pub(super) far: &'a crate::manager::far::FarField,
+    pub(super) cams: &'a [Vec3],
+    pub(super) fwds: &'a [Vec3],
+    pub(super) records: &'a mut Vec<TlasInstance>,
+    pub(super) p: LandmarkParams,
+}
+
+impl Landmarks {
+    /// Looks at candidate `slot`: joins, updates or leaves the set, and says when to look next.
+    pub(super) fn evaluate(&mut self, ci: u32, x: &mut Look<'_>) {
+        let frame = x.p.frame;
+        let cand = self.cands[ci as usize];
+        let slot = cand.slot;
+        if cand.radius < self.min_radius {
+            // Moved and shrank (`track`).
+            self.remove(slot, x.records);
+            return;
+        }
+        self.examined += 1;
+        let is_member = cand.member != NONE;
+        let (c, radius) = (cand.center, cand.radius);
+        let d2 = nearest2(x.cams, c);
+        let d = d2.sqrt();
+        let reach = x.p.r2 + radius;
+        let within_r2 = d2 <= reach * reach;
+        if within_r2 || x.far.is_near_leaf(cand.group) {
+            // Near field now (within r2, or its leaf is on the detail side): shown by the
+            // residency pass, which continues from the landmark's LOD and cull state.
+            if is_member {
+                if let Some(ge) = x.grid.get_mut(slot) {
+                    ge.data.last_visit = frame.wrapping_sub(1);
+                    ge.data.culled = false;
+                }
+                self.leave(slot, x.records);
+            }
+            // The leaf flipping back is an event; within r2, leaving it is the threshold.
+            let slack = if within_r2 { reach - d } else { f32::INFINITY };
+            self.due_after(ci, slack, d);
+            return;
+        }
+        let (kt, range) = (x.p.keep_tan, x.p.range);
+        if d - radius > range || radius <= kt * 0.9 * d {
+            // Out even with the hysteresis: no need to look at the instance.
+            if is_member {
+                self.leave(slot, x.records);
+            }
+            let join = (radius / kt).min(range + radius);
+            self.due_after(ci, d - join, d);
+            return;
+        }
+        let mesh_ix = cand.mesh;
+        let Some(Some(mesh)) = x.tables.meshes.get(mesh_ix as usize) else {
+            self.remove(slot, x.records);
+            return;
+        };
+        if mesh.kind != MeshKind::Static {
+            self.remove(slot, x.records);
+            return;
+        }
+        // A landmark continues from its LOD (kept here, not in the grid: a look at a landmark
+        // touches no instance state); any other candidate from the instance's last visit.
+        let (was, last_lod) = if is_member {
+            let m = self.members[cand.member as usize];
+            (
+                true,
+                self.pairs[m.target as usize].as_ref().expect("live").lod,
+            )
+        } else {
+            let Some(ge) = x.grid.get(slot) else {
+                self.remove(slot, x.records);
+                return;
+            };
+            (
+                ge.data.last_visit == frame.wrapping_sub(1),
+                ge.data.lod_target,
+            )
+        };
+        let tan = if was { kt * 0.9 } else { kt };
+        if radius <= tan * d {
+            if is_member {
+                self.leave(slot, x.records);
+            }
+            // Not shown next frame either: it joins once within both limits (no hysteresis).
+            let join = (radius / kt).min(range + radius);
+            self.due_after(ci, d - join, d);
+            return;
+        }
+        let surface = (d - radius).max(0.0);
+        let n = mesh.nlods as usize;
+        let current = if was { last_lod as usize } else { n - 1 };
+        let selected = x.lod.select(
+            mesh.errors(),
+            cand.scale,
+            surface,
+            current,
+            mesh.lod_floor as usize,
+        );
+        let built = |l: usize| x.tables.built(mesh.lod_entry[l]);
+        let resolved = mesh.with_data(selected, x.p.need_data, built);
+        let Some(lodi) = resolved else {
+            // No LOD has data: nothing to show until the selection resolves to one.
+            if is_member {
+                self.leave(slot, x.records);
+            }
+            let sel_pair = self.pair_of(mesh_ix, selected as u8);
+            self.pair(sel_pair).resolved = NONE_LOD;
+            let c = &mut self.cands[ci as usize];
+            if !c.waiting {
+                c.waiting = true;
+                self.pair(sel_pair).unusable.push(slot);
+            }
+            self.due_after(ci, f32::INFINITY, d);
+            return;
+        };
+        // Next time `current` is this LOD: the selection holds while the surface distance
+        // stays within `lod_slack`.
+        let lod_slack = x
+            .lod
+            .stable_distance(mesh.errors(), cand.scale, lodi, surface);
+        let tris = mesh.lod_tris[lodi];
+        let in_view = x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
+        if !is_member {
+            // Joins: the instance's LOD and cull state as a visit leaves them (a landmark's
+            // LOD is written back when it changes, in `landmarks_cull`).
+            if let Some(ge) = x.grid.get_mut(slot) {
+                ge.data.lod_target = lodi as u8;
+                ge.data.last_visit = frame;
+                ge.data.culled = false;
+            }
+        }
+        // Its target entry exists from now on (as the residency pass creates it).
+        if mesh.lod_entry[lodi].is_none() {
+            let key = x.tables.new_entry(mesh_ix, lodi as u8, None, tris, frame);
+            x.tables.meshes[mesh_ix as usize]
+                .as_mut()
+                .expect("live mesh")
+                .lod_entry[lodi] = Some(key);
+        }
+        let target = self.pair_of(mesh_ix, lodi as u8);
+        let sel_pair = self.pair_of(mesh_ix, selected as u8);
+        if !is_member {
+            self.members.push(Member {
+                slot,
+                target,
+                selected: sel_pair,
+                shown: NONE,
+                selected_pos: NONE,
+                shown_pos: NONE,
+                record: NONE,
+                chosen: u64::MAX,
+            });
+            let m = self.members.len() - 1;
+            self.cands[ci as usize].member = m as u32;
+            self.pair(target).targets += 1;
+            self.select_pair(m, sel_pair);
+            self.rechoose.push(slot);
+        } else {
+            // The new references first, then the old ones go: a pair freed in between could
+            // be one of the new ones.
+            let m = self.member_of(slot);
+            let old = self.members[m];
+            if old.selected != sel_pair {
+                self.select_pair(m, sel_pair);
+                self.unselect_at(old.selected, old.selected_pos);
+            }
+            if old.target != target {
+                self.pair(target).targets += 1;
+                self.members[m].target = target;
+                self.untarget(old.target);
+                self.rechoose.push(slot);
+            }
+        }
+        self.pair(sel_pair).resolved = lodi as u8;
+        let key = surface as f64 + self.odo;
+        let pair = self.pair(target);
+        if pair.targets == 1 {
+            // Its only target: exact again.
+            pair.min_key = key;
+            pair.in_view = in_view;
+        } else {
+            pair.min_key = pair.min_key.min(key);
+            pair.in_view |= in_view;
+        }
+        if pair.frame != frame {
+            pair.frame = frame;
+            pair.frame_min = surface;
+            pair.frame_in_view = in_view;
+        } else {
+            pair.frame_min = pair.frame_min.min(surface);
+            pair.frame_in_view |= in_view;
+        }
+        // Next look: the nearest threshold (shown next frame: the hysteresis one).
+        let leave_at = (radius / (kt * 0.9)).min(range + radius);
+        let slack = (leave_at - d).min(d - reach).min(lod_slack);
+        self.due_after(ci, slack, d);
+    }
+}

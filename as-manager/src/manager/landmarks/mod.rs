@@ -1,0 +1,461 @@
+//! Far landmarks, kept incrementally.
+//!
+//! A landmark is a static instance beyond r2 (and outside a near far-field leaf) whose
+//! bounding sphere subtends more than `FarFieldConfig::keep_angle` from the nearest camera
+//! (10 % less once shown) and lies within `keep_range`: it stays in the TLAS beside the proxies,
+//! at the LOD its distance needs, on the mesh's shared BLAS of that LOD. The default world has
+//! about 13,000 of them in view; looking at each one every frame was most of `update`
+//! (docs/RESULTS.md).
+//!
+//! Every decision about a candidate (a static instance at least `landmark_radius` large) is a
+//! function of the distance `d` from the nearest camera and of state that changes by events:
+//! - it is a landmark while `r2 + R < d <= min(keep range + R, R / tan)`, `tan` the keep
+//!   angle's (10 % less once it is one);
+//! - its LOD is the selection's (`LodSelector::select`, which holds within
+//!   `LodSelector::stable_distance`), resolved to one with data or a BLAS
+//!   (`MeshState::with_data`).
+//!
+//! Cameras that move by `m` metres change `d` by at most `m`. So a candidate looked at with `d`
+//! at `slack` metres from its nearest threshold cannot change before the cameras have travelled
+//! `slack` in all. The set keeps an odometer of camera travel (per frame, the largest move of
+//! any camera) and a queue of when each candidate is due (`DueQueue`, buckets of a metre), and
+//! looks at a candidate only then, or at once on an event:
+//! - the instance was added, moved or removed;
+//! - its leaf group flipped between detail and proxy (`FarField::flipped`);
+//! - its mesh's LOD errors or memory floor changed (`mesh_changed`);
+//! - what its selected LOD resolves to changed: data arrived or was evicted, a BLAS of the mesh
+//!   was built or released (each frame, one `with_data` per selected (mesh, LOD) pair);
+//! - the camera count, the configuration or a failed frame changed (everything is due).
+//!
+//! A landmark whose target BLAS is not built yet (it shows a coarser one, or nothing) chooses
+//! its BLAS again every frame until it is. Per frame the set costs the due candidates plus one
+//! pass over the (mesh, LOD) pairs the landmarks use, which carry the residency marks every
+//! landmark would have set (a few hundred pairs for thousands of landmarks). The records of
+//! shown landmarks lead the manager's record list and change only where a landmark joined, left
+//! or changed BLAS.
+//!
+//! The decisions are the ones a look at every candidate every frame makes, with one
+//! approximation: a built entry's distance for the eviction order is a lower bound (the distance
+//! of its nearest landmark when last looked at, minus the travel since). Entries not built yet
+//! (the ones the build priority orders) get exact distances, because their landmarks are looked
+//! at every frame.
+
+mod frame;
+mod look;
+mod pairs;
+mod queue;
+
+use std::collections::HashMap;
+use std::hash::BuildHasherDefault;
+
+use glam::Vec3;
+
+use super::state::NO_GROUP;
+use crate::record::TlasInstance;
+use crate::spatial::CellHasher;
+use queue::DueQueue;
+
+const NONE: u32 = u32::MAX;
+const NONE_LOD: u8 = u8::MAX;
+
+/// A candidate: a static instance large enough to be a landmark somewhere. Its sphere is
+/// kept here too, so that the looks that find it near or out touch nothing else.
+#[derive(Debug, Clone, Copy)]
+struct Cand {
+    center: Vec3,
+    radius: f32,
+    /// Its mesh slot and transform scale (for the LOD selection).
+    mesh: u32,
+    scale: f32,
+    slot: u32,
+    /// Queue entries with another stamp are stale.
+    stamp: u32,
+    /// Index in `members` (NONE: not a landmark now).
+    member: u32,
+    /// Its far-field leaf (NO_GROUP: none) and its place in that group's list.
+    group: u32,
+    group_pos: u32,
+    /// Last frame it was looked at.
+    seen: u64,
+    /// In some pair's `unusable` list.
+    waiting: bool,
+}
+
+/// A shown landmark (a member of the set).
+#[derive(Debug, Clone, Copy)]
+struct Member {
+    slot: u32,
+    /// Pairs (indices in `Landmarks::pairs`): the LOD it targets, the LOD its selection
+    /// named (they differ when it fell back for data), the LOD of the BLAS it shows (NONE:
+    /// none built yet).
+    target: u32,
+    selected: u32,
+    shown: u32,
+    /// Places in `selected`'s `selecting` and `shown`'s `showing` lists.
+    selected_pos: u32,
+    shown_pos: u32,
+    /// Index in the manager's records (NONE: nothing shown).
+    record: u32,
+    /// Last frame its shown BLAS was chosen.
+    chosen: u64,
+}
+
+/// What the landmarks do with one static (mesh, LOD) pair.
+#[derive(Debug)]
+struct PairUse {
+    mesh: u32,
+    lod: u8,
+    /// Landmarks targeting it.
+    targets: u32,
+    /// Landmarks whose selection names it (slots), and what that resolves to now.
+    selecting: Vec<u32>,
+    resolved: u8,
+    /// Candidates whose selection named it and found no usable LOD (slots; may hold stale
+    /// ones, checked on use).
+    unusable: Vec<u32>,
+    /// Landmarks showing its BLAS (slots), and the BLAS address their records hold.
+    showing: Vec<u32>,
+    address: u64,
+    /// Lower bound of the nearest target's surface distance: min over targets, at their last
+    /// look, of (surface distance + odometer); and whether one was in view then.
+    min_key: f64,
+    in_view: bool,
+    /// This frame's exact figures, from the targets looked at this frame.
+    frame: u64,
+    frame_min: f32,
+    frame_in_view: bool,
+}
+
+impl PairUse {
+    fn new(mesh: u32, lod: u8) -> Self {
+        Self {
+            mesh,
+            lod,
+            targets: 0,
+            selecting: Vec::new(),
+            resolved: NONE_LOD,
+            unusable: Vec::new(),
+            showing: Vec::new(),
+            address: 0,
+            min_key: 0.0,
+            in_view: false,
+            frame: u64::MAX,
+            frame_min: 0.0,
+            frame_in_view: false,
+        }
+    }
+
+    fn is_unused(&self) -> bool {
+        self.targets == 0
+            && self.selecting.is_empty()
+            && self.showing.is_empty()
+            && self.unusable.is_empty()
+    }
+}
+
+/// The incremental landmark set. See the module docs.
+#[derive(Debug)]
+pub(crate) struct Landmarks {
+    /// Radius from which a static instance is a candidate (infinite: landmarks off).
+    min_radius: f32,
+    /// Camera travel so far, metres.
+    odo: f64,
+    cams: Vec<Vec3>,
+    /// Every candidate is due (first frame, camera count, configuration, failed frame).
+    all_due: bool,
+    /// Per instance slot: index in `cands` (NONE: not a candidate).
+    index: Vec<u32>,
+    /// The candidates, in a slab: an index stays the candidate's while it is one (the queue
+    /// names candidates by index; a vacant entry has slot NONE), vacant ones in `free_cands`.
+    cands: Vec<Cand>,
+    free_cands: Vec<u32>,
+    queue: DueQueue,
+    next_stamp: u32,
+    /// Slots due now by an event.
+    now: Vec<u32>,
+    /// Meshes whose candidates are all due now.
+    meshes_changed: Vec<u32>,
+    /// Per leaf group: its candidates (slots).
+    groups: HashMap<u32, Vec<u32>>,
+    members: Vec<Member>,
+    /// `records[i]` (the manager's; the first `record_slots.len()` are the landmarks') is slot
+    /// `record_slots[i]`'s.
+    record_slots: Vec<u32>,
+    /// The (mesh, LOD) pairs in use, in a slab (iterated in index order: deterministic), and
+    /// their indices.
+    pairs: Vec<Option<PairUse>>,
+    free_pairs: Vec<u32>,
+    pair_index: HashMap<u64, u32, BuildHasherDefault<CellHasher>>,
+    /// Members whose shown BLAS is chosen again this frame.
+    rechoose: Vec<u32>,
+    /// Members choosing again next frame (their target is not built).
+    unsettled: Vec<u32>,
+    scratch: Vec<u32>,
+    queued_scratch: Vec<u32>,
+    due_scratch: Vec<(u32, u32)>,
+    /// Candidates looked at this frame.
+    pub examined: u32,
+    /// Indices of the landmark records written since the last TLAS build (`TlasDelta`).
+    pub changed: Vec<u32>,
+}
+
+impl Default for Landmarks {
+    fn default() -> Self {
+        Self {
+            min_radius: f32::INFINITY,
+            odo: 0.0,
+            cams: Vec::new(),
+            all_due: true,
+            index: Vec::new(),
+            cands: Vec::new(),
+            free_cands: Vec::new(),
+            queue: DueQueue::default(),
+            next_stamp: 0,
+            now: Vec::new(),
+            meshes_changed: Vec::new(),
+            groups: HashMap::new(),
+            members: Vec::new(),
+            record_slots: Vec::new(),
+            pairs: Vec::new(),
+            free_pairs: Vec::new(),
+            pair_index: HashMap::default(),
+            rechoose: Vec::new(),
+            unsettled: Vec::new(),
+            scratch: Vec::new(),
+            queued_scratch: Vec::new(),
+            due_scratch: Vec::new(),
+            examined: 0,
+            changed: Vec::new(),
+        }
+    }
+}
+
+/// A candidate's instance as `Landmarks::track` is told of it.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct CandSphere {
+    pub center: Vec3,
+    pub radius: f32,
+    pub mesh: u32,
+    pub scale: f32,
+}
+
+/// What a frame's look at the candidates reads of the configuration.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct LandmarkParams {
+    pub r2: f32,
+    /// tan of the keep angle.
+    pub keep_tan: f32,
+    /// min(far radius, keep range).
+    pub range: f32,
+    pub frame: u64,
+    pub need_data: bool,
+}
+
+impl Landmarks {
+    /// Landmark records at the front of the manager's record list.
+    pub fn len(&self) -> usize {
+        self.record_slots.len()
+    }
+
+    /// Whether `slot` is a shown landmark now.
+    pub fn is_member(&self, slot: u32) -> bool {
+        self.cand(slot).is_some_and(|c| c.member != NONE)
+    }
+
+    fn cand(&self, slot: u32) -> Option<&Cand> {
+        let i = *self.index.get(slot as usize)?;
+        self.cands.get(i as usize)
+    }
+
+    fn cand_mut(&mut self, slot: u32) -> Option<&mut Cand> {
+        let i = *self.index.get(slot as usize)?;
+        self.cands.get_mut(i as usize)
+    }
+
+    /// The candidate radius in force (infinite: off).
+    pub fn min_radius(&self) -> f32 {
+        self.min_radius
+    }
+
+    /// Sets the candidate radius; the caller re-adds every instance when it changed.
+    pub fn set_min_radius(&mut self, r: f32) {
+        self.min_radius = r;
+    }
+
+    /// Everything is looked at again next frame (a failed frame, a configuration change):
+    /// no landmark is shown until then. The caller drops the landmark records.
+    pub fn invalidate(&mut self) {
+        self.members.clear();
+        self.record_slots.clear();
+        self.pairs.clear();
+        self.free_pairs.clear();
+        self.pair_index.clear();
+        self.rechoose.clear();
+        self.unsettled.clear();
+        self.queue.clear();
+        // Every record is pushed again (and listed) when the landmarks come back.
+        self.changed.clear();
+        for c in &mut self.cands {
+            c.member = NONE;
+            c.waiting = false;
+        }
+        self.all_due = true;
+    }
+
+    /// Forgets every candidate (before re-adding them under a new radius).
+    pub fn clear(&mut self) {
+        self.invalidate();
+        self.index.clear();
+        self.cands.clear();
+        self.free_cands.clear();
+        self.groups.clear();
+        self.now.clear();
+        self.meshes_changed.clear();
+    }
+
+    /// An instance was added or moved: a candidate when static and at least `min_radius`
+    /// large; due now (a moved landmark writes its record again).
+    pub fn track(&mut self, slot: u32, sphere: CandSphere, is_static: bool, group: u32) {
+        let CandSphere {
+            center,
+            radius,
+            mesh,
+            scale,
+        } = sphere;
+        let wanted = is_static && radius >= self.min_radius;
+        if let Some(c) = self.cand_mut(slot) {
+            // Removed when looked at if it no longer qualifies (`evaluate`).
+            (c.center, c.radius, c.scale) = (center, radius, scale);
+            self.now.push(slot);
+            if self.is_member(slot) {
+                self.rechoose.push(slot);
+            }
+            return;
+        }
+        if !wanted {
+            return;
+        }
+        if self.index.len() <= slot as usize {
+            self.index.resize(slot as usize + 1, NONE);
+        }
+        let group_pos = if group == NO_GROUP {
+            NONE
+        } else {
+            let v = self.groups.entry(group).or_default();
+            v.push(slot);
+            (v.len() - 1) as u32
+        };
+        let cand = Cand {
+            center,
+            radius,
+            mesh,
+            scale,
+            slot,
+            stamp: 0,
+            member: NONE,
+            group,
+            group_pos,
+            seen: u64::MAX,
+            waiting: false,
+        };
+        let ci = match self.free_cands.pop() {
+            Some(ci) => {
+                self.cands[ci as usize] = cand;
+                ci
+            }
+            None => {
+                self.cands.push(cand);
+                (self.cands.len() - 1) as u32
+            }
+        };
+        self.index[slot as usize] = ci;
+        self.now.push(slot);
+    }
+
+    /// Every candidate of `mesh` is due now (its LOD errors or memory floor changed).
+    pub fn mesh_changed(&mut self, mesh: u32) {
+        if self.min_radius.is_finite() {
+            self.meshes_changed.push(mesh);
+        }
+    }
+
+    /// An instance was removed: it leaves the set and stops being a candidate.
+    pub fn remove(&mut self, slot: u32, records: &mut Vec<TlasInstance>) {
+        if self.cand(slot).is_none() {
+            return;
+        }
+        self.leave(slot, records);
+        let ci = self.index[slot as usize] as usize;
+        let c = self.cands[ci];
+        if c.group != NO_GROUP {
+            if let Some(v) = self.groups.get_mut(&c.group) {
+                if let Some(moved) = Self::list_remove(v, c.group_pos) {
+                    let mi = self.index[moved as usize];
+                    self.cands[mi as usize].group_pos = c.group_pos;
+                }
+                if v.is_empty() {
+                    self.groups.remove(&c.group);
+                }
+            }
+        }
+        // Vacant: its queue entries go stale with the new stamp.
+        self.next_stamp = self.next_stamp.wrapping_add(1);
+        self.cands[ci].slot = NONE;
+        self.cands[ci].stamp = self.next_stamp;
+        self.free_cands.push(ci as u32);
+        self.index[slot as usize] = NONE;
+    }
+
+    /// Invariants (for `check_invariants`).
+    pub fn check(&self, records: &[TlasInstance]) -> Result<(), String> {
+        if records.len() < self.record_slots.len() {
+            return Err("fewer records than landmark records".into());
+        }
+        let mut counts: HashMap<u32, (u32, u32, u32)> = HashMap::new();
+        for (i, m) in self.members.iter().enumerate() {
+            let c = self.cand(m.slot).ok_or("member is no candidate")?;
+            if c.member != i as u32 {
+                return Err(format!("member {i} (slot {}) not linked", m.slot));
+            }
+            counts.entry(m.target).or_default().0 += 1;
+            counts.entry(m.selected).or_default().1 += 1;
+            let sel = self.pairs[m.selected as usize]
+                .as_ref()
+                .ok_or("dead pair")?;
+            if sel.selecting.get(m.selected_pos as usize) != Some(&m.slot) {
+                return Err(format!("slot {} not at its selected position", m.slot));
+            }
+            if m.shown != NONE {
+                counts.entry(m.shown).or_default().2 += 1;
+                let p = self.pairs[m.shown as usize].as_ref().ok_or("dead pair")?;
+                if p.showing.get(m.shown_pos as usize) != Some(&m.slot) {
+                    return Err(format!("slot {} not at its shown position", m.slot));
+                }
+            }
+            if m.record != NONE && self.record_slots.get(m.record as usize) != Some(&m.slot) {
+                return Err(format!("slot {} not at its record", m.slot));
+            }
+            if (m.record != NONE) != (m.shown != NONE) {
+                return Err(format!("slot {}: a record without a BLAS or back", m.slot));
+            }
+        }
+        for (i, p) in self.pairs.iter().enumerate() {
+            let Some(p) = p else { continue };
+            let (t, s, w) = counts.get(&(i as u32)).copied().unwrap_or_default();
+            if p.targets != t || p.selecting.len() as u32 != s || p.showing.len() as u32 != w {
+                return Err(format!("pair ({}, {}) counts are off", p.mesh, p.lod));
+            }
+            if self.pair_index.get(&pair_key(p.mesh, p.lod)) != Some(&(i as u32)) {
+                return Err(format!("pair ({}, {}) not indexed", p.mesh, p.lod));
+            }
+        }
+        if self.record_slots.iter().any(|&s| !self.is_member(s)) {
+            return Err("a landmark record of no member".into());
+        }
+        Ok(())
+    }
+}
+
+fn pair_key(mesh: u32, lod: u8) -> u64 {
+    (u64::from(mesh) << 8) | u64::from(lod)
+}

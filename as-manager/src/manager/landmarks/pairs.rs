@@ -1,0 +1,130 @@
+//! The set's bookkeeping: the (mesh, LOD) pairs the landmarks target, select and show, and
+//! the landmark records at the front of the manager's records.
+
+use super::*;
+
+impl Landmarks {
+    pub(super) fn pair(&mut self, i: u32) -> &mut PairUse {
+        self.pairs[i as usize].as_mut().expect("a live pair")
+    }
+
+    /// The pair of (mesh, LOD), created when missing.
+    pub(super) fn pair_of(&mut self, mesh: u32, lod: u8) -> u32 {
+        if let Some(&i) = self.pair_index.get(&pair_key(mesh, lod)) {
+            return i;
+        }
+        let p = Some(PairUse::new(mesh, lod));
+        let i = match self.free_pairs.pop() {
+            Some(i) => {
+                self.pairs[i as usize] = p;
+                i
+            }
+            None => {
+                self.pairs.push(p);
+                (self.pairs.len() - 1) as u32
+            }
+        };
+        self.pair_index.insert(pair_key(mesh, lod), i);
+        i
+    }
+
+    /// Frees pair `i` if nothing uses it any more.
+    pub(super) fn release_pair(&mut self, i: u32) {
+        let p = self.pairs[i as usize].as_ref().expect("a live pair");
+        if p.is_unused() {
+            self.pair_index.remove(&pair_key(p.mesh, p.lod));
+            self.pairs[i as usize] = None;
+            self.free_pairs.push(i);
+        }
+    }
+
+    /// Swap-removes `slot` from a pair's member list at `pos`; returns the slot moved there.
+    pub(super) fn list_remove(list: &mut Vec<u32>, pos: u32) -> Option<u32> {
+        list.swap_remove(pos as usize);
+        list.get(pos as usize).copied()
+    }
+
+    pub(super) fn member_of(&self, slot: u32) -> usize {
+        self.cand(slot).map(|c| c.member).expect("a member") as usize
+    }
+
+    /// Removes a member's record (swap-remove in the manager's records).
+    pub(super) fn drop_record(&mut self, m: usize, records: &mut Vec<TlasInstance>) {
+        let r = self.members[m].record;
+        if r == NONE {
+            return;
+        }
+        let last = self.record_slots.len() - 1;
+        records.swap(r as usize, last);
+        records.truncate(last);
+        self.record_slots.swap_remove(r as usize);
+        if let Some(&moved) = self.record_slots.get(r as usize) {
+            let mi = self.member_of(moved);
+            self.members[mi].record = r;
+            self.changed.push(r);
+        }
+        self.members[m].record = NONE;
+    }
+
+    pub(super) fn unselect(&mut self, m: usize) {
+        let mb = self.members[m];
+        self.unselect_at(mb.selected, mb.selected_pos);
+    }
+
+    /// Takes the member at `pos` of `pair`'s selecting list out of it.
+    pub(super) fn unselect_at(&mut self, pair: u32, pos: u32) {
+        if let Some(moved) = Self::list_remove(&mut self.pair(pair).selecting, pos) {
+            let mi = self.member_of(moved);
+            self.members[mi].selected_pos = pos;
+        }
+        self.release_pair(pair);
+    }
+
+    pub(super) fn select_pair(&mut self, m: usize, pair: u32) {
+        let slot = self.members[m].slot;
+        let list = &mut self.pair(pair).selecting;
+        list.push(slot);
+        let pos = (list.len() - 1) as u32;
+        self.members[m].selected = pair;
+        self.members[m].selected_pos = pos;
+    }
+
+    /// Takes a member out of its shown pair's list.
+    pub(super) fn unshow(&mut self, m: usize) {
+        let mb = self.members[m];
+        if mb.shown == NONE {
+            return;
+        }
+        if let Some(moved) = Self::list_remove(&mut self.pair(mb.shown).showing, mb.shown_pos) {
+            let mi = self.member_of(moved);
+            self.members[mi].shown_pos = mb.shown_pos;
+        }
+        self.release_pair(mb.shown);
+        self.members[m].shown = NONE;
+    }
+
+    pub(super) fn untarget(&mut self, pair: u32) {
+        self.pair(pair).targets -= 1;
+        self.release_pair(pair);
+    }
+
+    /// A member leaves the set (its record goes, its pairs forget it).
+    pub(super) fn leave(&mut self, slot: u32, records: &mut Vec<TlasInstance>) {
+        let ci = self.index[slot as usize] as usize;
+        let m = self.cands[ci].member;
+        if m == NONE {
+            return;
+        }
+        let m = m as usize;
+        self.drop_record(m, records);
+        self.unshow(m);
+        self.unselect(m);
+        self.untarget(self.members[m].target);
+        self.members.swap_remove(m);
+        if let Some(moved) = self.members.get(m) {
+            let mc = self.index[moved.slot as usize];
+            self.cands[mc as usize].member = m as u32;
+        }
+        self.cands[ci].member = NONE;
+    }
+}

@@ -1,0 +1,74 @@
+//! The due queue: when each landmark candidate is next looked at, as camera travel.
+
+/// Metres of camera travel per bucket of the due queue (a candidate may be looked at up to this
+/// much early, never late).
+const BUCKET_M: f64 = 1.0;
+/// Buckets in the ring (16 km of travel ahead); farther ones wait in the overflow list.
+const RING: u64 = 1 << 14;
+
+/// When each candidate is due, as camera travel: a ring of one-metre buckets of (candidate
+/// index, stamp).
+#[derive(Debug)]
+pub(super) struct DueQueue {
+    ring: Vec<Vec<(u32, u32)>>,
+    /// Bucket index of the next bucket to pop.
+    base: u64,
+    /// Due before `base` (within the bucket popped last): popped at the next pop, whatever
+    /// the travel.
+    soon: Vec<(u32, u32)>,
+    /// (bucket, slot, stamp) beyond the ring.
+    overflow: Vec<(u64, u32, u32)>,
+}
+
+impl Default for DueQueue {
+    fn default() -> Self {
+        Self {
+            ring: (0..RING).map(|_| Vec::new()).collect(),
+            base: 0,
+            soon: Vec::new(),
+            overflow: Vec::new(),
+        }
+    }
+}
+
+impl DueQueue {
+    pub(super) fn clear(&mut self) {
+        self.ring.iter_mut().for_each(Vec::clear);
+        self.soon.clear();
+        self.overflow.clear();
+    }
+
+    /// Due once the odometer reaches `due` (a bucket early at most, never late).
+    pub(super) fn push(&mut self, due: f64, slot: u32, stamp: u32) {
+        let b = (due / BUCKET_M) as u64;
+        if b < self.base {
+            self.soon.push((slot, stamp));
+        } else if b - self.base >= RING {
+            self.overflow.push((b, slot, stamp));
+        } else {
+            self.ring[(b % RING) as usize].push((slot, stamp));
+        }
+    }
+
+    /// Appends every entry due at odometer `odo`.
+    pub(super) fn pop_due(&mut self, odo: f64, out: &mut Vec<(u32, u32)>) {
+        let current = (odo / BUCKET_M) as u64;
+        out.append(&mut self.soon);
+        while self.base <= current {
+            out.append(&mut self.ring[(self.base % RING) as usize]);
+            self.base += 1;
+            if self.base % (RING / 4) == 0 && !self.overflow.is_empty() {
+                // A quarter of the ring passed: bring the overflow that now fits into it.
+                let (base, mut keep) = (self.base, Vec::new());
+                for (b, slot, stamp) in std::mem::take(&mut self.overflow) {
+                    if b - base.min(b) < RING {
+                        self.ring[(b.max(base) % RING) as usize].push((slot, stamp));
+                    } else {
+                        keep.push((b, slot, stamp));
+                    }
+                }
+                self.overflow = keep;
+            }
+        }
+    }
+}
