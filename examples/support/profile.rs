@@ -6,6 +6,8 @@
 //!   the folded-stack format that `inferno-flamegraph` draws.
 //! - When an `update` span closes, every path seen under it gets one sample (0 when a phase
 //!   did not run that frame), so the percentiles of every phase are over the same frames.
+//!   A derived row, `less geometry copies`, is `update` without the backend's
+//!   `upload_geometry` spans (copies of new vertex and index data into upload buffers).
 //! - `--profile FILE` in the examples writes the self times as folded stacks (microseconds)
 //!   for a flame graph, and prints the per-phase table.
 //!
@@ -148,7 +150,15 @@ where
         if span.name() == "update" {
             // One sample per path under this update: the frame's time, or 0 when it did not
             // run this frame (policies update one after another, so the map holds one).
-            let frame = std::mem::take(&mut d.frame);
+            let mut frame = std::mem::take(&mut d.frame);
+            // Copies of new geometry (the backend's `upload_geometry` spans) are reported
+            // beside `update`, not in it: what is left is `update` less them.
+            let copies: f64 = frame
+                .iter()
+                .filter(|(p, _)| p.ends_with(";upload_geometry"))
+                .map(|(_, ms)| ms)
+                .sum();
+            frame.insert(format!("{path};less geometry copies"), ms - copies);
             let n = d.samples.get(&path).map_or(0, Vec::len);
             for (p, ms) in frame {
                 let v = d.samples.entry(p).or_default();

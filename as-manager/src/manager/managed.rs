@@ -164,26 +164,8 @@ impl<B: AsBackend> AsManager<B> {
                 MeshKind::Static => mesh.lod_entry[hot.lod_target as usize],
                 MeshKind::Skinned => hot.own,
             };
-            let chosen = if tables.built(target) {
-                target
-            } else if tables.built(hot.shown)
-                && hot
-                    .shown
-                    .is_some_and(|k| tables.entries[k].mesh == hot.mesh)
-            {
-                hot.shown
-            } else if mesh.kind == MeshKind::Static {
-                // nearest built LOD, coarser first
-                let tl = hot.lod_target as usize;
-                let n = mesh.nlods as usize;
-                (tl..n)
-                    .chain((0..tl).rev())
-                    .map(|l| mesh.lod_entry[l])
-                    .find(|&k| tables.built(k))
-                    .flatten()
-            } else {
-                None
-            };
+            let chosen =
+                tables.choose_shown(mesh, hot.mesh, target, hot.lod_target as usize, hot.shown);
             let culled = if v.beyond_r2 {
                 self.culler.cull_small(radius, v.center_dist, hot.culled)
             } else {

@@ -244,6 +244,34 @@ impl Tables {
         key
     }
 
+    /// The BLAS an instance of `mesh` (slot `mesh_ix`) shows: its `target` if built, else what
+    /// it `shown` until now if that is still built (and of this mesh), else (static) the
+    /// nearest built LOD to `target_lod`, coarser first, so nothing goes missing while a finer
+    /// LOD builds.
+    pub fn choose_shown(
+        &self,
+        mesh: &MeshState,
+        mesh_ix: u32,
+        target: Option<EntryKey>,
+        target_lod: usize,
+        shown: Option<EntryKey>,
+    ) -> Option<EntryKey> {
+        if self.built(target) {
+            target
+        } else if self.built(shown) && shown.is_some_and(|k| self.entries[k].mesh == mesh_ix) {
+            shown
+        } else if mesh.kind == MeshKind::Static {
+            let n = mesh.nlods as usize;
+            (target_lod..n)
+                .chain((0..target_lod).rev())
+                .map(|l| mesh.lod_entry[l])
+                .find(|&k| self.built(k))
+                .flatten()
+        } else {
+            None
+        }
+    }
+
     /// Drops a non-built entry (the caller freed any handle first) and unlinks it.
     pub fn drop_entry(&mut self, key: EntryKey) {
         let e = self.entries.remove(key).expect("live entry");

@@ -197,22 +197,7 @@ impl<B: AsBackend> AsManager<B> {
                 .as_ref()
                 .expect("a landmark's mesh is live");
             let target = mesh.lod_entry[target_lod as usize];
-            let chosen = if tables.built(target) {
-                target
-            } else if tables.built(hot.shown)
-                && hot
-                    .shown
-                    .is_some_and(|k| tables.entries[k].mesh == hot.mesh)
-            {
-                hot.shown
-            } else {
-                let (tl, n) = (target_lod as usize, mesh.nlods as usize);
-                (tl..n)
-                    .chain((0..tl).rev())
-                    .map(|l| mesh.lod_entry[l])
-                    .find(|&k| tables.built(k))
-                    .flatten()
-            };
+            let chosen = tables.choose_shown(mesh, mesh_ix, target, target_lod as usize, hot.shown);
             hot.shown = chosen;
             if chosen != target {
                 landmarks.unsettled.push(slot);

@@ -71,7 +71,9 @@ impl VulkanBackend {
                             },
                             true,
                         )?;
-                        ib.write(0, bytemuck::cast_slice(idx));
+                        // A copy of new geometry: timed apart (reported beside `update`, not in it).
+                        tracing::trace_span!("upload_geometry")
+                            .in_scope(|| ib.write(0, bytemuck::cast_slice(idx)));
                         self.counters.input_upload_bytes += (idx.len() * 4) as u64;
                         let a = ib.address;
                         (Some(ib), a, IndexType::U32)
@@ -122,7 +124,9 @@ impl VulkanBackend {
                                 true,
                             ) {
                                 Ok(mut vb) => {
-                                    vb.write(0, bytemuck::cast_slice(pos));
+                                    // A copy of new geometry: timed apart (reported beside `update`, not in it).
+                                    tracing::trace_span!("upload_geometry")
+                                        .in_scope(|| vb.write(0, bytemuck::cast_slice(pos)));
                                     self.counters.input_upload_bytes += (pos.len() * 12) as u64;
                                     (vb.address, 12, None, Some((vb, ib)))
                                 }

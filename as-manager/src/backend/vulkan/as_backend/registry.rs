@@ -111,7 +111,9 @@ impl VulkanBackend {
             },
             true,
         )?;
-        b.write(0, bytemuck::cast_slice(positions));
+        // A copy of new geometry: timed apart (reported beside `update`, not in it).
+        tracing::trace_span!("upload_geometry")
+            .in_scope(|| b.write(0, bytemuck::cast_slice(positions)));
         self.counters.pose_upload_bytes += (positions.len() * 12) as u64;
         Ok(b)
     }
@@ -152,7 +154,9 @@ impl VulkanBackend {
             None => {
                 // Written `ring` refits ago: every frame that read it has completed.
                 let b = &mut sk.poses[sk.next % ring];
-                b.write(0, bytemuck::cast_slice(positions));
+                // A copy of new geometry: timed apart (reported beside `update`, not in it).
+                tracing::trace_span!("upload_geometry")
+                    .in_scope(|| b.write(0, bytemuck::cast_slice(positions)));
                 self.counters.pose_upload_bytes += (positions.len() * 12) as u64;
                 b.address
             }
