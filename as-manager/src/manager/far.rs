@@ -76,6 +76,9 @@ pub(crate) struct FarField {
     /// Leaves that changed hand-over side (or were registered or unregistered) since the
     /// landmarks last looked (`landmarks.rs` drains it).
     pub flipped: Vec<u32>,
+    /// Per node slot: a live leaf on the near side (`is_near_leaf`, asked per instance by the
+    /// residency pass and the landmarks: a byte here, not a node's cache lines).
+    near_bits: Vec<bool>,
     /// Far-field frames so far (one per `far_prepare`); 0: none yet.
     epoch: u64,
     /// Live nodes.
@@ -122,6 +125,20 @@ impl FarField {
             unready: 0,
             culled: false,
         });
+        self.refresh_near_bit(id.index);
+        if let Some(p) = parent {
+            self.refresh_near_bit(p);
+        }
+    }
+
+    /// Sets `near_bits[i]` from the node.
+    fn refresh_near_bit(&mut self, i: u32) {
+        let near =
+            matches!(self.nodes.get(i as usize), Some(Some(n)) if n.children.is_empty() && n.near);
+        if self.near_bits.len() <= i as usize {
+            self.near_bits.resize(i as usize + 1, false);
+        }
+        self.near_bits[i as usize] = near;
     }
 
     pub fn set_proxy(&mut self, id: GroupId, proxy: Option<(u32, f32)>) {
@@ -145,10 +162,16 @@ impl FarField {
         if let Some(Some(p)) = n.parent.and_then(|p| self.nodes.get_mut(p as usize)) {
             p.children.retain(|&c| c != id.index);
         }
-        for c in n.children {
+        for &c in &n.children {
             if let Some(Some(child)) = self.nodes.get_mut(c as usize) {
                 child.parent = None;
             }
+        }
+        self.refresh_near_bit(id.index);
+        if let Some(p) = n.parent {
+            // A parent left without children is a leaf again.
+            self.refresh_near_bit(p);
+            self.flipped.push(p);
         }
     }
 
@@ -216,7 +239,7 @@ impl FarField {
     /// Whether `group` is a leaf on the near (detail) side of the hand-over (false for
     /// `NO_GROUP`, which names no node).
     pub fn is_near_leaf(&self, group: u32) -> bool {
-        matches!(self.nodes.get(group as usize), Some(Some(n)) if n.children.is_empty() && n.near)
+        self.near_bits.get(group as usize).copied().unwrap_or(false)
     }
 
     /// XZ rectangles of the near leaves that reach beyond `r2` of every camera (their
@@ -320,6 +343,7 @@ impl<B: AsBackend> AsManager<B> {
             if let Some(Some(n)) = far.nodes.get_mut(i as usize) {
                 if visit(n) {
                     far.flipped.push(i);
+                    far.near_bits[i as usize] = n.children.is_empty() && n.near;
                 }
                 if n.near && n.listed != e {
                     n.listed = e;
@@ -333,6 +357,7 @@ impl<B: AsBackend> AsManager<B> {
             let n = far.nodes[i as usize].as_mut().expect("live group");
             if visit(n) {
                 far.flipped.push(i);
+                far.near_bits[i as usize] = n.children.is_empty() && n.near;
             }
             if n.children.is_empty() && n.near && n.listed != e {
                 n.listed = e;

@@ -149,7 +149,10 @@ impl Landmarks {
         let d = d2.sqrt();
         let reach = x.p.r2 + radius;
         let within_r2 = d2 <= reach * reach;
-        if within_r2 || x.far.is_near_leaf(cand.group) {
+        // A landmark whose leaf turned near is checked first (the residency pass continues
+        // from its state); any other candidate's leaf only once it is not out by distance.
+        let near_leaf = |x: &Look<'_>| x.far.is_near_leaf(cand.group);
+        if within_r2 || (is_member && near_leaf(x)) {
             // Near field now (within r2, or its leaf is on the detail side): shown by the
             // residency pass, which continues from the landmark's LOD and cull state.
             if is_member {
@@ -172,6 +175,11 @@ impl Landmarks {
             }
             let join = (radius / kt).min(range + radius);
             self.due_after(ci, d - join, d);
+            return;
+        }
+        if near_leaf(x) {
+            // Detail of a near leaf (not a landmark now): its leaf flipping is an event.
+            self.due_after(ci, f32::INFINITY, d);
             return;
         }
         let mesh_ix = cand.mesh;
