@@ -16,21 +16,10 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use clap::Parser;
 use rtstream::as_manager::{CullMode, PolicyKind};
 use rtstream::driver::RunConfig;
 use rtstream::streaming::WorldPreset;
 use serde::Serialize;
-
-/// The dense city under each culling mode: TLAS instances removed and the error it costs.
-#[derive(Debug, Parser)]
-#[command(version)]
-struct Cli {
-    #[command(flatten)]
-    run: cli::RunArgs,
-    #[command(flatten)]
-    output: cli::OutputArgs,
-}
 
 #[derive(Debug, Serialize)]
 struct Mode {
@@ -40,28 +29,25 @@ struct Mode {
     removed_share: f64,
     peak_blas_mb: f64,
     update_ms_p50: f64,
-    hit_mismatch_mean: f64,
-    shadow_mismatch_mean: f64,
-    over_budget_frames: u64,
-    validation_messages: u64,
+    #[serde(flatten)]
+    figures: cli::PolicyFigures,
 }
 
 #[derive(Debug, Serialize)]
 struct Summary {
-    device: String,
-    frames: u64,
+    #[serde(flatten)]
+    totals: sweep::Totals,
     instances: usize,
     instances_per_km2: f64,
     default_instances_per_km2: f64,
     modes: Vec<Mode>,
-    over_budget_frames: u64,
-    validation_messages: u64,
 }
 
 fn main() -> anyhow::Result<()> {
-    cli::init_tracing();
-    let mut cli = Cli::parse();
-    cli.run.default_out("out/city");
+    let cli = cli::ExampleCli::<cli::NoFlags>::start(
+        "The dense city under each culling mode: TLAS instances removed and the error it costs.",
+        "out/city",
+    );
     let mut base = cli.run.run_config()?;
     cli.run.use_preset(&mut base, WorldPreset::city());
     let preset = base.preset.clone();
@@ -109,20 +95,14 @@ fn main() -> anyhow::Result<()> {
             removed_share: culled / (tlas + culled).max(1.0),
             peak_blas_mb: p.peak_blas_bytes as f64 / (1 << 20) as f64,
             update_ms_p50: p.update_ms_p50,
-            hit_mismatch_mean: p.hit_mismatch_mean,
-            shadow_mismatch_mean: p.shadow_mismatch_mean,
-            over_budget_frames: p.over_budget_frames,
-            validation_messages: p.validation_messages,
+            figures: p.into(),
         });
     }
     let summary = Summary {
-        device: reports[0].summary.policies[0].backend.clone(),
-        frames: base.frames,
+        totals: sweep::Totals::of(&ctx, &base, &reports),
         instances,
         instances_per_km2: density,
         default_instances_per_km2: default_density,
-        over_budget_frames: out.iter().map(|m| m.over_budget_frames).sum(),
-        validation_messages: ctx.validation_log().failure_count(),
         modes: out,
     };
     println!(
@@ -138,18 +118,18 @@ fn main() -> anyhow::Result<()> {
             m.removed_share * 100.0,
             m.peak_blas_mb,
             m.update_ms_p50,
-            m.hit_mismatch_mean * 100.0,
-            m.shadow_mismatch_mean * 100.0
+            m.figures.hit_mismatch_mean * 100.0,
+            m.figures.shadow_mismatch_mean * 100.0
         );
     }
     println!(
         "frames over budget {}; validation messages {}",
-        summary.over_budget_frames, summary.validation_messages
+        summary.totals.over_budget_frames, summary.totals.validation_messages
     );
     std::fs::create_dir_all(&cli.run.out)?;
     let point = |m: &Mode| charts::Point {
         x: m.tlas_instances_mean,
-        y: m.hit_mismatch_mean * 100.0,
+        y: m.figures.hit_mismatch_mean * 100.0,
         label: m.cull.clone(),
     };
     let files = charts::scatter(

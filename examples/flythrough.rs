@@ -19,7 +19,7 @@ mod profile;
 
 use anyhow::Context;
 use clap::Parser;
-use rtstream::driver::{self, RunReport};
+use rtstream::driver::RunReport;
 
 /// The open-world fly-through: every policy on the real backend, scored against the full world.
 #[derive(Debug, Parser)]
@@ -27,12 +27,8 @@ use rtstream::driver::{self, RunReport};
 struct Cli {
     #[command(flatten)]
     run: cli::RunArgs,
-    /// Print the summary as one JSON object on the last line of stdout.
-    #[arg(long)]
-    json: bool,
-    /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    output: cli::OutputArgs,
     /// Time `update`'s phases (the manager's and the backend's tracing spans), print the
     /// per-phase table and write the spans' self times to this file as folded stacks (for
     /// `inferno-flamegraph`).
@@ -59,9 +55,8 @@ fn main() -> anyhow::Result<()> {
         },
         cli.run.out.display()
     );
-    let (bar, mut progress) = cli::progress_bar(config.frames, cli.quiet);
-    let report = driver::run(&config, &mut progress).context("the fly-through failed")?;
-    bar.finish_and_clear();
+    let report = cli::run_with_progress(&config, cli.output.quiet, |_| {})
+        .context("the fly-through failed")?;
     print_table(&report);
     if report.summary.evaluated_frames > 0 {
         let bands: Vec<String> = report.summary.bands.to_vec();
@@ -96,7 +91,7 @@ fn main() -> anyhow::Result<()> {
             .with_context(|| format!("writing {}", path.display()))?;
         println!("wrote {} (folded stacks, µs)", path.display());
     }
-    if cli.json {
+    if cli.output.json {
         println!("{}", report.json());
     }
     Ok(())

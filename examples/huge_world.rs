@@ -18,7 +18,7 @@ mod charts;
 mod cli;
 
 use anyhow::Context;
-use clap::{Parser, ValueEnum};
+use clap::ValueEnum;
 use rtstream::as_manager::backend::model::ModelBackend;
 use rtstream::as_manager::synth::{SynthParams, SynthWorld};
 use rtstream::as_manager::{AsManager, Config, FrameInput, PolicyKind};
@@ -36,12 +36,9 @@ enum Part {
     Both,
 }
 
-/// The 1M-instance and 1.76M-instance worlds against the default one.
-#[derive(Debug, Parser)]
-#[command(version)]
-struct Cli {
-    #[command(flatten)]
-    run: cli::RunArgs,
+/// The example's own flags.
+#[derive(Debug, clap::Args)]
+struct Flags {
     /// Which part to run.
     #[arg(long, value_enum, default_value_t = Part::Both)]
     part: Part,
@@ -60,8 +57,6 @@ struct Cli {
     /// Sample resident memory and open files every this many frames (stream part).
     #[arg(long, default_value_t = 30)]
     sample_every: u64,
-    #[command(flatten)]
-    output: cli::OutputArgs,
 }
 
 /// Per-frame update time of one world.
@@ -115,18 +110,20 @@ struct Summary {
 }
 
 fn main() -> anyhow::Result<()> {
-    cli::init_tracing();
-    let mut cli = Cli::parse();
-    cli.run.default_out("out/huge_world");
+    let cli = cli::ExampleCli::<Flags>::start(
+        "The 1M-instance and 1.76M-instance worlds against the default one.",
+        "out/huge_world",
+    );
+    let own = &cli.own;
     let mut s = Summary::default();
-    if matches!(cli.part, Part::Model | Part::Both) {
-        for k in 0..cli.repeat.max(1) {
+    if matches!(own.part, Part::Model | Part::Both) {
+        for k in 0..own.repeat.max(1) {
             for (name, params) in [
                 ("default (104k)", SynthParams::default_world()),
                 ("million", SynthParams::million()),
             ] {
                 eprintln!("model backend: {name} (run {})", k + 1);
-                s.model.push(model_run(name, params, cli.model_frames)?);
+                s.model.push(model_run(name, params, own.model_frames)?);
             }
             let n = s.model.len();
             let (a, b) = (&s.model[n - 2].update_ms, &s.model[n - 1].update_ms);
@@ -134,9 +131,9 @@ fn main() -> anyhow::Result<()> {
         }
         (s.model_ratio_p50, s.model_ratio_p99) = median_ratios(&s.model_ratios);
     }
-    if matches!(cli.part, Part::Stream | Part::Both) {
+    if matches!(own.part, Part::Stream | Part::Both) {
         let base = cli.run.run_config()?;
-        let pairs = (0..cli.repeat.max(1))
+        let pairs = (0..own.repeat.max(1))
             .flat_map(|_| [WorldPreset::default_world(), WorldPreset::large_world()]);
         for (i, preset) in pairs.enumerate() {
             let mut c = base.clone();
@@ -145,7 +142,7 @@ fn main() -> anyhow::Result<()> {
                 // One --world cannot hold both worlds.
                 c.world_dir = format!("out/world-{}-{:x}", c.preset.name, c.preset.seed).into();
             }
-            if !cli.equal_frames {
+            if !own.equal_frames {
                 // The path crosses the map's diagonal in `frames` frames: scale the frames with
                 // the map so that the camera moves as many metres per frame in both worlds.
                 let scale = c.preset.size_m / WorldPreset::default_world().size_m;
@@ -156,8 +153,8 @@ fn main() -> anyhow::Result<()> {
             c.maps = 0;
             c.out_dir = None;
             eprintln!("streamed from disk: {}", c.preset.name);
-            let mut r = stream_run(&c, cli.sample_every, cli.output.quiet)?;
-            if cli.repeat > 1 {
+            let mut r = stream_run(&c, own.sample_every, cli.output.quiet)?;
+            if own.repeat > 1 {
                 r.world = format!("{} #{}", r.world, i / 2 + 1);
             }
             s.over_budget_frames += r.over_budget_frames;
@@ -259,10 +256,9 @@ fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<
         .with_context(|| format!("generating and baking {}", c.preset.name))?;
     let instances = world.instance_count();
     drop(world);
-    let (bar, mut progress) = cli::progress_bar(c.frames, quiet);
     let mut samples = Vec::new();
     let (mut travelled, mut last) = (0.0f64, None::<glam::Vec3>);
-    let report = driver::run(c, &mut |p| {
+    let report = cli::run_with_progress(c, quiet, |p| {
         if let Some(l) = last {
             travelled += f64::from(l.distance(p.camera));
         }
@@ -275,10 +271,8 @@ fn stream_run(c: &driver::RunConfig, every: u64, quiet: bool) -> anyhow::Result<
                 levels_loaded: p.levels_loaded,
             });
         }
-        progress(p);
     })
     .with_context(|| format!("streaming {}", c.preset.name))?;
-    bar.finish_and_clear();
     let p = &report.summary.policies[0];
     let times = cli::managed_rows(&report.rows)
         .into_iter()

@@ -16,22 +16,16 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use clap::Parser;
 use rtstream::as_manager::PolicyKind;
 use rtstream::driver::RunConfig;
 use serde::Serialize;
 
-/// The managed policy under BLAS budgets below and above what r1 asks for.
-#[derive(Debug, Parser)]
-#[command(version)]
-struct Cli {
-    #[command(flatten)]
-    run: cli::RunArgs,
+/// The example's own flag.
+#[derive(Debug, clap::Args)]
+struct Flags {
     /// Budgets to sweep, MB (comma-separated).
     #[arg(long, value_delimiter = ',', default_values_t = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])]
     budgets_mb: Vec<f64>,
-    #[command(flatten)]
-    output: cli::OutputArgs,
 }
 
 /// One budget's figures.
@@ -40,32 +34,29 @@ struct Point {
     /// None: no budget (what the policy asks for).
     budget_mb: Option<f64>,
     peak_blas_mb: f64,
-    over_budget_frames: u64,
     evictions: u64,
     lod_fallback_frames: usize,
     memory_refused_frames: usize,
     short_of_target_mean: f64,
     tlas_instances_mean: f64,
-    hit_mismatch_mean: f64,
-    shadow_mismatch_mean: f64,
-    validation_messages: u64,
+    #[serde(flatten)]
+    figures: cli::PolicyFigures,
 }
 
 #[derive(Debug, Serialize)]
 struct Summary {
-    device: String,
-    frames: u64,
+    #[serde(flatten)]
+    totals: sweep::Totals,
     points: Vec<Point>,
-    over_budget_frames: u64,
-    validation_messages: u64,
 }
 
 fn main() -> anyhow::Result<()> {
-    cli::init_tracing();
-    let mut cli = Cli::parse();
-    cli.run.default_out("out/memory_budget");
+    let cli = cli::ExampleCli::<Flags>::start(
+        "The managed policy under BLAS budgets below and above what r1 asks for.",
+        "out/memory_budget",
+    );
     anyhow::ensure!(
-        cli.budgets_mb.iter().all(|b| b.is_finite() && *b > 0.0),
+        cli.own.budgets_mb.iter().all(|b| b.is_finite() && *b > 0.0),
         "every budget must be a positive number of MB"
     );
     let mut base = cli.run.run_config()?;
@@ -74,7 +65,7 @@ fn main() -> anyhow::Result<()> {
     base.all_geometry_reference = false;
     base.out_dir = None;
     let mut budgets: Vec<Option<f64>> = vec![None];
-    budgets.extend(cli.budgets_mb.iter().map(|&b| Some(b)));
+    budgets.extend(cli.own.budgets_mb.iter().map(|&b| Some(b)));
     let points: Vec<(String, RunConfig)> = budgets
         .iter()
         .map(|b| {
@@ -92,22 +83,16 @@ fn main() -> anyhow::Result<()> {
         out.push(Point {
             budget_mb: *b,
             peak_blas_mb: p.peak_blas_bytes as f64 / (1 << 20) as f64,
-            over_budget_frames: p.over_budget_frames,
             evictions: rows.iter().map(|x| u64::from(x.evictions)).sum(),
             lod_fallback_frames: rows.iter().filter(|x| x.lod_fallbacks > 0).count(),
             memory_refused_frames: rows.iter().filter(|x| x.memory_refused > 0).count(),
             short_of_target_mean: cli::mean(&rows, |x| f64::from(x.short_of_target)),
             tlas_instances_mean: cli::mean(&rows, |x| f64::from(x.tlas_instances)),
-            hit_mismatch_mean: p.hit_mismatch_mean,
-            shadow_mismatch_mean: p.shadow_mismatch_mean,
-            validation_messages: p.validation_messages,
+            figures: p.into(),
         });
     }
     let summary = Summary {
-        device: reports[0].summary.policies[0].backend.clone(),
-        frames: base.frames,
-        over_budget_frames: out.iter().map(|p| p.over_budget_frames).sum(),
-        validation_messages: ctx.validation_log().failure_count(),
+        totals: sweep::Totals::of(&ctx, &base, &reports),
         points: out,
     };
     print_table(&summary);
@@ -131,11 +116,11 @@ fn main() -> anyhow::Result<()> {
         &[
             (
                 "hit mismatch".into(),
-                series(|p| p.hit_mismatch_mean * 100.0),
+                series(|p| p.figures.hit_mismatch_mean * 100.0),
             ),
             (
                 "shadow mismatch".into(),
-                series(|p| p.shadow_mismatch_mean * 100.0),
+                series(|p| p.figures.shadow_mismatch_mean * 100.0),
             ),
         ],
     )?;
@@ -172,18 +157,18 @@ fn print_table(s: &Summary) {
             "{:>9} {:>9.2} {:>5} {:>9} {:>9} {:>8} {:>8.1} {:>9.0} {:>8.2} {:>8.2}",
             p.budget_mb.map_or("none".into(), |b| format!("{b} MB")),
             p.peak_blas_mb,
-            p.over_budget_frames,
+            p.figures.over_budget_frames,
             p.evictions,
             p.lod_fallback_frames,
             p.memory_refused_frames,
             p.short_of_target_mean,
             p.tlas_instances_mean,
-            p.hit_mismatch_mean * 100.0,
-            p.shadow_mismatch_mean * 100.0
+            p.figures.hit_mismatch_mean * 100.0,
+            p.figures.shadow_mismatch_mean * 100.0
         );
     }
     println!(
         "frames over budget {} (all points); validation messages {}",
-        s.over_budget_frames, s.validation_messages
+        s.totals.over_budget_frames, s.totals.validation_messages
     );
 }

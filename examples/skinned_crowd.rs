@@ -16,26 +16,20 @@ mod charts;
 mod cli;
 
 use anyhow::Context;
-use clap::Parser;
 use rtstream::as_manager::PolicyKind;
 use rtstream::driver::{self, FrameRow};
 use rtstream::streaming::{Motion, WorldPreset};
 use serde::Serialize;
 
-/// Hundreds of skinned characters near the camera: refit budget, rebuilds and quality.
-#[derive(Debug, Parser)]
-#[command(version)]
-struct Cli {
-    #[command(flatten)]
-    run: cli::RunArgs,
+/// The example's own flags.
+#[derive(Debug, clap::Args)]
+struct Flags {
     /// Generated skinned characters (spread over a 3x3-level area, 214 m).
     #[arg(long, default_value_t = 600)]
     characters: u32,
     /// Triangles refitted per frame at most (the manager's `max_refit_primitives`).
     #[arg(long)]
     max_refit_tris: Option<u64>,
-    #[command(flatten)]
-    output: cli::OutputArgs,
 }
 
 #[derive(Debug, Serialize)]
@@ -55,25 +49,24 @@ struct Summary {
     gpu_as_ms_p99: f64,
     update_ms_p50: f64,
     update_ms_p99: f64,
-    over_budget_frames: u64,
-    hit_mismatch_mean: f64,
-    shadow_mismatch_mean: f64,
-    validation_messages: u64,
+    #[serde(flatten)]
+    figures: cli::PolicyFigures,
 }
 
 fn main() -> anyhow::Result<()> {
-    cli::init_tracing();
-    let mut cli = Cli::parse();
-    cli.run.default_out("out/skinned_crowd");
-    anyhow::ensure!(cli.characters > 0, "--characters must be at least 1");
+    let cli = cli::ExampleCli::<Flags>::start(
+        "Hundreds of skinned characters near the camera: refit budget, rebuilds and quality.",
+        "out/skinned_crowd",
+    );
+    anyhow::ensure!(cli.own.characters > 0, "--characters must be at least 1");
     let mut config = cli.run.run_config()?;
     cli.run
-        .use_preset(&mut config, WorldPreset::crowd(cli.characters));
+        .use_preset(&mut config, WorldPreset::crowd(cli.own.characters));
     config.policies = vec![PolicyKind::Managed];
     config.maps = 0;
     // A slow walk through the middle of the crowd.
     config.path_span = (0.4, 0.6);
-    if let Some(t) = cli.max_refit_tris {
+    if let Some(t) = cli.own.max_refit_tris {
         config.managed.build.max_refit_primitives = t;
     }
     let world =
@@ -96,9 +89,8 @@ fn main() -> anyhow::Result<()> {
         skinned_triangles as f64 / budget.max(1) as f64,
         budget
     );
-    let (bar, mut progress) = cli::progress_bar(config.frames, cli.output.quiet);
-    let report = driver::run(&config, &mut progress).context("skinned crowd run")?;
-    bar.finish_and_clear();
+    let report =
+        cli::run_with_progress(&config, cli.output.quiet, |_| {}).context("skinned crowd run")?;
 
     let rows = cli::managed_rows(&report.rows);
     let p = &report.summary.policies[0];
@@ -125,10 +117,7 @@ fn main() -> anyhow::Result<()> {
         gpu_as_ms_p99: p.gpu_as_ms_p99,
         update_ms_p50: p.update_ms_p50,
         update_ms_p99: p.update_ms_p99,
-        over_budget_frames: p.over_budget_frames,
-        hit_mismatch_mean: p.hit_mismatch_mean,
-        shadow_mismatch_mean: p.shadow_mismatch_mean,
-        validation_messages: p.validation_messages,
+        figures: p.into(),
     };
     println!(
         "{} skinned instances, {} triangles ({:.1}x the refit budget {}); {} frames: {} refits, \
@@ -150,9 +139,9 @@ fn main() -> anyhow::Result<()> {
         summary.gpu_as_ms_p99,
         summary.update_ms_p50,
         summary.update_ms_p99,
-        summary.hit_mismatch_mean * 100.0,
-        summary.shadow_mismatch_mean * 100.0,
-        summary.validation_messages
+        summary.figures.hit_mismatch_mean * 100.0,
+        summary.figures.shadow_mismatch_mean * 100.0,
+        summary.figures.validation_messages
     );
     std::fs::create_dir_all(&cli.run.out)?;
     let per_frame = |f: fn(&FrameRow) -> f64| cli::per_frame(&rows, f);

@@ -16,22 +16,16 @@ mod charts;
 mod cli;
 
 use anyhow::Context;
-use clap::Parser;
 use rtstream::as_manager::PolicyKind;
 use rtstream::driver::{self, FrameRow};
 use serde::Serialize;
 
-/// A teleport every N frames to a random place; frames to coverage and build work.
-#[derive(Debug, Parser)]
-#[command(version)]
-struct Cli {
-    #[command(flatten)]
-    run: cli::RunArgs,
+/// The example's own flag.
+#[derive(Debug, clap::Args)]
+struct Flags {
     /// Frames between teleports.
     #[arg(long, default_value_t = 30)]
     every: u64,
-    #[command(flatten)]
-    output: cli::OutputArgs,
 }
 
 /// One teleport's figures.
@@ -58,33 +52,32 @@ struct Summary {
     frames_to_coverage_max: Option<u64>,
     frames_to_coverage_mean: Option<f64>,
     over_build_budget_frames: usize,
-    over_budget_frames: u64,
-    hit_mismatch_mean: f64,
-    shadow_mismatch_mean: f64,
-    validation_messages: u64,
+    #[serde(flatten)]
+    figures: cli::PolicyFigures,
 }
 
 fn main() -> anyhow::Result<()> {
-    cli::init_tracing();
-    let mut cli = Cli::parse();
-    cli.run.default_out("out/teleport_storm");
-    anyhow::ensure!(cli.every > 0, "--every must be at least 1");
+    let cli = cli::ExampleCli::<Flags>::start(
+        "A teleport every N frames to a random place; frames to coverage and build work.",
+        "out/teleport_storm",
+    );
+    let every = cli.own.every;
+    anyhow::ensure!(every > 0, "--every must be at least 1");
     let mut config = cli.run.run_config()?;
     config.policies = vec![PolicyKind::Managed];
-    config.teleport_every = Some(cli.every);
+    config.teleport_every = Some(every);
     config.maps = 0;
     eprintln!(
         "teleport storm: {} frames, a teleport every {} frames, world {} (seed {:#x})",
-        config.frames, cli.every, config.preset.name, config.preset.seed
+        config.frames, every, config.preset.name, config.preset.seed
     );
-    let (bar, mut progress) = cli::progress_bar(config.frames, cli.output.quiet);
-    let report = driver::run(&config, &mut progress).context("teleport storm run")?;
-    bar.finish_and_clear();
+    let report =
+        cli::run_with_progress(&config, cli.output.quiet, |_| {}).context("teleport storm run")?;
 
     let rows = cli::managed_rows(&report.rows);
-    let coverage = driver::frames_to_coverage(&report.rows, "managed", cli.every);
+    let coverage = driver::frames_to_coverage(&report.rows, "managed", every);
     let teleports: Vec<Teleport> = rows
-        .chunks(cli.every as usize)
+        .chunks(every as usize)
         .zip(&coverage)
         .enumerate()
         .map(|(k, (seg, &c))| Teleport {
@@ -102,17 +95,14 @@ fn main() -> anyhow::Result<()> {
     let summary = Summary {
         device: p.backend.clone(),
         frames: config.frames,
-        every: cli.every,
+        every,
         build_budget_triangles: config.managed.build.max_primitives,
         covered_teleports: covered.len(),
         frames_to_coverage_max: covered.iter().max().copied(),
         frames_to_coverage_mean: (!covered.is_empty())
             .then(|| covered.iter().sum::<u64>() as f64 / covered.len() as f64),
         over_build_budget_frames: rows.iter().filter(|r| r.over_build_budget).count(),
-        over_budget_frames: p.over_budget_frames,
-        hit_mismatch_mean: p.hit_mismatch_mean,
-        shadow_mismatch_mean: p.shadow_mismatch_mean,
-        validation_messages: p.validation_messages,
+        figures: p.into(),
         teleports,
     };
     print_table(&summary);
@@ -120,7 +110,7 @@ fn main() -> anyhow::Result<()> {
     let per_frame = |f: fn(&FrameRow) -> f64| cli::per_frame(&rows, f);
     let mut files = charts::lines(
         &cli.run.out.join("build_work"),
-        &format!("Teleport every {} frames: build work per frame", cli.every),
+        &format!("Teleport every {} frames: build work per frame", every),
         "frame",
         "triangles built",
         &[
@@ -138,7 +128,7 @@ fn main() -> anyhow::Result<()> {
         &cli.run.out.join("coverage"),
         &format!(
             "Teleport every {} frames: instances within r1 short of target",
-            cli.every
+            every
         ),
         "frame",
         "instances",
@@ -185,9 +175,9 @@ fn print_table(s: &Summary) {
             .map_or("-".into(), |v| format!("{v:.1}")),
         s.build_budget_triangles,
         s.over_build_budget_frames,
-        s.over_budget_frames,
-        s.hit_mismatch_mean * 100.0,
-        s.shadow_mismatch_mean * 100.0,
-        s.validation_messages
+        s.figures.over_budget_frames,
+        s.figures.hit_mismatch_mean * 100.0,
+        s.figures.shadow_mismatch_mean * 100.0,
+        s.figures.validation_messages
     );
 }

@@ -27,7 +27,7 @@ use rtstream::as_manager::backend::vulkan::{
     REQUIRED_DEVICE_EXTENSIONS,
 };
 use rtstream::as_manager::backend::{BackendError, TlasHandle};
-use rtstream::as_manager::{AsError, Config, FrameInput, Viewpoint};
+use rtstream::as_manager::{AsError, FrameInput, Viewpoint};
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
 
 /// Validation warnings and errors the engine's messenger received.
@@ -388,13 +388,9 @@ fn scene(ctx: &Arc<VulkanContext>, frames_in_flight: u32) -> Scene {
 }
 
 fn scene_with(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> Scene {
-    let mut c = Config::default();
-    c.residency.create_threshold = 1;
+    let mut c = common::lavapipe_config(40.0, 50.0);
     c.residency.release_threshold = 2;
     c.residency.min_resident_frames = 0;
-    c.residency.r1 = 40.0;
-    c.residency.r2 = 50.0;
-    c.build.min_compaction_saving = 0.0;
     c.build.max_primitives = 3_000;
     Scene::new(ctx, desc, c, 12)
 }

@@ -11,17 +11,12 @@ use std::sync::Arc;
 use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackendDesc};
 use rtstream::as_manager::backend::BackendError;
-use rtstream::as_manager::{AsError, Config, FrameInput, Viewpoint};
+use rtstream::as_manager::{AsError, FrameInput, Viewpoint};
 
 type Scene = common::GridWalk;
 
 fn scene(ctx: &Arc<rtstream::as_manager::backend::vulkan::VulkanContext>) -> Scene {
-    let mut c = Config::default();
-    c.residency.create_threshold = 1;
-    c.residency.r1 = 60.0;
-    c.residency.r2 = 80.0;
-    // Lavapipe's compaction saves nothing; compact anyway so that path runs.
-    c.build.min_compaction_saving = 0.0;
+    let mut c = common::lavapipe_config(60.0, 80.0);
     // A few builds a frame, so that every frame of the walk has GPU work.
     c.build.max_primitives = 3_000;
     Scene::new(ctx, VulkanBackendDesc::default(), c, 6)

@@ -170,19 +170,13 @@ fn encode_indices(ix: &[u32], t: IndexType) -> Vec<u8> {
 }
 
 fn config() -> Config {
-    let mut c = Config::default();
-    c.residency.create_threshold = 1;
+    let mut c = common::lavapipe_config(100.0, 120.0);
     c.residency.min_resident_frames = 0;
-    c.residency.r1 = 100.0;
-    c.residency.r2 = 120.0;
-    c.build.min_compaction_saving = 0.0;
     c
 }
 
 fn manager(ctx: &Arc<VulkanContext>, in_flight: u32) -> AsManager<VulkanBackend> {
-    let backend =
-        VulkanBackend::new(ctx.clone(), VulkanBackendDesc::engine_recorded(in_flight)).unwrap();
-    AsManager::new(config(), backend).unwrap()
+    common::manager(ctx, VulkanBackendDesc::engine_recorded(in_flight), config())
 }
 
 const EYE: Vec3 = Vec3::new(0.3, 2.5, -3.0);

@@ -10,14 +10,12 @@ mod common;
 
 use std::sync::Arc;
 
-use glam::{Affine3A, Mat4, Vec3};
+use glam::{Mat4, Vec3};
 use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc, VulkanContext};
 use rtstream::as_manager::backend::TlasHandle;
 use rtstream::as_manager::record::TlasInstance;
 use rtstream::as_manager::synth::grid_geometry;
-use rtstream::as_manager::{
-    AsManager, Config, FrameInput, GeometryData, InstanceDesc, MeshDesc, MeshKind, Viewpoint,
-};
+use rtstream::as_manager::{AsManager, Config, FrameInput, GeometryData, MeshKind, Viewpoint};
 use rtstream::renderer::reference::ReferenceScene;
 use rtstream::renderer::{Camera, Frame, InstanceShading, RenderDesc, Renderer};
 
@@ -47,10 +45,9 @@ fn face_normal(pos: &[[f32; 3]], idx: &[u32], prim: u32, m: Mat4) -> Vec3 {
 
 /// A manager on a Vulkan backend (`desc`) that builds what it sees from the first frame.
 fn manager(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc) -> AsManager<VulkanBackend> {
-    let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
     let mut config = Config::default();
     config.residency.create_threshold = 1;
-    AsManager::new(config, backend).unwrap()
+    common::manager(ctx, desc, config)
 }
 
 /// Frame `frame` seen from `cams`: its TLAS and instance records.
@@ -145,22 +142,13 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
     let ctx = common::context();
     let mut m = manager(&ctx, VulkanBackendDesc::default());
     let base = bumpy(16, 6.0, 0.0);
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "cloth",
-            MeshKind::Skinned,
-            5.0,
-            common::one_lod(base.clone()),
-        ))
-        .unwrap();
+    let mesh = common::one_lod_mesh(&m, "cloth", MeshKind::Skinned, 5.0, base.clone());
     // A (custom index 0) holds one pose; B (1) gets a new pose every frame.
     let at = [Vec3::new(-4.0, 0.0, 12.0), Vec3::new(4.0, 0.0, 12.0)];
-    let mut ids = Vec::new();
-    for (k, p) in at.iter().enumerate() {
-        let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(*p));
-        d.custom_index = k as u32;
-        ids.push(m.add_instance(d).unwrap());
-    }
+    let ids: Vec<_> = (0..)
+        .zip(at)
+        .map(|(k, p)| common::place(&m, mesh, p, k))
+        .collect();
     let pose_a = Arc::new(bumpy(16, 6.0, 1.7).positions.clone());
     m.set_skinned_pose(ids[0], pose_a.clone()).unwrap();
     let cams = [Viewpoint::new(Vec3::new(0.0, 6.0, 0.0), Vec3::Z)];
@@ -227,17 +215,9 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
     };
     let mut m = manager(&ctx, desc);
     let g = bumpy(40, 20.0, 0.3);
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "big",
-            MeshKind::Static,
-            15.0,
-            common::one_lod(g.clone()),
-        ))
-        .unwrap();
+    let mesh = common::one_lod_mesh(&m, "big", MeshKind::Static, 15.0, g.clone());
     let at = Vec3::new(0.0, 0.0, 20.0);
-    m.add_instance(InstanceDesc::new(mesh, Affine3A::from_translation(at)))
-        .unwrap();
+    common::place(&m, mesh, at, 0);
     let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut last = None;
     for frame in 0..4 {

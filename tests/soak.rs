@@ -13,7 +13,7 @@ use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{
     live_vulkan_handles, VulkanBackend, VulkanBackendDesc,
 };
-use rtstream::as_manager::{AsManager, Config, FrameInput, Viewpoint};
+use rtstream::as_manager::{AsManager, Config, Viewpoint};
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
 use rtstream::streaming::{StreamConfig, World};
 use rtstream::WorldBridge;
@@ -87,13 +87,7 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
         let eye = place + Vec3::new((frame % 30) as f32 * 0.5, 0.0, 0.0);
         let events = world.update(frame, &[eye.into()]);
         bridge.apply(&m, &events);
-        let cams = [Viewpoint::new(eye, Vec3::X)];
-        let out = m
-            .update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .expect("update");
+        let out = common::update_from(&mut m, frame, Viewpoint::new(eye, Vec3::X)).expect("update");
         let s = out.stats.clone();
         assert!(
             s.blas_bytes + s.retiring_bytes <= s.memory_budget,

@@ -66,8 +66,7 @@ struct Scene {
 }
 
 fn scene(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc, config: Config) -> Scene {
-    let backend = VulkanBackend::new(ctx.clone(), desc).expect("backend");
-    let manager = AsManager::new(config, backend).expect("manager");
+    let manager = common::manager(ctx, desc, config);
     let mut meshes = Vec::new();
     for (k, n) in [16u32, 20, 24, 28, 32, 36, 40, 44].into_iter().enumerate() {
         meshes.push(
@@ -84,50 +83,34 @@ fn scene(ctx: &Arc<VulkanContext>, desc: VulkanBackendDesc, config: Config) -> S
     let mut id = 0;
     for x in 0..14 {
         for z in 0..4 {
-            let mut d = InstanceDesc::new(
-                meshes[(x + z) % meshes.len()],
-                Affine3A::from_translation(Vec3::new(x as f32 * 25.0, 0.0, z as f32 * 25.0)),
-            );
-            d.custom_index = id;
+            let at = Vec3::new(x as f32 * 25.0, 0.0, z as f32 * 25.0);
+            common::place(&manager, meshes[(x + z) % meshes.len()], at, id);
             id += 1;
-            manager.add_instance(d).unwrap();
         }
     }
     let skin_base = grid_geometry(20, 6.0);
-    let skin_mesh = manager
-        .register_mesh(MeshDesc::new(
-            "cloth",
-            MeshKind::Skinned,
-            6.0,
-            common::one_lod(skin_base.clone()),
-        ))
-        .unwrap();
+    let skin_mesh =
+        common::one_lod_mesh(&manager, "cloth", MeshKind::Skinned, 6.0, skin_base.clone());
     let mut skinned = Vec::new();
     for k in 0..3 {
-        let mut d = InstanceDesc::new(
-            skin_mesh,
-            Affine3A::from_translation(Vec3::new(20.0 + k as f32 * 30.0, 4.0, -15.0)),
-        );
-        d.custom_index = id;
+        let at = Vec3::new(20.0 + k as f32 * 30.0, 4.0, -15.0);
+        skinned.push((
+            common::place(&manager, skin_mesh, at, id),
+            skin_base.clone(),
+        ));
         id += 1;
-        skinned.push((manager.add_instance(d).unwrap(), skin_base.clone()));
     }
     Scene { manager, skinned }
 }
 
 fn config() -> Config {
-    let mut c = Config::default();
-    c.residency.r1 = 45.0;
-    c.residency.r2 = 60.0;
-    c.residency.create_threshold = 1;
+    let mut c = common::lavapipe_config(45.0, 60.0);
     c.residency.release_threshold = 6;
     c.residency.min_resident_frames = 2;
     c.residency.cell_size = 25.0;
     c.build.max_gpu_ms = 50.0;
     c.build.max_primitives = 20_000;
     c.cull.far_distance = 80.0;
-    // Lavapipe's compaction saves nothing; compact anyway so the path runs here.
-    c.build.min_compaction_saving = 0.0;
     c
 }
 
@@ -271,12 +254,7 @@ fn forced_out_of_memory_is_survived() {
                 .set_skinned_pose(*id, pose(base, frame as f32 * 0.2, 0.0))
                 .unwrap();
         }
-        let out = s
-            .manager
-            .update(FrameInput {
-                frame,
-                cameras: &[Viewpoint::new(eye, Vec3::Z)],
-            })
+        let out = common::update_from(&mut s.manager, frame, Viewpoint::new(eye, Vec3::Z))
             .expect("OOM never fails a frame");
         ooms += out.stats.oom_events;
         tlas_instances += out.stats.tlas_instances;
@@ -332,12 +310,7 @@ fn streamed_camera_path_on_vulkan() {
         bridge.apply(&m, &events);
         bridge.pose_skinned(&m, &world, frame as f32 / 30.0, 1);
         let fwd = Vec3::new(1.0, 0.0, 1.0).normalize();
-        let out = m
-            .update(FrameInput {
-                frame,
-                cameras: &[Viewpoint::new(pos, fwd)],
-            })
-            .expect("update");
+        let out = common::update_from(&mut m, frame, Viewpoint::new(pos, fwd)).expect("update");
         let (tlas, records) = (out.tlas, out.instances.to_vec());
         m.backend_mut().wait_idle().expect("frame completes");
         let shading = bridge.shading(&records, |a| m.backend().shading_geometry(a));

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use glam::Vec3;
 use rtstream::as_manager::backend::model::ModelBackend;
-use rtstream::as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
+use rtstream::as_manager::{AsManager, Config, PolicyKind, Viewpoint};
 use rtstream::streaming::{StreamConfig, World};
 use rtstream::WorldBridge;
 
@@ -64,13 +64,8 @@ fn run(dir: &PathBuf, size: f32, policy: PolicyKind, gpu_like: bool) -> RunResul
             .count();
         bridge.apply(&m, &events);
         bridge.pose_skinned(&m, &world, frame as f32 / 30.0, 1);
-        let cams = [Viewpoint::new(pos, Vec3::new(1.0, 0.0, 1.0).normalize())];
-        let out = m
-            .update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .expect("update");
+        let camera = Viewpoint::new(pos, Vec3::new(1.0, 0.0, 1.0).normalize());
+        let out = common::update_from(&mut m, frame, camera).expect("update");
         let records = out.instances.to_vec();
         peak_blas = peak_blas.max(out.stats.blas_count);
         let mut seen = HashSet::new();

@@ -86,24 +86,47 @@ mod tests {
 
     #[test]
     fn hysteresis_band_prevents_flicker() {
-        let c = InstanceCuller::new(&CullConfig {
+        let far = CullConfig {
             mode: CullMode::Far,
             ..CullConfig::default()
-        });
-        // just beyond 300 m: culled; coming back needs < 270 m
-        assert!(c.cull(1.0, 302.0, false));
-        assert!(c.cull(1.0, 290.0, true));
-        assert!(!c.cull(1.0, 290.0, false));
-        assert!(!c.cull(1.0, 260.0, true));
-        let s = InstanceCuller::new(&CullConfig {
+        };
+        let small = CullConfig {
             min_angle: 1f32.to_radians(),
             ..CullConfig::default()
-        });
-        // angular radius 1 degree at 57.3 m for r = 1: band up to 1.1 degrees
-        assert!(s.cull(1.0, 60.0, false));
-        assert!(s.cull(1.0, 55.0, true));
-        assert!(!s.cull(1.0, 55.0, false));
-        assert!(!s.cull(1.0, 50.0, true));
+        };
+        // Far: just beyond 300 m culled; coming back needs < 270 m. Small: angular radius 1
+        // degree at 57.3 m for r = 1, band up to 1.1 degrees. Each: (distance, culled last
+        // frame, culled now) for a sphere of radius 1.
+        for (config, cases) in [
+            (
+                far,
+                [
+                    (302.0, false, true),
+                    (290.0, true, true),
+                    (290.0, false, false),
+                    (260.0, true, false),
+                ],
+            ),
+            (
+                small,
+                [
+                    (60.0, false, true),
+                    (55.0, true, true),
+                    (55.0, false, false),
+                    (50.0, true, false),
+                ],
+            ),
+        ] {
+            let c = InstanceCuller::new(&config);
+            for (distance, was, culled) in cases {
+                assert_eq!(
+                    c.cull(1.0, distance, was),
+                    culled,
+                    "{:?} at {distance} m, culled before: {was}",
+                    config.mode
+                );
+            }
+        }
         let and = InstanceCuller::new(&CullConfig {
             mode: CullMode::FarAndSmall,
             ..CullConfig::default()

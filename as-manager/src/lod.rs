@@ -156,26 +156,19 @@ mod tests {
         let errors = [0.0, 0.1];
         // distance where LOD 1 projects to exactly 1 px
         let d1 = 0.1 * s.k;
-        assert_eq!(
-            s.select(&errors, 1.0, d1 * 1.1, 0, 0),
-            0,
-            "inside band: stays fine"
-        );
-        assert_eq!(
-            s.select(&errors, 1.0, d1 * 1.3, 0, 0),
-            1,
-            "beyond band: coarsens"
-        );
-        assert_eq!(
-            s.select(&errors, 1.0, d1 * 0.9, 1, 0),
-            1,
-            "inside band: stays coarse"
-        );
-        assert_eq!(
-            s.select(&errors, 1.0, d1 * 0.7, 1, 0),
-            0,
-            "beyond band: refines"
-        );
+        // (distance / d1, current LOD, selected LOD)
+        for (at, current, selected, why) in [
+            (1.1, 0, 0, "inside band: stays fine"),
+            (1.3, 0, 1, "beyond band: coarsens"),
+            (0.9, 1, 1, "inside band: stays coarse"),
+            (0.7, 1, 0, "beyond band: refines"),
+        ] {
+            assert_eq!(
+                s.select(&errors, 1.0, d1 * at, current, 0),
+                selected,
+                "{why}"
+            );
+        }
         assert_eq!(s.select(&errors, 1.0, 0.0, 0, 1), 1, "floor wins");
     }
 }

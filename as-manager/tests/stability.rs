@@ -18,13 +18,7 @@ mod harness;
 
 /// Runs frame `frame` seen from `cam` and returns its statistics.
 fn frame_stats(m: &mut AsManager<ModelBackend>, frame: u64, cam: Viewpoint) -> FrameStats {
-    m.update(FrameInput {
-        frame,
-        cameras: &[cam],
-    })
-    .unwrap()
-    .stats
-    .clone()
+    harness::update_from(m, frame, cam).unwrap().stats.clone()
 }
 
 fn oscillate(config: Config, frames: u64) -> (u64, u64) {
@@ -104,20 +98,8 @@ fn extreme_skinned_deformation_triggers_rebuilds_within_bound() {
     let bound = config.build.rebuild_quality_bound;
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
     let geo = grid_geometry(24, 2.0);
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "cloth",
-            MeshKind::Skinned,
-            2.0,
-            harness::one_lod(geo.clone()),
-        ))
-        .unwrap();
-    let id = m
-        .add_instance(InstanceDesc::new(
-            mesh,
-            Affine3A::from_translation(Vec3::new(0.0, 0.0, 10.0)),
-        ))
-        .unwrap();
+    let mesh = harness::one_lod_mesh(&m, "cloth", MeshKind::Skinned, 2.0, geo.clone());
+    let id = harness::place(&m, mesh, Vec3::new(0.0, 0.0, 10.0), 0);
     let mut frame = 0;
     let mut step = |m: &mut AsManager<ModelBackend>| {
         frame += 1;

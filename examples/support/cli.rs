@@ -6,10 +6,10 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
-use clap::{Args, ValueEnum};
+use clap::{Args, CommandFactory, FromArgMatches, Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use rtstream::as_manager::PolicyKind;
-use rtstream::driver::{FrameRow, Progress, RunConfig};
+use rtstream::driver::{self, FrameRow, PolicySummary, Progress, RunConfig, RunReport};
 use rtstream::streaming::WorldPreset;
 
 /// World presets.
@@ -189,6 +189,37 @@ pub struct OutputArgs {
     pub quiet: bool,
 }
 
+/// The command line of a driver example: the driver's flags ([`RunArgs`]), the example's own
+/// (`E`; [`NoFlags`] for none) and the output flags ([`OutputArgs`]), in that order in `--help`.
+#[derive(Debug, Parser)]
+#[command(version)]
+pub struct ExampleCli<E: Args> {
+    #[command(flatten)]
+    pub run: RunArgs,
+    #[command(flatten)]
+    pub own: E,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// An example without flags of its own.
+#[derive(Debug, Clone, Args)]
+pub struct NoFlags {}
+
+impl<E: Args> ExampleCli<E> {
+    /// What a driver example's `main` starts with: logs to stderr ([`init_tracing`]), parses the
+    /// command line with `about` as the example's description in `--help` (exiting on a bad
+    /// one, as `Parser::parse` does), and writes to `default_out` unless `--out` says otherwise.
+    pub fn start(about: &'static str, default_out: &str) -> Self {
+        init_tracing();
+        let mut command = Self::command().about(about);
+        let mut cli = Self::from_arg_matches(&command.get_matches_mut())
+            .unwrap_or_else(|e| e.format(&mut command).exit());
+        cli.run.default_out(default_out);
+        cli
+    }
+}
+
 impl OutputArgs {
     /// Writes `summary` as `<out>/<name>.json`, lists the files written, and prints the JSON as
     /// the last stdout line with `--json`.
@@ -366,6 +397,44 @@ pub fn progress_bar(frames: u64, quiet: bool) -> (ProgressBar, impl FnMut(&Progr
         b.set_message(msg);
     };
     (bar, update)
+}
+
+/// Runs the frame driver on `config` behind a progress bar (hidden with `quiet`), cleared when
+/// the run succeeded; `on_frame` sees each frame's progress before the bar does.
+pub fn run_with_progress(
+    config: &RunConfig,
+    quiet: bool,
+    mut on_frame: impl FnMut(&Progress),
+) -> anyhow::Result<RunReport> {
+    let (bar, mut progress) = progress_bar(config.frames, quiet);
+    let report = driver::run(config, &mut |p| {
+        on_frame(p);
+        progress(p);
+    })?;
+    bar.finish_and_clear();
+    Ok(report)
+}
+
+/// What every stress example reports of a policy's run, flattened into its JSON under these
+/// names: frames over the BLAS budget, the mean image error against the full-world ground
+/// truth, and the validation messages.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct PolicyFigures {
+    pub over_budget_frames: u64,
+    pub hit_mismatch_mean: f64,
+    pub shadow_mismatch_mean: f64,
+    pub validation_messages: u64,
+}
+
+impl From<&PolicySummary> for PolicyFigures {
+    fn from(p: &PolicySummary) -> Self {
+        Self {
+            over_budget_frames: p.over_budget_frames,
+            hit_mismatch_mean: p.hit_mismatch_mean,
+            shadow_mismatch_mean: p.shadow_mismatch_mean,
+            validation_messages: p.validation_messages,
+        }
+    }
 }
 
 /// The managed policy's rows of a run's per-frame table.

@@ -11,6 +11,33 @@ use rtstream::driver::{self, ReferenceCache, RunConfig, RunReport};
 
 use super::cli;
 
+/// What a sweep's summary reports about the sweep as a whole, flattened into its JSON under
+/// these names: the device, the frames of each point, the frames over the BLAS budget summed
+/// over the points, and the device's validation messages.
+#[derive(Debug, serde::Serialize)]
+pub struct Totals {
+    pub device: String,
+    pub frames: u64,
+    pub over_budget_frames: u64,
+    pub validation_messages: u64,
+}
+
+impl Totals {
+    /// The totals of the points run from `base` on `ctx` (`reports`, at least one; each
+    /// point's first policy).
+    pub fn of(ctx: &VulkanContext, base: &RunConfig, reports: &[RunReport]) -> Self {
+        Self {
+            device: reports[0].summary.policies[0].backend.clone(),
+            frames: base.frames,
+            over_budget_frames: reports
+                .iter()
+                .map(|r| r.summary.policies[0].over_budget_frames)
+                .sum(),
+            validation_messages: ctx.validation_log().failure_count(),
+        }
+    }
+}
+
 /// The device every point of a sweep from `base` runs on, with `base`'s validation setting.
 pub fn context(base: &RunConfig) -> anyhow::Result<Arc<VulkanContext>> {
     Ok(Arc::new(VulkanContext::new(&ContextDesc {

@@ -196,63 +196,69 @@ struct PendingScore {
     ids: Vec<Option<u32>>,
 }
 
-/// Scores the pending renders whose frames completed (`completed`: the latest such frame).
-#[allow(clippy::too_many_arguments)]
-fn score_completed(
-    pending: &mut Vec<PendingScore>,
-    completed: Option<u64>,
-    renderers: &mut [Renderer],
-    policies: &mut [PolicyRun],
-    rows: &mut [FrameRow],
-    render_ms: &mut Vec<(usize, f64)>,
-    cache: &ReferenceCache,
+/// The scored renders of a run: those waiting for their frame to complete, the render times
+/// of those scored, and the distance bands the scores are split by.
+struct Scoring {
+    pending: Vec<PendingScore>,
+    /// (policy, render ms) of each scored render.
+    render_ms: Vec<(usize, f64)>,
     edges: BandEdges,
-) -> Result<()> {
-    let ready: Vec<PendingScore> = {
-        let (ready, wait): (Vec<_>, Vec<_>) = std::mem::take(pending)
+}
+
+impl Scoring {
+    /// Scores the pending renders whose frames completed (`completed`: the latest such frame)
+    /// against `cache`'s references, into `rows` and each policy's worst frame.
+    fn score_completed(
+        &mut self,
+        completed: Option<u64>,
+        renderers: &mut [Renderer],
+        policies: &mut [PolicyRun],
+        rows: &mut [FrameRow],
+        cache: &ReferenceCache,
+    ) -> Result<()> {
+        let (ready, wait): (Vec<_>, Vec<_>) = std::mem::take(&mut self.pending)
             .into_iter()
             .partition(|s| completed.is_some_and(|c| c >= s.frame));
-        *pending = wait;
-        ready
-    };
-    for s in ready {
-        let Some(img) = renderers[s.policy].take(s.frame, completed)? else {
-            return Err(Error::InvalidRun(format!(
-                "the render of frame {} was lost (overwritten before it was read)",
-                s.frame
-            )));
-        };
-        render_ms.push((s.policy, img.render_ms));
-        let p = &mut policies[s.policy];
-        for (kind, reference, ref_ids) in &cache.frames[&s.frame] {
-            let reference = &**reference;
-            let (score, verdicts) = score::score(
-                &img,
-                reference,
-                &s.view,
-                edges,
-                |ci| s.ids.get(ci as usize).copied().flatten(),
-                |ci| ref_ids.get(ci as usize).copied(),
-            )
-            .map_err(Error::InvalidRun)?;
-            if *kind == TruthKind::Opaque {
-                rows[s.row].score = Some(score);
-                let worse = p.worst.as_ref().is_none_or(|w| score.hit_mismatch > w.0);
-                if worse {
-                    let diff = score::difference_picture(reference, &verdicts);
-                    let (w3, pic) = side_by_side(
-                        img.width,
-                        img.height,
-                        &[&img.color, &reference.color, &diff],
-                    );
-                    p.worst = Some((score.hit_mismatch, s.frame, w3, pic));
+        self.pending = wait;
+        for s in ready {
+            let Some(img) = renderers[s.policy].take(s.frame, completed)? else {
+                return Err(Error::InvalidRun(format!(
+                    "the render of frame {} was lost (overwritten before it was read)",
+                    s.frame
+                )));
+            };
+            self.render_ms.push((s.policy, img.render_ms));
+            let p = &mut policies[s.policy];
+            for (kind, reference, ref_ids) in &cache.frames[&s.frame] {
+                let reference = &**reference;
+                let (score, verdicts) = score::score(
+                    &img,
+                    reference,
+                    &s.view,
+                    self.edges,
+                    |ci| s.ids.get(ci as usize).copied().flatten(),
+                    |ci| ref_ids.get(ci as usize).copied(),
+                )
+                .map_err(Error::InvalidRun)?;
+                if *kind == TruthKind::Opaque {
+                    rows[s.row].score = Some(score);
+                    let worse = p.worst.as_ref().is_none_or(|w| score.hit_mismatch > w.0);
+                    if worse {
+                        let diff = score::difference_picture(reference, &verdicts);
+                        let (w3, pic) = side_by_side(
+                            img.width,
+                            img.height,
+                            &[&img.color, &reference.color, &diff],
+                        );
+                        p.worst = Some((score.hit_mismatch, s.frame, w3, pic));
+                    }
+                } else {
+                    rows[s.row].score_all_geometry = Some(score);
                 }
-            } else {
-                rows[s.row].score_all_geometry = Some(score);
             }
         }
+        Ok(())
     }
-    Ok(())
 }
 
 impl PolicyRun {
@@ -460,11 +466,14 @@ pub fn run_cached(
     // The frame loop: one submission per frame holding every policy's work and the scored
     // renders; `begin` waits only for the frame `frames_in_flight` frames back.
     let mut frames = FrameLoop::new(&ctx, config.frames_in_flight)?;
-    let mut pending: Vec<PendingScore> = Vec::new();
+    let mut scoring = Scoring {
+        pending: Vec::new(),
+        render_ms: Vec::new(),
+        edges: BandEdges::new(config.managed.residency.r1, config.managed.residency.r2),
+    };
     // Unscored renders on the frame path: (frame, policy) recorded, and the timings.
     let mut pending_renders: Vec<(u64, usize)> = Vec::new();
     let (mut frame_ms, mut passes_ms, mut update0_ms) = (Vec::new(), Vec::new(), Vec::new());
-    let edges = BandEdges::new(config.managed.residency.r1, config.managed.residency.r2);
     let map_at: Vec<u64> = (1..=u64::from(config.maps))
         .map(|i| i * config.frames / (u64::from(config.maps) + 1))
         .collect();
@@ -472,7 +481,6 @@ pub fn run_cached(
     let mut trail: Vec<Vec3> = Vec::new();
     let mut ever_loaded = vec![false; manifest.levels.len()];
     let mut files = Vec::new();
-    let mut render_ms: Vec<(usize, f64)> = Vec::new();
     for frame in 0..config.frames {
         let (a, b) = config.path_span;
         let t = match config.teleport_every {
@@ -512,15 +520,12 @@ pub fn run_cached(
         }
         // Score the renders of frames that completed (no wait; before this frame's renders
         // reuse their buffers).
-        score_completed(
-            &mut pending,
+        scoring.score_completed(
             cmd.completed(),
             &mut renderers,
             &mut policies,
             &mut rows,
-            &mut render_ms,
             cache,
-            edges,
         )?;
         // What has completed: deterministic runs count only the frame `begin` waited for, so
         // that what is freed when does not depend on GPU speed.
@@ -591,7 +596,7 @@ pub fn run_cached(
                             .map(|s| s.instance.0)
                     })
                     .collect();
-                pending.push(PendingScore {
+                scoring.pending.push(PendingScore {
                     frame,
                     policy: pi,
                     row: rows.len() - n + pi,
@@ -669,16 +674,7 @@ pub fn run_cached(
     for p in &mut policies {
         p.manager.backend_mut().frame_done(last);
     }
-    score_completed(
-        &mut pending,
-        Some(last),
-        &mut renderers,
-        &mut policies,
-        &mut rows,
-        &mut render_ms,
-        cache,
-        edges,
-    )?;
+    scoring.score_completed(Some(last), &mut renderers, &mut policies, &mut rows, cache)?;
     drop(frames);
     let never_loaded_instances = truth.instances_outside(TruthKind::Opaque, |i| ever_loaded[i]);
     let validation_messages = ctx.validation_log().failure_count();
@@ -695,7 +691,7 @@ pub fn run_cached(
             build_ms: Summary::of(cache.build_ms.iter().copied()),
         },
         validation_messages,
-        &render_ms,
+        &scoring.render_ms,
         started.elapsed().as_secs_f64(),
         ctx.info().name.clone(),
     );

@@ -205,14 +205,19 @@ pub fn read_manifest(dir: impl AsRef<Path>) -> Result<Manifest> {
 pub(crate) fn decode_manifest(bytes: &[u8]) -> std::result::Result<Manifest, FormatError> {
     let mut r = Reader::new(format::unframe(MANIFEST_MAGIC, bytes)?);
     let bad = |s: String| FormatError::Inconsistent(s);
+    // Entry `k` of a table (`what`) starts with its id, which must be `k`.
+    let id_of = |r: &mut Reader<'_>, what: &str, k: usize| {
+        let id = r.u32()?;
+        if id as usize != k {
+            return Err(bad(format!("{what} {k} has id {id}")));
+        }
+        Ok(id)
+    };
     let extent = r.aabb()?;
     let nl = r.count(4 + 8 + 24 + 4)?;
     let mut levels = Vec::with_capacity(nl);
     for k in 0..nl {
-        let id = LevelId(r.u32()?);
-        if id.0 as usize != k {
-            return Err(bad(format!("level {k} has id {}", id.0)));
-        }
+        let id = LevelId(id_of(&mut r, "level", k)?);
         let cell = [r.i32()?, r.i32()?];
         let bounds = r.aabb()?;
         let file = r.str()?;
@@ -231,10 +236,7 @@ pub(crate) fn decode_manifest(bytes: &[u8]) -> std::result::Result<Manifest, For
     let nm = r.count(4 + 4 + 24 + 4)?;
     let mut meshes = Vec::with_capacity(nm);
     for k in 0..nm {
-        let id = WorldMeshId(r.u32()?);
-        if id.0 as usize != k {
-            return Err(bad(format!("mesh {k} has id {}", id.0)));
-        }
+        let id = WorldMeshId(id_of(&mut r, "mesh", k)?);
         let name = r.str()?;
         let bounds = r.aabb()?;
         let n = r.count(28)?;

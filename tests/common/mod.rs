@@ -60,14 +60,35 @@ pub fn assert_no_validation_messages(ctx: &VulkanContext) {
     );
 }
 
-/// A mesh's one level of detail: `geometry` itself, exact (geometric error 0).
-pub fn one_lod(
-    geometry: Arc<rtstream::as_manager::GeometryData>,
-) -> Vec<rtstream::as_manager::LodDesc> {
-    vec![rtstream::as_manager::LodDesc {
-        geometry: rtstream::as_manager::LodGeometry::Data(geometry),
-        geometric_error: 0.0,
-    }]
+use rtstream::as_manager as rtm;
+// `vulkan_properties` loads this file a second time through the harness: two private,
+// identical copies, one for each helper module.
+#[allow(clippy::duplicate_mod)]
+#[path = "../../as-manager/tests/harness/scene.rs"]
+mod scene;
+#[allow(unused_imports)]
+pub use scene::{one_lod, one_lod_mesh, place, update_from};
+
+/// A manager of `config` on a Vulkan backend of `desc` on `ctx`.
+pub fn manager(
+    ctx: &Arc<VulkanContext>,
+    desc: VulkanBackendDesc,
+    config: rtstream::as_manager::Config,
+) -> rtstream::as_manager::AsManager<VulkanBackend> {
+    let backend = VulkanBackend::new(ctx.clone(), desc).expect("backend");
+    rtstream::as_manager::AsManager::new(config, backend).expect("manager")
+}
+
+/// The configuration the Vulkan tests start from: residency radii `r1` and `r2`, a BLAS
+/// requested on the first frame that wants it (`create_threshold` 1), and compaction whatever
+/// it saves (lavapipe's saves nothing: compact anyway so that the path runs here).
+pub fn lavapipe_config(r1: f32, r2: f32) -> rtstream::as_manager::Config {
+    let mut c = rtstream::as_manager::Config::default();
+    c.residency.r1 = r1;
+    c.residency.r2 = r2;
+    c.residency.create_threshold = 1;
+    c.build.min_compaction_saving = 0.0;
+    c
 }
 
 /// The grid walk both frame-path tests trace, on a manager of their own configuration: 24
@@ -88,44 +109,23 @@ impl GridWalk {
         config: rtstream::as_manager::Config,
         per_row: u32,
     ) -> GridWalk {
-        use glam::{Affine3A, Vec3};
+        use glam::Vec3;
         use rtstream::as_manager::synth::grid_geometry;
-        use rtstream::as_manager::{AsManager, InstanceDesc, MeshDesc, MeshKind};
-        let backend = VulkanBackend::new(ctx.clone(), desc).unwrap();
-        let m = AsManager::new(config, backend).unwrap();
+        use rtstream::as_manager::MeshKind;
+        let m = manager(ctx, desc, config);
         for k in 0..24u32 {
-            let mesh = m
-                .register_mesh(MeshDesc::new(
-                    format!("grid{k}"),
-                    MeshKind::Static,
-                    6.0,
-                    one_lod(grid_geometry(12 + k % 5, 8.0)),
-                ))
-                .unwrap();
+            let grid = grid_geometry(12 + k % 5, 8.0);
+            let mesh = one_lod_mesh(&m, format!("grid{k}"), MeshKind::Static, 6.0, grid);
             let p = Vec3::new(
                 (k % per_row) as f32 * 15.0,
                 0.0,
                 (k / per_row) as f32 * 15.0 + 10.0,
             );
-            let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
-            d.custom_index = k;
-            m.add_instance(d).unwrap();
+            place(&m, mesh, p, k);
         }
         let base = grid_geometry(16, 5.0);
-        let cloth_mesh = m
-            .register_mesh(MeshDesc::new(
-                "cloth",
-                MeshKind::Skinned,
-                4.0,
-                one_lod(base.clone()),
-            ))
-            .unwrap();
-        let mut d = InstanceDesc::new(
-            cloth_mesh,
-            Affine3A::from_translation(Vec3::new(0.0, 2.0, 5.0)),
-        );
-        d.custom_index = 100;
-        let cloth = m.add_instance(d).unwrap();
+        let cloth_mesh = one_lod_mesh(&m, "cloth", MeshKind::Skinned, 4.0, base.clone());
+        let cloth = place(&m, cloth_mesh, Vec3::new(0.0, 2.0, 5.0), 100);
         GridWalk { m, cloth, base }
     }
 

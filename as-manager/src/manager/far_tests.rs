@@ -5,6 +5,7 @@ use std::collections::{HashMap, HashSet};
 
 use glam::{Affine3A, Vec3};
 
+use super::tests::run_frame;
 use crate::backend::model::ModelBackend;
 use crate::synth::counts_chain;
 use crate::*;
@@ -32,43 +33,42 @@ fn world(config: Config) -> World {
         ))
         .unwrap()
     };
+    // The n-th group (custom index PROXY_CI + n): a square of `side` metres from `lo`, 10 m
+    // tall, with its own proxy of geometric error `error`.
+    let mut n = 0;
+    let mut group = |m: &AsManager<ModelBackend>,
+                     parent: Option<GroupId>,
+                     lo: [f32; 3],
+                     side: f32,
+                     error: f32| {
+        let g = m
+            .register_group(GroupDesc {
+                parent,
+                bounds_min: lo,
+                bounds_max: [lo[0] + side, 10.0, lo[2] + side],
+                custom_index: PROXY_CI + n,
+                mask: 0xff,
+            })
+            .unwrap();
+        n += 1;
+        m.set_group_proxy(g, Some((proxy_mesh(m, n), error)))
+            .unwrap();
+        g
+    };
     let mut leaves_of = HashMap::new();
     let mut leaf_ids = HashMap::new();
-    let mut n = 0;
     // Parents: 2x2 blocks of leaves.
     for px in 0..LEAVES / 2 {
         for pz in 0..LEAVES / 2 {
             let lo = [px as f32 * 2.0 * LEAF_M, 0.0, pz as f32 * 2.0 * LEAF_M];
-            let parent = m
-                .register_group(GroupDesc {
-                    parent: None,
-                    bounds_min: lo,
-                    bounds_max: [lo[0] + 2.0 * LEAF_M, 10.0, lo[2] + 2.0 * LEAF_M],
-                    custom_index: PROXY_CI + n,
-                    mask: 0xff,
-                })
-                .unwrap();
-            n += 1;
-            m.set_group_proxy(parent, Some((proxy_mesh(&m, n), 4.0)))
-                .unwrap();
+            let parent = group(&m, None, lo, 2.0 * LEAF_M, 4.0);
             let mut under = Vec::new();
             for (dx, dz) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
                 let (x, z) = (px * 2 + dx, pz * 2 + dz);
                 let leaf_no = (x * LEAVES + z) as u32;
                 under.push(leaf_no);
                 let lo = [x as f32 * LEAF_M, 0.0, z as f32 * LEAF_M];
-                let leaf = m
-                    .register_group(GroupDesc {
-                        parent: Some(parent),
-                        bounds_min: lo,
-                        bounds_max: [lo[0] + LEAF_M, 10.0, lo[2] + LEAF_M],
-                        custom_index: PROXY_CI + n,
-                        mask: 0xff,
-                    })
-                    .unwrap();
-                n += 1;
-                m.set_group_proxy(leaf, Some((proxy_mesh(&m, n), 1.0)))
-                    .unwrap();
+                let leaf = group(&m, Some(parent), lo, LEAF_M, 1.0);
                 leaves_of.insert(leaf.index(), vec![leaf_no]);
                 leaf_ids.insert(leaf_no, leaf);
                 // A house mesh per leaf, so detail memory grows with what is near.
@@ -125,12 +125,7 @@ fn a_slow_walk_across_r2_never_shows_a_group_twice_or_not_at_all() {
         // 1.5 m a frame from one corner towards the other.
         let eye = Vec3::new(20.0 + 1.5 * frame as f32, 2.0, 20.0 + 1.5 * frame as f32);
         let cams = [Viewpoint::new(eye, Vec3::new(1.0, 0.0, 1.0).normalize())];
-        let out =
-            w.m.update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .unwrap();
+        let out = run_frame(&mut w.m, frame, &cams);
         let (mut detail, mut proxied) = (HashSet::new(), HashSet::new());
         for r in out.instances {
             let ci = r.custom_index_and_mask & 0x00ff_ffff;
@@ -186,12 +181,7 @@ fn far_field_off_shows_no_proxy() {
     let mut w = world(c);
     for frame in 0..40u64 {
         let cams = [Viewpoint::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
-        let out =
-            w.m.update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .unwrap();
+        let out = run_frame(&mut w.m, frame, &cams);
         assert_eq!(out.stats.proxy_instances, 0);
         assert!(out
             .instances
@@ -210,14 +200,7 @@ fn under_a_tight_budget_detail_is_evicted_before_proxies() {
     for frame in 0..300u64 {
         let eye = Vec3::new(20.0 + 2.5 * frame as f32, 2.0, 400.0);
         let cams = [Viewpoint::new(eye, Vec3::X)];
-        let s =
-            w.m.update(FrameInput {
-                frame,
-                cameras: &cams,
-            })
-            .unwrap()
-            .stats
-            .clone();
+        let s = run_frame(&mut w.m, frame, &cams).stats.clone();
         assert!(s.memory_in_use() <= s.memory_budget, "frame {frame}");
         evictions += s.evictions;
         proxies_evicted += s.proxies_evicted;
@@ -320,12 +303,7 @@ fn landmarks_beyond_r2_keep_their_own_lod_beside_the_proxies() {
         let cams = [Viewpoint::new(Vec3::new(20.0, 2.0, 20.0), Vec3::X)];
         let mut shown = HashSet::new();
         for frame in 0..80u64 {
-            let out =
-                w.m.update(FrameInput {
-                    frame,
-                    cameras: &cams,
-                })
-                .unwrap();
+            let out = run_frame(&mut w.m, frame, &cams);
             shown = out
                 .instances
                 .iter()

@@ -3,6 +3,7 @@
 
 use glam::{Affine3A, Vec3};
 
+use super::tests::run_frame;
 use crate::backend::model::ModelBackend;
 use crate::backend::AsBackend;
 use crate::synth::{counts_chain, grid_geometry};
@@ -16,6 +17,34 @@ fn gpu_like() -> AsManager<ModelBackend> {
 
 fn data(n: u32) -> LodGeometry {
     LodGeometry::Data(grid_geometry(n, 1.0))
+}
+
+/// The 512-triangle mesh of three LODs (counts only) every scenario registers as "m".
+fn chain_mesh(m: &AsManager<ModelBackend>) -> MeshId {
+    m.register_mesh(MeshDesc::new(
+        "m",
+        MeshKind::Static,
+        1.0,
+        counts_chain(512, 3, 0.01),
+    ))
+    .unwrap()
+}
+
+/// Places `mesh` `z` metres ahead of the camera.
+fn place_ahead(m: &AsManager<ModelBackend>, mesh: MeshId, z: f32) -> InstanceId {
+    m.add_instance(InstanceDesc::new(
+        mesh,
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, z)),
+    ))
+    .unwrap()
+}
+
+/// A LOD's geometry evicted: its vertex and triangle counts only.
+fn counts(vertices: u32, triangles: u32) -> LodGeometry {
+    LodGeometry::Counts {
+        vertices,
+        triangles,
+    }
 }
 
 const CAM: [Viewpoint; 1] = [Viewpoint {
@@ -47,21 +76,9 @@ fn run(m: &mut AsManager<ModelBackend>, from: u64, to: u64) -> usize {
 fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
     let mut m = gpu_like();
     // Near: the selector wants LOD 0, but only the coarsest (2) is resident.
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
+    let mesh = chain_mesh(&m);
     m.set_lod_geometry(mesh, 2, data(8)).unwrap();
-    let inst = m
-        .add_instance(InstanceDesc::new(
-            mesh,
-            Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
-        ))
-        .unwrap();
+    let inst = place_ahead(&m, mesh, 4.0);
     assert_eq!(run(&mut m, 0, 4), 1, "shown at the resident LOD");
     assert_eq!(m.instance_lod(inst), Some(2));
 
@@ -72,15 +89,7 @@ fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
     // LOD 0's data evicted: its BLAS is built and needs no CPU data, so it keeps serving (it
     // would otherwise fall back to the coarse LOD 2 right next to the camera); nothing is
     // built from counts and nothing flickers.
-    m.set_lod_geometry(
-        mesh,
-        0,
-        LodGeometry::Counts {
-            vertices: 289,
-            triangles: 512,
-        },
-    )
-    .unwrap();
+    m.set_lod_geometry(mesh, 0, counts(289, 512)).unwrap();
     let builds_before = m.backend().counters().builds;
     for f in 8..60 {
         assert_eq!(run(&mut m, f, f + 1), 1, "the instance stays visible");
@@ -100,21 +109,9 @@ fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
 #[test]
 fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
     let mut m = gpu_like();
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
+    let mesh = chain_mesh(&m);
     m.set_lod_geometry(mesh, 1, data(12)).unwrap();
-    let inst = m
-        .add_instance(InstanceDesc::new(
-            mesh,
-            Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
-        ))
-        .unwrap();
+    let inst = place_ahead(&m, mesh, 4.0);
     assert_eq!(run(&mut m, 0, 4), 1);
     assert_eq!(
         m.instance_lod(inst),
@@ -124,22 +121,10 @@ fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
     // Fly away until released, evict LOD 1, make LOD 0 resident, come back.
     let far = [Viewpoint::new(Vec3::new(10_000.0, 0.0, 0.0), Vec3::Z)];
     for frame in 4..80 {
-        m.update(FrameInput {
-            frame,
-            cameras: &far,
-        })
-        .unwrap();
+        run_frame(&mut m, frame, &far);
     }
     assert_eq!(m.stats().blas_count, 0, "released");
-    m.set_lod_geometry(
-        mesh,
-        1,
-        LodGeometry::Counts {
-            vertices: 131,
-            triangles: 256,
-        },
-    )
-    .unwrap();
+    m.set_lod_geometry(mesh, 1, counts(131, 256)).unwrap();
     m.set_lod_geometry(mesh, 0, data(16)).unwrap();
     assert_eq!(run(&mut m, 80, 84), 1);
     assert_eq!(m.instance_lod(inst), Some(0));
@@ -148,19 +133,8 @@ fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
 #[test]
 fn no_lod_with_data_means_no_blas_and_no_error() {
     let mut m = gpu_like();
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
-    m.add_instance(InstanceDesc::new(
-        mesh,
-        Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
-    ))
-    .unwrap();
+    let mesh = chain_mesh(&m);
+    place_ahead(&m, mesh, 4.0);
     assert_eq!(run(&mut m, 0, 5), 0);
     assert_eq!(m.stats().blas_count, 0);
 }
@@ -169,20 +143,8 @@ fn no_lod_with_data_means_no_blas_and_no_error() {
 fn model_backend_without_data_requirement_uses_counts() {
     let mut m = AsManager::new(Config::default(), ModelBackend::lavapipe()).unwrap();
     assert!(!m.backend().needs_geometry());
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
-    let inst = m
-        .add_instance(InstanceDesc::new(
-            mesh,
-            Affine3A::from_translation(Vec3::new(0.0, 0.0, 4.0)),
-        ))
-        .unwrap();
+    let mesh = chain_mesh(&m);
+    let inst = place_ahead(&m, mesh, 4.0);
     assert_eq!(run(&mut m, 0, 4), 1);
     assert_eq!(m.instance_lod(inst), Some(0));
 }
@@ -190,14 +152,7 @@ fn model_backend_without_data_requirement_uses_counts() {
 #[test]
 fn set_lod_geometry_validates() {
     let m = gpu_like();
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
+    let mesh = chain_mesh(&m);
     assert!(
         m.set_lod_geometry(mesh, 3, data(4)).is_err(),
         "LOD out of range"
@@ -211,16 +166,7 @@ fn set_lod_geometry_validates() {
             .is_err(),
         "index out of range"
     );
-    assert!(m
-        .set_lod_geometry(
-            mesh,
-            0,
-            LodGeometry::Counts {
-                vertices: 0,
-                triangles: 0
-            }
-        )
-        .is_err());
+    assert!(m.set_lod_geometry(mesh, 0, counts(0, 0)).is_err());
     m.unregister_mesh(mesh).unwrap();
     assert!(matches!(
         m.set_lod_geometry(mesh, 0, data(4)),
@@ -241,18 +187,10 @@ fn baseline(policy: PolicyKind) -> AsManager<ModelBackend> {
 #[test]
 fn naive_builds_exactly_the_loaded_lods_and_shows_the_finest() {
     let mut m = baseline(PolicyKind::Naive);
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
+    let mesh = chain_mesh(&m);
     m.set_lod_geometry(mesh, 2, data(8)).unwrap();
     // Far away: Naive has no culling and no residency radius.
-    let far = Affine3A::from_translation(Vec3::new(0.0, 0.0, 5000.0));
-    m.add_instance(InstanceDesc::new(mesh, far)).unwrap();
+    place_ahead(&m, mesh, 5000.0);
     assert_eq!(run(&mut m, 0, 3), 1, "shown at the only loaded LOD");
     assert_eq!(
         m.stats().blas_count,
@@ -265,33 +203,13 @@ fn naive_builds_exactly_the_loaded_lods_and_shows_the_finest() {
     assert_eq!(run(&mut m, 3, 6), 1);
     assert_eq!(m.stats().blas_count, 2);
     assert!(m.stats().blas_bytes > bytes_coarse);
-    let rec = m
-        .update(FrameInput {
-            frame: 6,
-            cameras: &CAM,
-        })
-        .unwrap()
-        .instances[0];
+    let rec = run_frame(&mut m, 6, &CAM).instances[0];
     let lod0_addr = rec.blas_address;
     // LOD 0 evicted: its BLAS is released, the instance falls back to LOD 2.
-    m.set_lod_geometry(
-        mesh,
-        0,
-        LodGeometry::Counts {
-            vertices: 289,
-            triangles: 512,
-        },
-    )
-    .unwrap();
+    m.set_lod_geometry(mesh, 0, counts(289, 512)).unwrap();
     assert_eq!(run(&mut m, 7, 10), 1);
     assert_eq!(m.stats().blas_count, 1);
-    let rec = m
-        .update(FrameInput {
-            frame: 10,
-            cameras: &CAM,
-        })
-        .unwrap()
-        .instances[0];
+    let rec = run_frame(&mut m, 10, &CAM).instances[0];
     assert_ne!(rec.blas_address, lod0_addr);
     m.check_invariants().unwrap();
 }
@@ -299,18 +217,10 @@ fn naive_builds_exactly_the_loaded_lods_and_shows_the_finest() {
 #[test]
 fn seed_builds_the_finest_loaded_lod_and_keeps_it() {
     let mut m = baseline(PolicyKind::SeedR1R2);
-    let mesh = m
-        .register_mesh(MeshDesc::new(
-            "m",
-            MeshKind::Static,
-            1.0,
-            counts_chain(512, 3, 0.01),
-        ))
-        .unwrap();
+    let mesh = chain_mesh(&m);
     m.set_lod_geometry(mesh, 1, data(12)).unwrap();
     m.set_lod_geometry(mesh, 2, data(8)).unwrap();
-    let near = Affine3A::from_translation(Vec3::new(0.0, 0.0, 5.0));
-    m.add_instance(InstanceDesc::new(mesh, near)).unwrap();
+    place_ahead(&m, mesh, 5.0);
     assert_eq!(run(&mut m, 0, 6), 1);
     assert_eq!(
         m.stats().blas_count,
@@ -319,15 +229,7 @@ fn seed_builds_the_finest_loaded_lod_and_keeps_it() {
     );
     let bytes = m.stats().blas_bytes;
     // LOD 1's data leaves: the built BLAS stays (the seed loop never revisits LODs).
-    m.set_lod_geometry(
-        mesh,
-        1,
-        LodGeometry::Counts {
-            vertices: 100,
-            triangles: 144,
-        },
-    )
-    .unwrap();
+    m.set_lod_geometry(mesh, 1, counts(100, 144)).unwrap();
     assert_eq!(run(&mut m, 6, 12), 1);
     assert_eq!((m.stats().blas_count, m.stats().blas_bytes), (1, bytes));
     m.check_invariants().unwrap();
@@ -363,12 +265,7 @@ fn device_geometry_builds_and_device_poses_refit() {
             vec![lod(LodGeometry::Device(g))],
         ))
         .unwrap();
-    let id = m
-        .add_instance(InstanceDesc::new(
-            mesh,
-            Affine3A::from_translation(Vec3::new(0.0, 0.0, 5.0)),
-        ))
-        .unwrap();
+    let id = place_ahead(&m, mesh, 5.0);
     assert_eq!(run(&mut m, 0, 3), 1, "built from device addresses");
     let pose = DeviceVertices {
         address: 0x30_0000,
@@ -377,14 +274,7 @@ fn device_geometry_builds_and_device_poses_refit() {
         count: 81,
     };
     m.set_skinned_pose_device(id, pose).unwrap();
-    let s = m
-        .update(FrameInput {
-            frame: 3,
-            cameras: &CAM,
-        })
-        .unwrap()
-        .stats
-        .clone();
+    let s = run_frame(&mut m, 3, &CAM).stats.clone();
     assert_eq!((s.refits, s.rebuilds), (1, 0));
     // Typed errors: a misaligned pose, a stride smaller than a position, a null index buffer.
     let odd = DeviceVertices {

@@ -308,15 +308,29 @@ impl Registrar {
         }
     }
 
+    /// Queues `command` about instance `id`: `UnknownInstance` unless it is live, and
+    /// `NotSkinned` unless it is skinned where `skinned_only` says so.
+    fn queue_for_instance(
+        &self,
+        id: InstanceId,
+        skinned_only: bool,
+        command: Command,
+    ) -> Result<()> {
+        let mut p = self.pending.lock();
+        Self::live_instance(&p, id)?;
+        if skinned_only && !p.instance_skinned[id.index as usize] {
+            return Err(AsError::NotSkinned(id));
+        }
+        p.commands.push(command);
+        Ok(())
+    }
+
     /// Queues a transform change.
     pub fn set_transform(&self, id: InstanceId, transform: Affine3A) -> Result<()> {
         if !finite(&transform) {
             return Err(AsError::InvalidTransform);
         }
-        let mut p = self.pending.lock();
-        Self::live_instance(&p, id)?;
-        p.commands.push(Command::SetTransform(id, transform));
-        Ok(())
+        self.queue_for_instance(id, false, Command::SetTransform(id, transform))
     }
 
     /// Queues the removal of an instance.
@@ -349,13 +363,7 @@ impl Registrar {
         positions: crate::mesh::DeviceVertices,
     ) -> Result<()> {
         positions.validate().map_err(AsError::InvalidDevicePose)?;
-        let mut p = self.pending.lock();
-        Self::live_instance(&p, id)?;
-        if !p.instance_skinned[id.index as usize] {
-            return Err(AsError::NotSkinned(id));
-        }
-        p.commands.push(Command::SetDevicePose(id, positions));
-        Ok(())
+        self.queue_for_instance(id, true, Command::SetDevicePose(id, positions))
     }
 
     /// Marks a skinned instance deformed without data (counts-only meshes, model backend).
@@ -369,12 +377,6 @@ impl Registrar {
                 return Err(AsError::InvalidTransform);
             }
         }
-        let mut p = self.pending.lock();
-        Self::live_instance(&p, id)?;
-        if !p.instance_skinned[id.index as usize] {
-            return Err(AsError::NotSkinned(id));
-        }
-        p.commands.push(Command::SetPose(id, positions));
-        Ok(())
+        self.queue_for_instance(id, true, Command::SetPose(id, positions))
     }
 }

@@ -32,6 +32,15 @@ fn static_mesh(m: &AsManager<ModelBackend>, tris: u32, radius: f32) -> MeshId {
     .unwrap()
 }
 
+/// Frame `frame` of `m` seen from `cameras` (also used by the sibling test modules).
+pub(super) fn run_frame<'m>(
+    m: &'m mut AsManager<ModelBackend>,
+    frame: u64,
+    cameras: &[Viewpoint],
+) -> FrameOutput<'m> {
+    m.update(FrameInput { frame, cameras }).unwrap()
+}
+
 fn check_records(m: &AsManager<ModelBackend>, recs: &[record::TlasInstance]) {
     for r in recs {
         assert!(
@@ -50,19 +59,9 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
             .unwrap();
     }
     let c = cam(0.0, 0.0);
-    let out = m
-        .update(FrameInput {
-            frame: 0,
-            cameras: &c,
-        })
-        .unwrap();
+    let out = run_frame(&mut m, 0, &c);
     assert_eq!(out.instances.len(), 0, "create threshold not reached");
-    let out = m
-        .update(FrameInput {
-            frame: 1,
-            cameras: &c,
-        })
-        .unwrap();
+    let out = run_frame(&mut m, 1, &c);
     assert_eq!(out.stats.builds, 1);
     assert_eq!(out.stats.blas_count, 1, "50 instances share one BLAS");
     assert_eq!(out.instances.len(), 50);
@@ -72,12 +71,7 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
     let far = cam(5000.0, 0.0);
     let mut released_at = None;
     for f in 2..100 {
-        let out = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &far,
-            })
-            .unwrap();
+        let out = run_frame(&mut m, f, &far);
         assert!(out.instances.is_empty());
         if out.stats.releases > 0 {
             released_at = Some(f);
@@ -105,12 +99,7 @@ fn lod_refines_without_holes() {
     // approach from 180 m to 2 m
     for f in 0..200u64 {
         let z = 180.0 - f as f32 * 0.9;
-        let out = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &cam(0.0, -z - 5.0),
-            })
-            .unwrap();
+        let out = run_frame(&mut m, f, &cam(0.0, -z - 5.0));
         let n = out.instances.len();
         if n == 1 && first_seen.is_none() {
             first_seen = Some(f);
@@ -145,14 +134,7 @@ fn build_budget_respected_and_oversized_alone() {
     let c = cam(0.0, 0.0);
     let mut oversized = 0;
     for f in 0..200 {
-        let s = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &c,
-            })
-            .unwrap()
-            .stats
-            .clone();
+        let s = run_frame(&mut m, f, &c).stats.clone();
         if s.oversized_admitted {
             oversized += 1;
             assert_eq!(s.builds, 1, "oversized item admitted alone");
@@ -184,12 +166,7 @@ fn memory_budget_never_exceeded_falls_back_then_evicts() {
     let (mut fallbacks, mut shown) = (0, 0);
     for f in 0..300u64 {
         let x = (f as f32 * 0.7).sin() * 80.0;
-        let out = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &cam(x, 40.0),
-            })
-            .unwrap();
+        let out = run_frame(&mut m, f, &cam(x, 40.0));
         let s = out.stats.clone();
         let recs = out.instances.to_vec();
         check_records(&m, &recs);
@@ -224,11 +201,7 @@ fn culling_distance_angle_near_and_behind() {
         .unwrap(); // tiny but near
     let c = cam(0.0, 0.0);
     for f in 0..5 {
-        m.update(FrameInput {
-            frame: f,
-            cameras: &c,
-        })
-        .unwrap();
+        run_frame(&mut m, f, &c);
     }
     let s = m.stats().clone();
     assert_eq!(s.tlas_instances, 2, "behind + near survive");
@@ -255,11 +228,7 @@ fn skinned_refit_then_rebuild_when_quality_degrades() {
         .unwrap();
     let c = cam(0.0, 0.0);
     for f in 0..3 {
-        m.update(FrameInput {
-            frame: f,
-            cameras: &c,
-        })
-        .unwrap();
+        run_frame(&mut m, f, &c);
     }
     assert_eq!(m.stats().blas_count, 1);
     // mild wave: refits only
@@ -269,14 +238,7 @@ fn skinned_refit_then_rebuild_when_quality_degrades() {
         .map(|p| [p[0], 0.05 * (p[0] * 3.0).sin(), p[2]])
         .collect();
     m.set_skinned_pose(id, std::sync::Arc::new(wave)).unwrap();
-    let s = m
-        .update(FrameInput {
-            frame: 3,
-            cameras: &c,
-        })
-        .unwrap()
-        .stats
-        .clone();
+    let s = run_frame(&mut m, 3, &c).stats.clone();
     assert_eq!((s.refits, s.rebuilds), (1, 0));
     // extreme: mirror every other vertex across the centre
     let wild: Vec<[f32; 3]> = geo
@@ -286,14 +248,7 @@ fn skinned_refit_then_rebuild_when_quality_degrades() {
         .map(|(i, p)| if i % 2 == 0 { [-p[0], p[1], -p[2]] } else { *p })
         .collect();
     m.set_skinned_pose(id, std::sync::Arc::new(wild)).unwrap();
-    let s = m
-        .update(FrameInput {
-            frame: 4,
-            cameras: &c,
-        })
-        .unwrap()
-        .stats
-        .clone();
+    let s = run_frame(&mut m, 4, &c).stats.clone();
     assert_eq!(s.rebuilds, 1);
     assert!(s.worst_refit_quality <= m.config().build.rebuild_quality_bound);
 }
@@ -310,12 +265,7 @@ fn oom_is_survived_and_device_lost_reported() {
     let c = cam(60.0, 0.0);
     let mut ooms = 0;
     for f in 0..60 {
-        let out = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &c,
-            })
-            .unwrap();
+        let out = run_frame(&mut m, f, &c);
         ooms += out.stats.oom_events;
         let recs = out.instances.to_vec();
         check_records(&m, &recs);
@@ -345,11 +295,7 @@ fn unregister_removes_instances_and_blases() {
         .collect();
     let c = cam(0.0, 0.0);
     for f in 0..4 {
-        m.update(FrameInput {
-            frame: f,
-            cameras: &c,
-        })
-        .unwrap();
+        run_frame(&mut m, f, &c);
     }
     assert_eq!(m.stats().tlas_instances, 5);
     m.remove_instance(ids[0]).unwrap();
@@ -358,21 +304,10 @@ fn unregister_removes_instances_and_blases() {
     assert!(m
         .add_instance(InstanceDesc::new(mesh, at(0.0, 0.0)))
         .is_err());
-    let s = m
-        .update(FrameInput {
-            frame: 4,
-            cameras: &c,
-        })
-        .unwrap()
-        .stats
-        .clone();
+    let s = run_frame(&mut m, 4, &c).stats.clone();
     assert_eq!((s.instances, s.tlas_instances, s.blas_count), (0, 0, 0));
     for f in 5..8 {
-        m.update(FrameInput {
-            frame: f,
-            cameras: &c,
-        })
-        .unwrap();
+        run_frame(&mut m, f, &c);
     }
     assert_eq!(m.backend().live_blas_count(), 0);
     // recycled ids are new
@@ -419,14 +354,7 @@ fn naive_builds_every_lod_and_traces_everything() {
         m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 1000.0, 0.0)))
             .unwrap();
     }
-    let s = m
-        .update(FrameInput {
-            frame: 0,
-            cameras: &cam(0.0, 0.0),
-        })
-        .unwrap()
-        .stats
-        .clone();
+    let s = run_frame(&mut m, 0, &cam(0.0, 0.0)).stats.clone();
     assert_eq!(s.blas_count, 4);
     assert_eq!(s.tlas_instances, 10);
 }
@@ -447,14 +375,7 @@ fn registration_from_threads_is_applied() {
             });
         }
     });
-    let s = m
-        .update(FrameInput {
-            frame: 0,
-            cameras: &cam(0.0, 0.0),
-        })
-        .unwrap()
-        .stats
-        .clone();
+    let s = run_frame(&mut m, 0, &cam(0.0, 0.0)).stats.clone();
     assert_eq!(s.instances, 400);
     assert_eq!(s.commands_applied, 401);
 }
@@ -479,14 +400,7 @@ fn compaction_within_budget_counts_the_double_copy() {
     let c = cam(60.0, 0.0);
     let mut compactions = 0;
     for f in 0..120 {
-        let s = m
-            .update(FrameInput {
-                frame: f,
-                cameras: &c,
-            })
-            .unwrap()
-            .stats
-            .clone();
+        let s = run_frame(&mut m, f, &c).stats.clone();
         assert!(s.compactions <= 2);
         assert!(s.memory_in_use() <= budget);
         assert!(
@@ -512,11 +426,7 @@ fn measured_costs_refine_the_model() {
     }
     let c = cam(60.0, 0.0);
     for f in 0..200 {
-        m.update(FrameInput {
-            frame: f,
-            cameras: &c,
-        })
-        .unwrap();
+        run_frame(&mut m, f, &c);
     }
     let prior = CostModel::lavapipe().build_static_ms_per_mtri;
     let learned = m.cost_model().build_static_ms_per_mtri;
@@ -537,11 +447,7 @@ fn evaluation_is_recorded_for_its_frame_only() {
     let mesh = static_mesh(&m, 100, 1.0);
     m.add_instance(InstanceDesc::new(mesh, at(0.0, 10.0)))
         .unwrap();
-    m.update(FrameInput {
-        frame: 0,
-        cameras: &cam(0.0, 0.0),
-    })
-    .unwrap();
+    run_frame(&mut m, 0, &cam(0.0, 0.0));
     assert_eq!(m.stats().evaluation, None);
     let e = ImageError {
         primary_mismatch: 0.01,
@@ -551,11 +457,7 @@ fn evaluation_is_recorded_for_its_frame_only() {
     };
     m.record_evaluation(e);
     assert_eq!(m.stats().evaluation, Some(e));
-    m.update(FrameInput {
-        frame: 1,
-        cameras: &cam(0.0, 0.0),
-    })
-    .unwrap();
+    run_frame(&mut m, 1, &cam(0.0, 0.0));
     assert_eq!(
         m.stats().evaluation,
         None,
@@ -597,14 +499,7 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
         let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
         let mut frame = 0;
         loop {
-            let s = m
-                .update(FrameInput {
-                    frame,
-                    cameras: &cams,
-                })
-                .unwrap()
-                .stats
-                .clone();
+            let s = run_frame(&mut m, frame, &cams).stats.clone();
             assert!(
                 s.builds <= 1 || f64::from(s.build_estimated_ms) <= 1.0 + 1e-6,
                 "frame {frame}: {} builds, {} ms",

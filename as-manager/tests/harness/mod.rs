@@ -13,6 +13,12 @@ use super::rtm::*;
 use glam::{Affine3A, Vec3};
 use proptest::prelude::*;
 
+use super::rtm;
+
+mod scene;
+#[allow(unused_imports)]
+pub use scene::{one_lod, one_lod_mesh, place, update_from};
+
 /// What the harness asks a backend beyond [`AsBackend`].
 pub trait Probe: AsBackend {
     /// Meshes with real geometry (the Vulkan backend builds what it is given) or counts only.
@@ -221,14 +227,6 @@ pub fn shrunk_config(r1: f32, r2: f32) -> Config {
     c.build.max_gpu_ms = 5.0;
     c.memory.blas_bytes = 500_000;
     c
-}
-
-/// A mesh's one level of detail: `geometry` itself, exact (geometric error 0).
-pub fn one_lod(geometry: Arc<GeometryData>) -> Vec<LodDesc> {
-    vec![LodDesc {
-        geometry: LodGeometry::Data(geometry),
-        geometric_error: 0.0,
-    }]
 }
 
 pub struct Harness<B: Probe> {

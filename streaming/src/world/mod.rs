@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 use glam::Mat4;
 
 use crate::bake::{read_manifest, Manifest};
-use crate::error::Result;
+use crate::error::{Result, StreamingError};
 use crate::loader::{Done, Job, LevelSource, LoadedLevel, LoaderPool, LoaderShared};
 use crate::model::{
     Aabb, Instance, LevelId, MaterialClass, MeshLod, Motion, WorldInstanceId, WorldMeshId,
@@ -82,6 +82,38 @@ struct MeshSlot {
 impl MeshSlot {
     fn coarsest(&self) -> usize {
         self.lods.len() - 1
+    }
+    /// LOD `lod` of this slot's mesh `mesh` arrived as `g`: resident, its bytes added to
+    /// `mesh_bytes`, announced in `ev`.
+    fn arrive(
+        &mut self,
+        mesh: WorldMeshId,
+        lod: usize,
+        g: Arc<MeshLod>,
+        mesh_bytes: &mut usize,
+        ev: &mut Vec<WorldEvent>,
+    ) {
+        ev.push(lod_loaded(mesh, lod, self.lods.len() as u8, &g));
+        self.resident[lod] = Some(g);
+        *mesh_bytes += self.lods[lod].0;
+    }
+    /// LOD `lod` of this slot's mesh `mesh` failed to load (`level`: the level it came with,
+    /// if any): not asked for again, announced in `ev`.
+    fn fail(
+        &mut self,
+        mesh: WorldMeshId,
+        lod: usize,
+        level: Option<LevelId>,
+        error: StreamingError,
+        ev: &mut Vec<WorldEvent>,
+    ) {
+        self.failed[lod] = true;
+        ev.push(WorldEvent::LoadFailed {
+            level,
+            mesh: Some((mesh, lod as u8)),
+            proxy: None,
+            error: Arc::new(error),
+        });
     }
     fn finest_resident(&self) -> Option<usize> {
         self.resident.iter().position(Option::is_some)
@@ -562,21 +594,10 @@ impl World {
                 slot.pending = None;
                 self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
                 match result {
-                    Err(e) => {
-                        slot.failed[lod] = true;
-                        ev.push(WorldEvent::LoadFailed {
-                            level: None,
-                            mesh: Some((mesh, lod as u8)),
-                            proxy: None,
-                            error: Arc::new(e),
-                        });
-                    }
+                    Err(e) => slot.fail(mesh, lod, None, e, ev),
                     Ok(g) => {
-                        let n = slot.lods.len() as u8;
                         let coarsest = slot.coarsest();
-                        ev.push(lod_loaded(mesh, lod, n, &g));
-                        slot.resident[lod] = Some(g);
-                        self.mesh_bytes += slot.lods[lod].0;
+                        slot.arrive(mesh, lod, g, &mut self.mesh_bytes, ev);
                         // Keep one finer LOD: drop the others (not the coarsest).
                         for k in 0..coarsest {
                             if k != lod && slot.resident[k].take().is_some() {
@@ -599,20 +620,8 @@ impl World {
                         continue;
                     }
                     match res {
-                        Ok(g) => {
-                            ev.push(lod_loaded(m, lod, slot.lods.len() as u8, &g));
-                            slot.resident[lod] = Some(g);
-                            self.mesh_bytes += slot.lods[lod].0;
-                        }
-                        Err(e) => {
-                            slot.failed[lod] = true;
-                            ev.push(WorldEvent::LoadFailed {
-                                level: Some(level),
-                                mesh: Some((m, lod as u8)),
-                                proxy: None,
-                                error: Arc::new(e),
-                            });
-                        }
+                        Ok(g) => slot.arrive(m, lod, g, &mut self.mesh_bytes, ev),
+                        Err(e) => slot.fail(m, lod, Some(level), e, ev),
                     }
                 }
                 // Instances whose mesh has no coarsest LOD cannot be used: leave them out.

@@ -451,6 +451,24 @@ impl VulkanContext {
         s
     }
 
+    /// Records one pipeline barrier made of the global memory barriers `barriers`.
+    ///
+    /// # Safety
+    /// `cmd` is a command buffer of this device, recording, outside a render pass.
+    pub(crate) unsafe fn cmd_memory_barriers(
+        &self,
+        cmd: vk::CommandBuffer,
+        barriers: &[vk::MemoryBarrier2<'_>],
+    ) {
+        // SAFETY: cmd is recording outside a render pass (caller).
+        unsafe {
+            self.device.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().memory_barriers(barriers),
+            )
+        };
+    }
+
     /// Records a barrier between acceleration-structure work and everything around it on the
     /// queue: AS writes (builds, refits, compaction copies) are visible to later AS builds and
     /// shader reads, and a later in-place write (a refit, the in-place TLAS rebuild) waits for
@@ -470,12 +488,7 @@ impl VulkanContext {
                     | vk::AccessFlags2::ACCELERATION_STRUCTURE_WRITE_KHR,
             )];
         // SAFETY: cmd is recording (caller).
-        unsafe {
-            self.device.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().memory_barriers(&barrier),
-            )
-        };
+        unsafe { self.cmd_memory_barriers(cmd, &barrier) };
     }
 
     /// Records the barrier a frame starts with, for build inputs the engine writes on the GPU:
@@ -503,12 +516,7 @@ impl VulkanContext {
                     | vk::AccessFlags2::SHADER_WRITE,
             )];
         // SAFETY: cmd is recording outside a render pass (caller).
-        unsafe {
-            self.device.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().memory_barriers(&barrier),
-            )
-        };
+        unsafe { self.cmd_memory_barriers(cmd, &barrier) };
     }
 
     /// Records the barrier a frame ends with, for build inputs the engine rewrites: this
@@ -535,12 +543,7 @@ impl VulkanContext {
                 .dst_access_mask(vk::AccessFlags2::HOST_READ),
         ];
         // SAFETY: cmd is recording outside a render pass (caller).
-        unsafe {
-            self.device.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().memory_barriers(&barrier),
-            )
-        };
+        unsafe { self.cmd_memory_barriers(cmd, &barrier) };
     }
 
     /// Creates a device-local scratch buffer of at least `bytes` usable from an address aligned to

@@ -57,6 +57,33 @@ impl DeviceFeatures {
         ray_tracing_pipeline: false,
     };
 
+    /// The required features physical device `pd` of `instance` supports (ray queries and
+    /// ray-tracing pipelines stay false: [`VulkanContext::new`] asks for those by extension).
+    pub(crate) fn supported_by(instance: &ash::Instance, pd: vk::PhysicalDevice) -> Self {
+        let mut v12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut v13 = vk::PhysicalDeviceVulkan13Features::default();
+        let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
+        let mut feats2 = vk::PhysicalDeviceFeatures2::default()
+            .push_next(&mut v12)
+            .push_next(&mut v13)
+            .push_next(&mut asf);
+        // SAFETY: pd comes from this instance; the chained structs are valid for the call.
+        unsafe { instance.get_physical_device_features2(pd, &mut feats2) };
+        let core = feats2.features;
+        let on = |f: vk::Bool32| f == vk::TRUE;
+        DeviceFeatures {
+            buffer_device_address: on(v12.buffer_device_address),
+            timeline_semaphore: on(v12.timeline_semaphore),
+            host_query_reset: on(v12.host_query_reset),
+            synchronization2: on(v13.synchronization2),
+            maintenance4: on(v13.maintenance4),
+            acceleration_structure: on(asf.acceleration_structure),
+            shader_int64: on(core.shader_int64),
+            ray_query: false,
+            ray_tracing_pipeline: false,
+        }
+    }
+
     /// Names (as in the Vulkan spec) of the required features this set lacks.
     pub fn missing(&self) -> Vec<&'static str> {
         [

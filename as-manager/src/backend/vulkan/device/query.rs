@@ -152,10 +152,7 @@ impl QueryPool {
             .dst_access_mask(vk::AccessFlags2::HOST_READ)];
         // SAFETY: guaranteed by the caller.
         unsafe {
-            ctx.device.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().memory_barriers(&before),
-            );
+            ctx.cmd_memory_barriers(cmd, &before);
             ctx.device.cmd_copy_query_pool_results(
                 cmd,
                 self.raw,
@@ -166,8 +163,7 @@ impl QueryPool {
                 8,
                 vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
             );
-            ctx.device
-                .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&after));
+            ctx.cmd_memory_barriers(cmd, &after);
         }
     }
 

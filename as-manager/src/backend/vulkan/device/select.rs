@@ -11,6 +11,7 @@ use crate::backend::vulkan::device::context::{
     cstr_array, failpoint, handle_created, handle_destroyed, Candidate, ContextDesc, DeviceInfo,
     DeviceKind, DeviceParts, VulkanContext,
 };
+use crate::backend::vulkan::device::external::DeviceFeatures;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 impl VulkanContext {
@@ -106,29 +107,7 @@ impl VulkanContext {
             }));
         }
 
-        let mut v12 = vk::PhysicalDeviceVulkan12Features::default();
-        let mut v13 = vk::PhysicalDeviceVulkan13Features::default();
-        let mut asf = vk::PhysicalDeviceAccelerationStructureFeaturesKHR::default();
-        let mut feats2 = vk::PhysicalDeviceFeatures2::default()
-            .push_next(&mut v12)
-            .push_next(&mut v13)
-            .push_next(&mut asf);
-        // SAFETY: as above.
-        unsafe { instance.get_physical_device_features2(pd, &mut feats2) };
-        let core = feats2.features;
-        let missing: Vec<&str> = [
-            (v12.buffer_device_address, "bufferDeviceAddress"),
-            (v12.timeline_semaphore, "timelineSemaphore"),
-            (v12.host_query_reset, "hostQueryReset"),
-            (v13.synchronization2, "synchronization2"),
-            (v13.maintenance4, "maintenance4"),
-            (asf.acceleration_structure, "accelerationStructure"),
-            (core.shader_int64, "shaderInt64"),
-        ]
-        .iter()
-        .filter(|(v, _)| *v == vk::FALSE)
-        .map(|(_, n)| *n)
-        .collect();
+        let missing = DeviceFeatures::supported_by(instance, pd).missing();
         if !missing.is_empty() {
             return Err(reject(&format!("missing features: {}", missing.join(", "))));
         }

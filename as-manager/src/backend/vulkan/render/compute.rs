@@ -2,7 +2,6 @@
 //! no `unsafe` of their own.
 
 use std::io::Cursor;
-use std::time::Instant;
 
 use ash::vk;
 
@@ -12,7 +11,8 @@ use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::vulkan::render::ring::{
-    check_record, check_timer, record_passes, Pass, PassTimer, Recorder, SetRing,
+    check_timer, create_layouts, destroy_pipeline, record_passes, Pass, PassTimer, Recorder,
+    SetRing,
 };
 
 /// What a descriptor binding holds (binding numbers are positions in the list, set 0).
@@ -38,12 +38,10 @@ pub enum Bound<'a> {
 /// A compute pipeline with one descriptor set and push constants.
 #[derive(Debug)]
 pub struct ComputePipeline {
-    raw: vk::Pipeline,
-    layout: vk::PipelineLayout,
+    /// The pipeline, its layout, bindings and push size, and how it records.
+    rec: Recorder,
     set_layout: vk::DescriptorSetLayout,
     sets: SetRing,
-    bindings: Vec<BindingKind>,
-    push_size: u32,
 }
 
 impl ComputePipeline {
@@ -55,48 +53,19 @@ impl ComputePipeline {
         bindings: &[BindingKind],
         push_size: u32,
     ) -> VkResult<Self> {
-        let dev = &ctx.device;
-        let layout_bindings: Vec<_> = bindings
-            .iter()
-            .enumerate()
-            .map(|(i, k)| {
-                vk::DescriptorSetLayoutBinding::default()
-                    .binding(i as u32)
-                    .descriptor_type(descriptor_type(*k))
-                    .descriptor_count(1)
-                    .stage_flags(vk::ShaderStageFlags::COMPUTE)
-            })
-            .collect();
-        // SAFETY: `dev` is a valid device; every create-info points to locals that outlive the
-        // call; objects are destroyed in `destroy` (same for the blocks below).
-        let set_layout = unsafe {
-            dev.create_descriptor_set_layout(
-                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&layout_bindings),
-                None,
-            )
-        }
-        .op("vkCreateDescriptorSetLayout")?;
-        let ranges = [vk::PushConstantRange::default()
-            .stage_flags(vk::ShaderStageFlags::COMPUTE)
-            .size(push_size)];
-        let set_layouts = [set_layout];
-        let mut pl_info = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
-        if push_size > 0 {
-            pl_info = pl_info.push_constant_ranges(&ranges);
-        }
-        // SAFETY: see above.
-        let layout =
-            unsafe { dev.create_pipeline_layout(&pl_info, None) }.op("vkCreatePipelineLayout")?;
-        let raw = create_compute_pipeline(ctx, layout, spirv, name)?;
-        let sets = match SetRing::new(ctx, set_layout, bindings, name) {
+        let (set_layout, layout) =
+            create_layouts(ctx, bindings, vk::ShaderStageFlags::COMPUTE, push_size)?;
+        let mut raw = vk::Pipeline::null();
+        let sets = create_compute_pipeline(ctx, layout, spirv, name).and_then(|p| {
+            raw = p;
+            SetRing::new(ctx, set_layout, bindings, name)
+        });
+        let sets = match sets {
             Ok(s) => s,
             Err(e) => {
-                // SAFETY: nothing uses the pipeline or its layouts yet.
-                unsafe {
-                    dev.destroy_pipeline(raw, None);
-                    dev.destroy_pipeline_layout(layout, None);
-                    dev.destroy_descriptor_set_layout(set_layout, None);
-                }
+                // SAFETY: nothing uses the pipeline (null if its creation failed) or its
+                // layouts yet.
+                unsafe { destroy_pipeline(ctx, raw, layout, set_layout) };
                 return Err(e);
             }
         };
@@ -104,12 +73,18 @@ impl ComputePipeline {
         ctx.set_name(layout, &format!("{name} layout"));
         ctx.set_name(set_layout, &format!("{name} set layout"));
         Ok(Self {
-            raw,
-            layout,
+            rec: Recorder {
+                bind_point: vk::PipelineBindPoint::COMPUTE,
+                pipeline: raw,
+                layout,
+                stage: vk::PipelineStageFlags2::COMPUTE_SHADER,
+                push_stages: vk::ShaderStageFlags::COMPUTE,
+                reads: vk::AccessFlags2::empty(),
+                bindings: bindings.to_vec(),
+                push_size,
+            },
             set_layout,
             sets,
-            bindings: bindings.to_vec(),
-            push_size,
         })
     }
 
@@ -124,54 +99,13 @@ impl ComputePipeline {
         push: &[u8],
         groups: [u32; 3],
     ) -> VkResult<f64> {
-        if bound.len() != self.bindings.len() || push.len() as u32 != self.push_size {
-            return Err(VulkanError::Unsupported(format!(
-                "dispatch with {} bindings / {} push bytes; the pipeline has {} / {}",
-                bound.len(),
-                push.len(),
-                self.bindings.len(),
-                self.push_size
-            )));
-        }
-        // Every dispatch waits for completion before returning, so the set is not in use.
-        let set = self.sets.blocking();
-        write_descriptor_set(ctx, set, &self.bindings, bound)?;
-        let start = Instant::now();
-        ctx.submit_and_wait("compute dispatch", |dev, cmd| {
-            // SAFETY: cmd is recording; pipeline, layout and set are valid; the bound resources
-            // live until the wait returns (they are borrowed for this call).
-            unsafe {
-                dev.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, self.raw);
-                dev.cmd_bind_descriptor_sets(
-                    cmd,
-                    vk::PipelineBindPoint::COMPUTE,
-                    self.layout,
-                    0,
-                    &[set],
-                    &[],
-                );
-                if !push.is_empty() {
-                    dev.cmd_push_constants(
-                        cmd,
-                        self.layout,
-                        vk::ShaderStageFlags::COMPUTE,
-                        0,
-                        push,
-                    );
-                }
-                dev.cmd_dispatch(cmd, groups[0], groups[1], groups[2]);
-                let barrier = [vk::MemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER)
-                    .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
-                    .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                    .dst_access_mask(vk::AccessFlags2::HOST_READ)];
-                dev.cmd_pipeline_barrier2(
-                    cmd,
-                    &vk::DependencyInfo::default().memory_barriers(&barrier),
-                );
-            }
-        })?;
-        Ok(start.elapsed().as_secs_f64() * 1e3)
+        let pass = Pass { push, grid: groups };
+        self.rec
+            .run_blocking(ctx, "compute dispatch", &self.sets, bound, pass, |c, g| {
+                // SAFETY: `c` is the dispatch's command buffer, recording outside a render
+                // pass, with this pipeline and its set bound by `record_passes`.
+                unsafe { ctx.device.cmd_dispatch(c, g[0], g[1], g[2]) }
+            })
     }
 
     /// Records `passes` into `cmd` with one binding set `bound`: each pass sees the storage
@@ -190,17 +124,9 @@ impl ComputePipeline {
         passes: &[Pass<'_>],
         timer: Option<PassTimer<'_>>,
     ) -> VkResult<()> {
-        check_record(bound, &self.bindings, passes, self.push_size)?;
+        self.rec.check("record", bound, passes)?;
         check_timer(timer, passes.len())?;
-        let set = self.sets.acquire(ctx, cmd, &self.bindings, bound)?;
-        let recorder = Recorder {
-            bind_point: vk::PipelineBindPoint::COMPUTE,
-            pipeline: self.raw,
-            layout: self.layout,
-            stage: vk::PipelineStageFlags2::COMPUTE_SHADER,
-            push_stages: vk::ShaderStageFlags::COMPUTE,
-            reads: vk::AccessFlags2::empty(),
-        };
+        let set = self.sets.acquire(ctx, cmd, &self.rec.bindings, bound)?;
         let dispatch = |c: vk::CommandBuffer, g: [u32; 3]| {
             // SAFETY: `c` is the frame's command buffer, recording outside a render pass, with
             // this pipeline and its set bound by `record_passes`.
@@ -209,19 +135,14 @@ impl ComputePipeline {
         // SAFETY: a FrameCmd is recording outside a render pass (its constructor's contract);
         // pipeline, layout and set are valid, the set was written for this frame only; the
         // timer was checked, and reset by the caller.
-        unsafe { record_passes(ctx, cmd.raw(), &recorder, set, passes, timer, dispatch) };
+        unsafe { record_passes(ctx, cmd.raw(), &self.rec, set, passes, timer, dispatch) };
         Ok(())
     }
 
     /// Destroys the pipeline. The caller guarantees no dispatch is pending (dispatch waits).
     pub fn destroy(self, ctx: &VulkanContext) {
         // SAFETY: no pending work uses these objects; each is destroyed once.
-        unsafe {
-            ctx.device.destroy_pipeline(self.raw, None);
-            ctx.device.destroy_pipeline_layout(self.layout, None);
-            ctx.device
-                .destroy_descriptor_set_layout(self.set_layout, None);
-        }
+        unsafe { destroy_pipeline(ctx, self.rec.pipeline, self.rec.layout, self.set_layout) };
         self.sets.destroy(ctx);
     }
 }

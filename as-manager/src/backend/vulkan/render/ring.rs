@@ -1,5 +1,9 @@
-//! Descriptor sets for recorded frames: one set per frame in flight (up to [`RECORDED_SETS`]),
-//! plus one for the blocking calls that wait for their own submission.
+//! What both pipeline wrappers (compute and ray tracing) share: their layouts, their
+//! descriptor sets for recorded frames (one set per frame in flight, up to [`RECORDED_SETS`],
+//! plus one for the blocking calls that wait for their own submission), and how a call's passes
+//! are checked, recorded and, for the blocking calls, submitted and waited for.
+
+use std::time::Instant;
 
 use ash::vk;
 
@@ -10,6 +14,74 @@ use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::vulkan::render::compute::{
     descriptor_type, write_descriptor_set, BindingKind, Bound,
 };
+
+/// A pipeline's descriptor-set layout (set 0: `bindings` in list order, seen by `stages`) and
+/// its pipeline layout (that set, and `push_size` bytes of push constants for `stages`). On
+/// failure nothing created here is left alive.
+pub(crate) fn create_layouts(
+    ctx: &VulkanContext,
+    bindings: &[BindingKind],
+    stages: vk::ShaderStageFlags,
+    push_size: u32,
+) -> VkResult<(vk::DescriptorSetLayout, vk::PipelineLayout)> {
+    let dev = &ctx.device;
+    let layout_bindings: Vec<_> = bindings
+        .iter()
+        .enumerate()
+        .map(|(i, k)| {
+            vk::DescriptorSetLayoutBinding::default()
+                .binding(i as u32)
+                .descriptor_type(descriptor_type(*k))
+                .descriptor_count(1)
+                .stage_flags(stages)
+        })
+        .collect();
+    // SAFETY: `dev` is a valid device; every create-info points to locals that outlive the
+    // call; the caller destroys the layouts (`destroy_pipeline`), or the error path below does.
+    let set_layout = unsafe {
+        dev.create_descriptor_set_layout(
+            &vk::DescriptorSetLayoutCreateInfo::default().bindings(&layout_bindings),
+            None,
+        )
+    }
+    .op("vkCreateDescriptorSetLayout")?;
+    let ranges = [vk::PushConstantRange::default()
+        .stage_flags(stages)
+        .size(push_size)];
+    let set_layouts = [set_layout];
+    let mut pl_info = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+    if push_size > 0 {
+        pl_info = pl_info.push_constant_ranges(&ranges);
+    }
+    // SAFETY: as above.
+    match unsafe { dev.create_pipeline_layout(&pl_info, None) } {
+        Ok(layout) => Ok((set_layout, layout)),
+        Err(e) => {
+            // SAFETY: the set layout is unused.
+            unsafe { dev.destroy_descriptor_set_layout(set_layout, None) };
+            Err(VulkanError::from_vk("vkCreatePipelineLayout", e))
+        }
+    }
+}
+
+/// Destroys a pipeline and its layouts. Null handles (a pipeline whose creation failed) are
+/// ignored, as `vkDestroy*` ignores them.
+///
+/// # Safety
+/// No pending work uses these objects, and each is destroyed once.
+pub(crate) unsafe fn destroy_pipeline(
+    ctx: &VulkanContext,
+    pipeline: vk::Pipeline,
+    layout: vk::PipelineLayout,
+    set_layout: vk::DescriptorSetLayout,
+) {
+    // SAFETY: guaranteed by the caller.
+    unsafe {
+        ctx.device.destroy_pipeline(pipeline, None);
+        ctx.device.destroy_pipeline_layout(layout, None);
+        ctx.device.destroy_descriptor_set_layout(set_layout, None);
+    }
+}
 
 /// Frames in flight a pipeline's recorded passes support: frame `n` writes the set frame
 /// `n - RECORDED_SETS` used, which must have completed by then.
@@ -185,7 +257,9 @@ pub(crate) unsafe fn copy_timer(
     }
 }
 
-/// How a pipeline records: what `record_passes` binds and which stage its shaders run in.
+/// A pipeline as both wrappers hold it, and how it records: what `record_passes` binds, which
+/// stage its shaders run in, and the bindings and push size every call must match.
+#[derive(Debug)]
 pub(crate) struct Recorder {
     pub(crate) bind_point: vk::PipelineBindPoint,
     pub(crate) pipeline: vk::Pipeline,
@@ -196,23 +270,64 @@ pub(crate) struct Recorder {
     pub(crate) push_stages: vk::ShaderStageFlags,
     /// What the first pass reads besides storage buffers (the SBT for ray tracing).
     pub(crate) reads: vk::AccessFlags2,
+    /// The pipeline's bindings, in binding order.
+    pub(crate) bindings: Vec<BindingKind>,
+    /// The pipeline's push-constant bytes.
+    pub(crate) push_size: u32,
 }
 
-/// Checks a record call's bindings and push sizes against the pipeline's.
-pub(crate) fn check_record(
-    bound: &[Bound<'_>],
-    bindings: &[BindingKind],
-    passes: &[Pass<'_>],
-    push_size: u32,
-) -> VkResult<()> {
-    if bound.len() != bindings.len() || passes.iter().any(|p| p.push.len() as u32 != push_size) {
-        return Err(VulkanError::Unsupported(format!(
-            "record with {} bindings; the pipeline has {} bindings and {push_size} push bytes",
-            bound.len(),
-            bindings.len(),
-        )));
+impl Recorder {
+    /// Checks a call's bindings and push sizes against the pipeline's (`what` names the call
+    /// in the error).
+    pub(crate) fn check(
+        &self,
+        what: &str,
+        bound: &[Bound<'_>],
+        passes: &[Pass<'_>],
+    ) -> VkResult<()> {
+        if bound.len() != self.bindings.len()
+            || passes.iter().any(|p| p.push.len() as u32 != self.push_size)
+        {
+            return Err(VulkanError::Unsupported(format!(
+                "{what} with {} bindings and push constants of {:?} bytes; the pipeline has {} \
+                 bindings and {} push bytes",
+                bound.len(),
+                passes.iter().map(|p| p.push.len()).collect::<Vec<_>>(),
+                self.bindings.len(),
+                self.push_size
+            )));
+        }
+        Ok(())
     }
-    Ok(())
+
+    /// The blocking calls (`ComputePipeline::dispatch`, `RayTracingPipeline::trace`): checks
+    /// and binds `bound` in the blocking set of `sets`, records `pass` as `record_passes` does
+    /// (after earlier work on the queue, its writes visible to the host), submits it and waits.
+    /// `dispatch` records the pass's grid; `what` names the call. Returns the wall time in
+    /// milliseconds (submit to completion).
+    pub(crate) fn run_blocking(
+        &self,
+        ctx: &VulkanContext,
+        what: &str,
+        sets: &SetRing,
+        bound: &[Bound<'_>],
+        pass: Pass<'_>,
+        dispatch: impl FnMut(vk::CommandBuffer, [u32; 3]),
+    ) -> VkResult<f64> {
+        let passes = [pass];
+        self.check(what, bound, &passes)?;
+        // Every blocking call waits for completion before returning, so the set is not in use.
+        let set = sets.blocking();
+        write_descriptor_set(ctx, set, &self.bindings, bound)?;
+        let start = Instant::now();
+        ctx.submit_and_wait(what, |_, cmd| {
+            // SAFETY: cmd is recording, outside a render pass; pipeline, layout and set are
+            // valid and the set is not in use (see above); no timer. The bound resources live
+            // until the wait returns (they are borrowed for this call).
+            unsafe { record_passes(ctx, cmd, self, set, &passes, None, dispatch) }
+        })?;
+        Ok(start.elapsed().as_secs_f64() * 1e3)
+    }
 }
 
 /// Records `passes` with `set` bound: ordered after earlier work on the queue, each pass after
@@ -252,8 +367,8 @@ pub(crate) unsafe fn record_passes(
         .dst_access_mask(vk::AccessFlags2::HOST_READ)];
     let dev = &ctx.device;
     let barrier = |b: &[vk::MemoryBarrier2<'_>]| {
-        // SAFETY: guaranteed by the caller (cmd is recording).
-        unsafe { dev.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(b)) }
+        // SAFETY: guaranteed by the caller (cmd is recording outside a render pass).
+        unsafe { ctx.cmd_memory_barriers(cmd, b) }
     };
     barrier(&before);
     // SAFETY: guaranteed by the caller.

@@ -6,7 +6,6 @@
 //! This is the renderer's path on GPUs without VK_KHR_ray_query (the NVIDIA H100/H200 here).
 
 use std::io::Cursor;
-use std::time::Instant;
 
 use ash::vk;
 
@@ -15,11 +14,10 @@ use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
-use crate::backend::vulkan::render::compute::{
-    descriptor_type, write_descriptor_set, BindingKind, Bound,
-};
+use crate::backend::vulkan::render::compute::{BindingKind, Bound};
 use crate::backend::vulkan::render::ring::{
-    check_record, check_timer, record_passes, Pass, PassTimer, Recorder, SetRing,
+    check_timer, create_layouts, destroy_pipeline, record_passes, Pass, PassTimer, Recorder,
+    SetRing,
 };
 
 /// SPIR-V of the three shaders (entry point `main` in each).
@@ -43,16 +41,15 @@ const STAGES: vk::ShaderStageFlags = vk::ShaderStageFlags::from_raw(
 /// A ray-tracing pipeline with its shader binding table, one descriptor set and push constants.
 #[derive(Debug)]
 pub struct RayTracingPipeline {
-    raw: vk::Pipeline,
-    layout: vk::PipelineLayout,
+    /// The pipeline (null until `finish` creates it), its layout, bindings and push size, and
+    /// how it records.
+    rec: Recorder,
     set_layout: vk::DescriptorSetLayout,
     /// None until `finish` creates them.
     sets: Option<SetRing>,
     sbt: GpuBuffer,
     /// raygen, miss, hit, callable (empty).
     regions: [vk::StridedDeviceAddressRegionKHR; 4],
-    bindings: Vec<BindingKind>,
-    push_size: u32,
 }
 
 impl RayTracingPipeline {
@@ -80,7 +77,6 @@ impl RayTracingPipeline {
             read("miss", shaders.miss)?,
             read("closest-hit", shaders.closest_hit)?,
         ];
-        let dev = &ctx.device;
 
         let mut rt_props = vk::PhysicalDeviceRayTracingPipelinePropertiesKHR::default();
         let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut rt_props);
@@ -100,47 +96,20 @@ impl RayTracingPipeline {
             )));
         }
 
-        let layout_bindings: Vec<_> = bindings
-            .iter()
-            .enumerate()
-            .map(|(i, k)| {
-                vk::DescriptorSetLayoutBinding::default()
-                    .binding(i as u32)
-                    .descriptor_type(descriptor_type(*k))
-                    .descriptor_count(1)
-                    .stage_flags(STAGES)
-            })
-            .collect();
-        // SAFETY: `dev` is a valid device; every create-info points to locals that outlive the
-        // call; the objects are destroyed in `destroy` or on the error paths below.
-        let set_layout = unsafe {
-            dev.create_descriptor_set_layout(
-                &vk::DescriptorSetLayoutCreateInfo::default().bindings(&layout_bindings),
-                None,
-            )
-        }
-        .op("vkCreateDescriptorSetLayout")?;
-        let ranges = [vk::PushConstantRange::default()
-            .stage_flags(STAGES)
-            .size(push_size)];
-        let set_layouts = [set_layout];
-        let mut pl_info = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
-        if push_size > 0 {
-            pl_info = pl_info.push_constant_ranges(&ranges);
-        }
-        // SAFETY: as above.
-        let layout = match unsafe { dev.create_pipeline_layout(&pl_info, None) } {
-            Ok(l) => l,
-            Err(e) => {
-                // SAFETY: the set layout is unused.
-                unsafe { dev.destroy_descriptor_set_layout(set_layout, None) };
-                return Err(VulkanError::from_vk("vkCreatePipelineLayout", e));
-            }
-        };
+        // Destroyed in `destroy`, or on the error paths below.
+        let (set_layout, layout) = create_layouts(ctx, bindings, STAGES, push_size)?;
         // From here on, failures clean up through `partial`.
         let mut partial = Self {
-            raw: vk::Pipeline::null(),
-            layout,
+            rec: Recorder {
+                bind_point: vk::PipelineBindPoint::RAY_TRACING_KHR,
+                pipeline: vk::Pipeline::null(),
+                layout,
+                stage: vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR,
+                push_stages: STAGES,
+                reads: vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR,
+                bindings: bindings.to_vec(),
+                push_size,
+            },
             set_layout,
             sets: None,
             sbt: ctx
@@ -155,15 +124,10 @@ impl RayTracingPipeline {
                     memory: MemoryKind::Upload,
                 })
                 .inspect_err(|_| {
-                    // SAFETY: layout and set layout are unused.
-                    unsafe {
-                        dev.destroy_pipeline_layout(layout, None);
-                        dev.destroy_descriptor_set_layout(set_layout, None);
-                    }
+                    // SAFETY: layout and set layout are unused; there is no pipeline yet.
+                    unsafe { destroy_pipeline(ctx, vk::Pipeline::null(), layout, set_layout) }
                 })?,
             regions: [vk::StridedDeviceAddressRegionKHR::default(); 4],
-            bindings: bindings.to_vec(),
-            push_size,
         };
         match partial.finish(ctx, rt, name, &codes, handle_size, handle_align, base_align) {
             Ok(()) => Ok(partial),
@@ -238,7 +202,7 @@ impl RayTracingPipeline {
             .stages(&stages)
             .groups(&groups)
             .max_pipeline_ray_recursion_depth(1)
-            .layout(self.layout)];
+            .layout(self.rec.layout)];
         // SAFETY: valid device and layout; stages, groups and modules outlive the call.
         let created = unsafe {
             rt.create_ray_tracing_pipelines(
@@ -252,7 +216,7 @@ impl RayTracingPipeline {
             // SAFETY: modules are no longer needed once the pipeline exists (or failed).
             unsafe { dev.destroy_shader_module(m, None) };
         }
-        self.raw =
+        self.rec.pipeline =
             created.map_err(|(_, e)| VulkanError::from_vk("vkCreateRayTracingPipelinesKHR", e))?[0];
 
         // Shader binding table: raygen | miss | hit, each region base-aligned; one record each.
@@ -260,7 +224,7 @@ impl RayTracingPipeline {
         // SAFETY: the pipeline was created with `group_count` groups.
         let handles = unsafe {
             rt.get_ray_tracing_shader_group_handles(
-                self.raw,
+                self.rec.pipeline,
                 0,
                 group_count,
                 (handle_size * u64::from(group_count)) as usize,
@@ -289,9 +253,14 @@ impl RayTracingPipeline {
             vk::StridedDeviceAddressRegionKHR::default(),
         ];
 
-        self.sets = Some(SetRing::new(ctx, self.set_layout, &self.bindings, name)?);
-        ctx.set_name(self.raw, name);
-        ctx.set_name(self.layout, &format!("{name} layout"));
+        self.sets = Some(SetRing::new(
+            ctx,
+            self.set_layout,
+            &self.rec.bindings,
+            name,
+        )?);
+        ctx.set_name(self.rec.pipeline, name);
+        ctx.set_name(self.rec.layout, &format!("{name} layout"));
         ctx.set_name(self.set_layout, &format!("{name} set layout"));
         Ok(())
     }
@@ -314,69 +283,18 @@ impl RayTracingPipeline {
                 "trace without VK_KHR_ray_tracing_pipeline".into(),
             ));
         };
-        if bound.len() != self.bindings.len() || push.len() as u32 != self.push_size {
-            return Err(VulkanError::Unsupported(format!(
-                "trace with {} bindings / {} push bytes; the pipeline has {} / {}",
-                bound.len(),
-                push.len(),
-                self.bindings.len(),
-                self.push_size
-            )));
-        }
-        // Every trace waits for completion before returning, so the set is not in use.
-        let set = self
-            .sets
-            .as_ref()
-            .expect("a created pipeline has its sets")
-            .blocking();
-        write_descriptor_set(ctx, set, &self.bindings, bound)?;
-        let start = Instant::now();
         let [raygen, miss, hit, callable] = &self.regions;
-        ctx.submit_and_wait("ray tracing", |dev, cmd| {
-            // SAFETY: cmd is recording; pipeline, layout, set and SBT are valid; the bound
-            // resources live until the wait returns (they are borrowed for this call).
-            unsafe {
-                let before = [vk::MemoryBarrier2::default()
-                    .src_stage_mask(
-                        vk::PipelineStageFlags2::ALL_COMMANDS | vk::PipelineStageFlags2::HOST,
-                    )
-                    .src_access_mask(vk::AccessFlags2::MEMORY_WRITE | vk::AccessFlags2::HOST_WRITE)
-                    .dst_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
-                    .dst_access_mask(
-                        vk::AccessFlags2::SHADER_STORAGE_READ
-                            | vk::AccessFlags2::SHADER_STORAGE_WRITE
-                            | vk::AccessFlags2::ACCELERATION_STRUCTURE_READ_KHR
-                            | vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR,
-                    )];
-                dev.cmd_pipeline_barrier2(
-                    cmd,
-                    &vk::DependencyInfo::default().memory_barriers(&before),
-                );
-                dev.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::RAY_TRACING_KHR, self.raw);
-                dev.cmd_bind_descriptor_sets(
-                    cmd,
-                    vk::PipelineBindPoint::RAY_TRACING_KHR,
-                    self.layout,
-                    0,
-                    &[set],
-                    &[],
-                );
-                if !push.is_empty() {
-                    dev.cmd_push_constants(cmd, self.layout, STAGES, 0, push);
-                }
-                rt.cmd_trace_rays(cmd, raygen, miss, hit, callable, width, height, 1);
-                let after = [vk::MemoryBarrier2::default()
-                    .src_stage_mask(vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR)
-                    .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
-                    .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-                    .dst_access_mask(vk::AccessFlags2::HOST_READ)];
-                dev.cmd_pipeline_barrier2(
-                    cmd,
-                    &vk::DependencyInfo::default().memory_barriers(&after),
-                );
-            }
-        })?;
-        Ok(start.elapsed().as_secs_f64() * 1e3)
+        let sets = self.sets.as_ref().expect("a created pipeline has its sets");
+        let pass = Pass {
+            push,
+            grid: [width, height, 1],
+        };
+        self.rec
+            .run_blocking(ctx, "ray tracing", sets, bound, pass, |c, g| {
+                // SAFETY: `c` is the trace's command buffer, recording outside a render pass,
+                // with this pipeline and its set bound by `record_passes`; the SBT is valid.
+                unsafe { rt.cmd_trace_rays(c, raygen, miss, hit, callable, g[0], g[1], g[2]) }
+            })
     }
 
     /// Records `passes` (`grid` = rays, x/y/z) into `cmd` with one binding set `bound`, as
@@ -396,22 +314,14 @@ impl RayTracingPipeline {
                 "record without VK_KHR_ray_tracing_pipeline".into(),
             ));
         };
-        let [raygen, miss, hit, callable] = &self.regions;
-        check_record(bound, &self.bindings, passes, self.push_size)?;
+        self.rec.check("record", bound, passes)?;
         check_timer(timer, passes.len())?;
         let set = self
             .sets
             .as_mut()
             .expect("a created pipeline has its sets")
-            .acquire(ctx, cmd, &self.bindings, bound)?;
-        let recorder = Recorder {
-            bind_point: vk::PipelineBindPoint::RAY_TRACING_KHR,
-            pipeline: self.raw,
-            layout: self.layout,
-            stage: vk::PipelineStageFlags2::RAY_TRACING_SHADER_KHR,
-            push_stages: STAGES,
-            reads: vk::AccessFlags2::SHADER_BINDING_TABLE_READ_KHR,
-        };
+            .acquire(ctx, cmd, &self.rec.bindings, bound)?;
+        let [raygen, miss, hit, callable] = &self.regions;
         let dispatch = |c: vk::CommandBuffer, g: [u32; 3]| {
             // SAFETY: `c` is the frame's command buffer, recording outside a render pass, with
             // this pipeline and its set bound by `record_passes`.
@@ -420,7 +330,7 @@ impl RayTracingPipeline {
         // SAFETY: a FrameCmd is recording outside a render pass (its constructor's contract);
         // pipeline, layout and set are valid, the set was written for this frame only; the
         // timer was checked, and reset by the caller.
-        unsafe { record_passes(ctx, cmd.raw(), &recorder, set, passes, timer, dispatch) };
+        unsafe { record_passes(ctx, cmd.raw(), &self.rec, set, passes, timer, dispatch) };
         Ok(())
     }
 
@@ -428,12 +338,7 @@ impl RayTracingPipeline {
     pub fn destroy(self, ctx: &VulkanContext) {
         // SAFETY: no pending work uses these objects; each is destroyed once; null handles
         // (from a failed creation) are ignored by vkDestroy*.
-        unsafe {
-            ctx.device.destroy_pipeline(self.raw, None);
-            ctx.device.destroy_pipeline_layout(self.layout, None);
-            ctx.device
-                .destroy_descriptor_set_layout(self.set_layout, None);
-        }
+        unsafe { destroy_pipeline(ctx, self.rec.pipeline, self.rec.layout, self.set_layout) };
         if let Some(sets) = &self.sets {
             sets.destroy(ctx);
         }
