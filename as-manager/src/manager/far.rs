@@ -79,6 +79,10 @@ pub(crate) struct FarField {
     /// Per node slot: a live leaf on the near side (`is_near_leaf`, asked per instance by the
     /// residency pass and the landmarks: a byte here, not a node's cache lines).
     near_bits: Vec<bool>,
+    /// Per node slot, dense for the per-record coverage test (`is_covered`): its `shown`
+    /// epoch and its parent (`NO_PARENT` for a root or a vacant slot).
+    shown_at: Vec<u64>,
+    parent_of: Vec<u32>,
     /// Far-field frames so far (one per `far_prepare`); 0: none yet.
     epoch: u64,
     /// Live nodes.
@@ -131,8 +135,18 @@ impl FarField {
         }
     }
 
-    /// Sets `near_bits[i]` from the node.
+    /// Sets `near_bits[i]`, `shown_at[i]` and `parent_of[i]` from the node.
     fn refresh_near_bit(&mut self, i: u32) {
+        let n = self.nodes.get(i as usize).and_then(|n| n.as_ref());
+        let (shown, parent) = n.map_or((u64::MAX, NO_PARENT), |n| {
+            (n.shown, n.parent.unwrap_or(NO_PARENT))
+        });
+        if self.shown_at.len() <= i as usize {
+            self.shown_at.resize(i as usize + 1, u64::MAX);
+            self.parent_of.resize(i as usize + 1, NO_PARENT);
+        }
+        self.shown_at[i as usize] = shown;
+        self.parent_of[i as usize] = parent;
         let near =
             matches!(self.nodes.get(i as usize), Some(Some(n)) if n.children.is_empty() && n.near);
         if self.near_bits.len() <= i as usize {
@@ -166,6 +180,7 @@ impl FarField {
             if let Some(Some(child)) = self.nodes.get_mut(c as usize) {
                 child.parent = None;
             }
+            self.refresh_near_bit(c);
         }
         self.refresh_near_bit(id.index);
         if let Some(p) = n.parent {
@@ -221,12 +236,12 @@ impl FarField {
 
     /// Whether `leaf` or one of its ancestors was part of the display cut of `epoch`.
     fn shown_in(&self, leaf: u32, epoch: u64) -> bool {
-        let mut i = Some(leaf);
-        while let Some(Some(n)) = i.and_then(|i| self.nodes.get(i as usize)) {
-            if n.shown == epoch {
+        let mut i = leaf;
+        while let Some(&shown) = self.shown_at.get(i as usize) {
+            if shown == epoch {
                 return true;
             }
-            i = n.parent;
+            i = self.parent_of[i as usize];
         }
         false
     }
@@ -272,6 +287,9 @@ impl FarField {
         self.epoch >= 1 && self.shown_in(group, self.epoch)
     }
 }
+
+/// `FarField::parent_of` of a root.
+const NO_PARENT: u32 = u32::MAX;
 
 /// Pixels an error of `error` metres projects to at `dist` (the LOD config's screen).
 fn projected_px(c: &crate::Config, error: f32, dist: f32) -> f32 {
@@ -555,6 +573,7 @@ impl<B: AsBackend> AsManager<B> {
         for &g in &self.far.picks {
             let n = self.far.nodes[g as usize].as_mut().expect("live");
             n.shown = e;
+            self.far.shown_at[g as usize] = e;
             covered_leaves += n.leaves;
         }
         // Take the covered leaves' detail out of the TLAS list.
