@@ -193,6 +193,21 @@ fn print_table(r: &RunReport) {
             t.frame_over_passes_p50
         );
     }
+    for p in s.policies.iter().filter(|p| p.peak_landmark_instances > 0) {
+        println!(
+            "  {:<12} landmarks: peak {} records, {:.0} / {:.0} candidates looked at per frame (p50 / p99)",
+            p.policy, p.peak_landmark_instances, p.landmarks_examined_p50, p.landmarks_examined_p99
+        );
+    }
+    let copied: Vec<String> = s
+        .policies
+        .iter()
+        .map(|p| format!("{} {:.2}", p.policy, p.geometry_upload_mb_per_frame))
+        .collect();
+    println!(
+        "new geometry copied by update, MB per frame: {}",
+        copied.join(", ")
+    );
     println!("validation messages: {}", s.validation_messages);
     for f in &r.files {
         println!("wrote {}", f.display());

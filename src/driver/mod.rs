@@ -543,6 +543,11 @@ pub fn run_cached(
             p.bridge.pose_skinned(&p.manager, &world, time, 2);
             // Names the policy for a profiler of the manager's spans (examples' `--profile`).
             let _policy = tracing::trace_span!("policy", name = p.name).entered();
+            let uploaded = |m: &AsManager<VulkanBackend>| {
+                let c = m.backend().counters();
+                c.input_upload_bytes + c.pose_upload_bytes
+            };
+            let uploaded_before = uploaded(&p.manager);
             let t = Instant::now();
             let out = p.manager.update(FrameInput {
                 frame,
@@ -552,13 +557,12 @@ pub fn run_cached(
             if rows.len() % policies_len == 0 {
                 update0_ms.push((frame, update_ms));
             }
-            rows.push(
-                FrameRow::new(frame, p.name, out.stats, update_ms)
-                    .with_build_budget(max_prims, out.stats),
-            );
+            let row = FrameRow::new(frame, p.name, out.stats, update_ms)
+                .with_build_budget(max_prims, out.stats);
             p.tlas = out.tlas;
             p.records.clear();
             p.records.extend_from_slice(out.instances);
+            rows.push(row.with_geometry_upload(uploaded(&p.manager) - uploaded_before));
             p.manager.backend_mut().record(&cmd)?;
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;

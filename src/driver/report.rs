@@ -63,6 +63,12 @@ pub struct FrameRow {
     /// (allowed only for one oversized item alone).
     pub build_budget: u64,
     pub over_build_budget: bool,
+    /// Far-field landmark records in the TLAS, and the candidates looked at this frame.
+    pub landmark_instances: u32,
+    pub landmarks_examined: u32,
+    /// Bytes of new geometry (vertices, indices, skinned poses) copied from the CPU into
+    /// upload buffers by this frame's `update` (the copies `update`'s time includes).
+    pub geometry_upload_bytes: u64,
     /// Wall time of `update` (policy and Vulkan recording), ms.
     pub update_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
@@ -100,6 +106,9 @@ impl FrameRow {
             memory_refused: s.memory_refused,
             within_r1: s.within_r1,
             short_of_target: s.short_of_target,
+            landmark_instances: s.landmark_instances,
+            landmarks_examined: s.landmarks_examined,
+            geometry_upload_bytes: 0,
             build_budget: u64::MAX,
             over_build_budget: false,
             update_ms,
@@ -115,6 +124,12 @@ impl FrameRow {
         self.build_budget = max_primitives;
         self.over_build_budget =
             s.build_primitives > max_primitives && !(s.oversized_admitted && s.builds == 1);
+        self
+    }
+
+    /// Sets the bytes of new geometry this frame's `update` copied.
+    pub fn with_geometry_upload(mut self, bytes: u64) -> Self {
+        self.geometry_upload_bytes = bytes;
         self
     }
 
@@ -147,6 +162,9 @@ struct CsvRow {
     within_r1: u32,
     short_of_target: u32,
     over_build_budget: bool,
+    landmark_instances: u32,
+    landmarks_examined: u32,
+    geometry_upload_bytes: u64,
     update_ms: f64,
     gpu_as_ms: f64,
     hit_mismatch: Option<f64>,
@@ -237,6 +255,15 @@ pub struct PolicySummary {
     pub update_ms_p50: f64,
     /// `update` wall time, 99th percentile.
     pub update_ms_p99: f64,
+    /// Peak far-field landmark records in the TLAS.
+    pub peak_landmark_instances: u32,
+    /// Landmark candidates looked at per frame, median and 99th percentile (the landmarks are
+    /// kept incrementally).
+    pub landmarks_examined_p50: f64,
+    pub landmarks_examined_p99: f64,
+    /// New geometry copied from the CPU per frame (vertices, indices, skinned poses), mean MB
+    /// (`update`'s time includes these copies; the examples' `--profile` shows them apart).
+    pub geometry_upload_mb_per_frame: f64,
     /// GPU acceleration-structure ms per frame, median.
     pub gpu_as_ms_p50: f64,
     /// GPU acceleration-structure ms per frame, 99th percentile.
@@ -399,6 +426,7 @@ impl RunReport {
             let tlas = Summary::of(mine.iter().map(|r| f64::from(r.tlas_instances)));
             let update = Summary::of(mine.iter().map(|r| r.update_ms));
             let gpu = Summary::of(mine.iter().map(|r| r.gpu_as_ms));
+            let examined = Summary::of(mine.iter().map(|r| f64::from(r.landmarks_examined)));
             let scored: Vec<(u64, &FrameScore)> = mine
                 .iter()
                 .filter_map(|r| r.score.as_ref().map(|s| (r.frame, s)))
@@ -422,6 +450,19 @@ impl RunReport {
                 p95_tlas_instances: tlas.p95 as u32,
                 update_ms_p50: update.p50,
                 update_ms_p99: update.p99,
+                peak_landmark_instances: mine
+                    .iter()
+                    .map(|r| r.landmark_instances)
+                    .max()
+                    .unwrap_or(0),
+                landmarks_examined_p50: examined.p50,
+                landmarks_examined_p99: examined.p99,
+                geometry_upload_mb_per_frame: mine
+                    .iter()
+                    .map(|r| r.geometry_upload_bytes as f64)
+                    .sum::<f64>()
+                    / 1e6
+                    / mine.len().max(1) as f64,
                 gpu_as_ms_p50: gpu.p50,
                 gpu_as_ms_p99: gpu.p99,
                 render_ms_p50: Summary::of(
@@ -513,6 +554,9 @@ impl RunReport {
                 within_r1: r.within_r1,
                 short_of_target: r.short_of_target,
                 over_build_budget: r.over_build_budget,
+                landmark_instances: r.landmark_instances,
+                landmarks_examined: r.landmarks_examined,
+                geometry_upload_bytes: r.geometry_upload_bytes,
                 update_ms: r.update_ms,
                 gpu_as_ms: r.gpu_as_ms,
                 hit_mismatch: s.map(|s| s.hit_mismatch),
