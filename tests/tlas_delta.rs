@@ -19,19 +19,15 @@ use rtstream_stats::Rng;
 #[test]
 fn instance_buffers_hold_the_records_while_only_changes_are_written() {
     let ctx = common::context();
-    let backend = VulkanBackend::new(
-        ctx.clone(),
-        VulkanBackendDesc {
-            frames_in_flight: 3,
-            ..VulkanBackendDesc::default()
-        },
-    )
-    .unwrap();
+    let desc = VulkanBackendDesc {
+        frames_in_flight: 3,
+        ..VulkanBackendDesc::default()
+    };
     let config = Config {
         freeze_cost_model: true,
         ..Config::default()
     };
-    let mut m = AsManager::new(config, backend).unwrap();
+    let mut m = common::manager(&ctx, desc, config);
     // Four meshes of 3 LODs with data, 4 to 40 m across.
     let meshes: Vec<_> = (0..4u32)
         .map(|i| {

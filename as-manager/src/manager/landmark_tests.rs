@@ -112,39 +112,41 @@ impl Scene {
         self.live.push(self.m.add_instance(d).unwrap());
     }
 
+    /// Gives a LOD data, or takes it away (counts only).
+    fn set_data(&self, mesh: MeshId, lod: usize, data: bool) {
+        let g = if data {
+            LodGeometry::Data(grid_geometry(8, 1.0))
+        } else {
+            LodGeometry::Counts {
+                vertices: 81,
+                triangles: 128,
+            }
+        };
+        self.m.set_lod_geometry(mesh, lod, g).unwrap();
+    }
+
+    /// A random mesh and its LOD count.
+    fn random_mesh(&mut self) -> (MeshId, usize) {
+        let mesh = self.meshes[self.rng.below(self.meshes.len())];
+        (mesh, self.m.mesh_lods(mesh).map_or(1, |l| l.len()))
+    }
+
     /// Takes every LOD's data of one mesh away (its landmarks have no usable LOD), or gives
     /// it all back.
     fn strip_or_restore_mesh(&mut self, restore: bool) {
-        let mesh = self.meshes[self.rng.below(self.meshes.len())];
-        let lods = self.m.mesh_lods(mesh).map_or(1, |l| l.len());
+        let (mesh, lods) = self.random_mesh();
         for lod in 0..lods {
-            let g = if restore {
-                LodGeometry::Data(grid_geometry(8, 1.0))
-            } else {
-                LodGeometry::Counts {
-                    vertices: 81,
-                    triangles: 128,
-                }
-            };
-            self.m.set_lod_geometry(mesh, lod, g).unwrap();
+            self.set_data(mesh, lod, restore);
         }
     }
 
     /// Swaps a few LODs between data and counts.
     fn swap_data(&mut self) {
         for _ in 0..8 {
-            let mesh = self.meshes[self.rng.below(self.meshes.len())];
-            let lods = self.m.mesh_lods(mesh).map_or(1, |l| l.len());
+            let (mesh, lods) = self.random_mesh();
             let lod = self.rng.below(lods);
-            let g = if self.rng.below(2) == 0 {
-                LodGeometry::Data(grid_geometry(8, 1.0))
-            } else {
-                LodGeometry::Counts {
-                    vertices: 81,
-                    triangles: 128,
-                }
-            };
-            self.m.set_lod_geometry(mesh, lod, g).unwrap();
+            let data = self.rng.below(2) == 0;
+            self.set_data(mesh, lod, data);
         }
     }
 

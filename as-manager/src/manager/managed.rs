@@ -332,20 +332,10 @@ impl ResidencyPass<'_> {
                 .any(|(p, f)| f.dot(c - *p) >= 0.0);
         let e = &mut tables.entries[key];
         if requested {
-            if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
-                e.streak_start = frame;
-            }
-            e.last_request = frame;
+            e.mark_request(frame);
         }
         e.last_keep = frame;
-        if e.dist_frame != frame {
-            e.dist_frame = frame;
-            e.min_dist = surface_dist;
-            e.in_view = in_view;
-        } else {
-            e.min_dist = e.min_dist.min(surface_dist);
-            e.in_view |= in_view;
-        }
+        e.mark_distance(frame, surface_dist, in_view);
         if let Some(shown) = hot.shown.and_then(|k| tables.entries.get_mut(k)) {
             shown.last_keep = frame;
         }

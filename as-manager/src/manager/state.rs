@@ -80,7 +80,48 @@ impl MeshState {
     }
 }
 
+/// Merges one requester's distance and view into a frame's nearest: the first of `frame`
+/// replaces what an earlier frame left, later ones keep the minimum and any view.
+pub(crate) fn merge_nearest(
+    at: &mut u64,
+    min: &mut f32,
+    view: &mut bool,
+    frame: u64,
+    dist: f32,
+    in_view: bool,
+) {
+    if *at != frame {
+        *at = frame;
+        *min = dist;
+        *view = in_view;
+    } else {
+        *min = min.min(dist);
+        *view |= in_view;
+    }
+}
+
 impl BlasEntry {
+    /// Requested in `frame`: a new streak unless it was requested the frame before.
+    pub fn mark_request(&mut self, frame: u64) {
+        if self.last_request.wrapping_add(1) < frame || self.last_request > frame {
+            self.streak_start = frame;
+        }
+        self.last_request = frame;
+    }
+
+    /// A requester `dist` metres away (surface), in view or not, this frame (build priority and
+    /// eviction order read the nearest).
+    pub fn mark_distance(&mut self, frame: u64, dist: f32, in_view: bool) {
+        merge_nearest(
+            &mut self.dist_frame,
+            &mut self.min_dist,
+            &mut self.in_view,
+            frame,
+            dist,
+            in_view,
+        );
+    }
+
     /// The BLAS address an instance record of this (built) entry names; see `address`.
     pub fn record_address(&self, backend: &impl crate::backend::AsBackend) -> u64 {
         match (self.owner, self.handle) {

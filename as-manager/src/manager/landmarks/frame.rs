@@ -110,23 +110,13 @@ impl<B: AsBackend> AsManager<B> {
             if pair.targets == 0 {
                 continue;
             }
-            if e.last_request.wrapping_add(1) < frame || e.last_request > frame {
-                e.streak_start = frame;
-            }
-            e.last_request = frame;
+            e.mark_request(frame);
             let (dist, in_view) = if e.state != EntryState::Built && pair.frame == frame {
                 (pair.frame_min, pair.frame_in_view)
             } else {
                 ((pair.min_key - odo).max(0.0) as f32, pair.in_view)
             };
-            if e.dist_frame != frame {
-                e.dist_frame = frame;
-                e.min_dist = dist;
-                e.in_view = in_view;
-            } else {
-                e.min_dist = e.min_dist.min(dist);
-                e.in_view |= in_view;
-            }
+            e.mark_distance(frame, dist, in_view);
         }
     }
 

@@ -315,14 +315,14 @@ impl Landmarks {
             pair.min_key = pair.min_key.min(key);
             pair.in_view |= in_view;
         }
-        if pair.frame != frame {
-            pair.frame = frame;
-            pair.frame_min = surface;
-            pair.frame_in_view = in_view;
-        } else {
-            pair.frame_min = pair.frame_min.min(surface);
-            pair.frame_in_view |= in_view;
-        }
+        crate::manager::state::merge_nearest(
+            &mut pair.frame,
+            &mut pair.frame_min,
+            &mut pair.frame_in_view,
+            frame,
+            surface,
+            in_view,
+        );
         // Next look: the nearest threshold (shown next frame: the hysteresis one).
         let leave_at = (radius / (kt * 0.9)).min(range + radius);
         let slack = (leave_at - d).min(d - reach).min(lod_slack);

@@ -358,16 +358,7 @@ impl Landmarks {
             seen: u64::MAX,
             waiting: false,
         };
-        let ci = match self.free_cands.pop() {
-            Some(ci) => {
-                self.cands[ci as usize] = cand;
-                ci
-            }
-            None => {
-                self.cands.push(cand);
-                (self.cands.len() - 1) as u32
-            }
-        };
+        let ci = slab_insert(&mut self.cands, &mut self.free_cands, cand);
         self.index[slot as usize] = ci;
         self.now.push(slot);
     }
@@ -453,6 +444,20 @@ impl Landmarks {
             return Err("a landmark record of no member".into());
         }
         Ok(())
+    }
+}
+
+/// Puts `item` in a vacant place of `items` (listed in `free`), or at the end; its index.
+fn slab_insert<T>(items: &mut Vec<T>, free: &mut Vec<u32>, item: T) -> u32 {
+    match free.pop() {
+        Some(i) => {
+            items[i as usize] = item;
+            i
+        }
+        None => {
+            items.push(item);
+            (items.len() - 1) as u32
+        }
     }
 }
 

@@ -14,16 +14,7 @@ impl Landmarks {
             return i;
         }
         let p = Some(PairUse::new(mesh, lod));
-        let i = match self.free_pairs.pop() {
-            Some(i) => {
-                self.pairs[i as usize] = p;
-                i
-            }
-            None => {
-                self.pairs.push(p);
-                (self.pairs.len() - 1) as u32
-            }
-        };
+        let i = slab_insert(&mut self.pairs, &mut self.free_pairs, p);
         self.pair_index.insert(pair_key(mesh, lod), i);
         i
     }
