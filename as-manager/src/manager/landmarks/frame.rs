@@ -189,8 +189,12 @@ impl<B: AsBackend> AsManager<B> {
             let target = mesh.lod_entry[target_lod as usize];
             let chosen = tables.choose_shown(mesh, mesh_ix, target, target_lod as usize, hot.shown);
             hot.shown = chosen;
-            if chosen != target {
+            let unsettled = chosen != target;
+            if unsettled {
                 landmarks.unsettled.push(slot);
+            }
+            if let Some(&ci) = landmarks.index.get(slot as usize) {
+                landmarks.cands[ci as usize].unsettled = unsettled;
             }
             let shown_pair = chosen.map(|k| {
                 let lod = tables.entries[k].lod;

@@ -194,11 +194,7 @@ impl Landmarks {
         // A landmark continues from its LOD (kept here, not in the grid: a look at a landmark
         // touches no instance state); any other candidate from the instance's last visit.
         let (was, last_lod) = if is_member {
-            let m = self.members[cand.member as usize];
-            (
-                true,
-                self.pairs[m.target as usize].as_ref().expect("live").lod,
-            )
+            (true, cand.lod)
         } else {
             let Some(ge) = x.grid.get(slot) else {
                 self.remove(slot, x.records);
@@ -252,6 +248,20 @@ impl Landmarks {
             .lod
             .stable_distance(mesh.errors(), cand.scale, lodi, surface);
         let tris = mesh.lod_tris[lodi];
+        let leave_at = (radius / (kt * 0.9)).min(range + radius);
+        let slack = (leave_at - d).min(d - reach).min(lod_slack);
+        if is_member
+            && !cand.unsettled
+            && cand.lod as usize == lodi
+            && cand.sel as usize == selected
+            && mesh.lod_entry[lodi].is_some()
+        {
+            // A landmark that stays as it is: its pairs and BLAS are unchanged (its target is
+            // built, so its pair's distances only bound the eviction order: the ones from its
+            // last change still do).
+            self.due_after(ci, slack, d);
+            return;
+        }
         let in_view = x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
         if !is_member {
             // Joins: the instance's LOD and cull state as a visit leaves them (a landmark's
@@ -323,9 +333,9 @@ impl Landmarks {
             surface,
             in_view,
         );
+        let c = &mut self.cands[ci as usize];
+        (c.lod, c.sel) = (lodi as u8, selected as u8);
         // Next look: the nearest threshold (shown next frame: the hysteresis one).
-        let leave_at = (radius / (kt * 0.9)).min(range + radius);
-        let slack = (leave_at - d).min(d - reach).min(lod_slack);
         self.due_after(ci, slack, d);
     }
 }

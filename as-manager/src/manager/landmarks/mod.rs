@@ -79,6 +79,12 @@ struct Cand {
     seen: u64,
     /// In some pair's `unusable` list.
     waiting: bool,
+    /// A landmark's target LOD and selected LOD (its member's pairs), so that a look that
+    /// changes neither touches nothing else.
+    lod: u8,
+    sel: u8,
+    /// A landmark that chooses its BLAS every frame (`Landmarks::unsettled`).
+    unsettled: bool,
 }
 
 /// A shown landmark (a member of the set).
@@ -298,6 +304,7 @@ impl Landmarks {
         for c in &mut self.cands {
             c.member = NONE;
             c.waiting = false;
+            c.unsettled = false;
         }
         self.all_due = true;
     }
@@ -357,6 +364,9 @@ impl Landmarks {
             group_pos,
             seen: u64::MAX,
             waiting: false,
+            lod: NONE_LOD,
+            sel: NONE_LOD,
+            unsettled: false,
         };
         let ci = slab_insert(&mut self.cands, &mut self.free_cands, cand);
         self.index[slot as usize] = ci;
