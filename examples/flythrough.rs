@@ -202,11 +202,18 @@ fn print_table(r: &RunReport) {
     let copied: Vec<String> = s
         .policies
         .iter()
-        .map(|p| format!("{} {:.2}", p.policy, p.geometry_upload_mb_per_frame))
+        .map(|p| {
+            format!(
+                "{} {:.2} MB, {:.1} %",
+                p.policy,
+                p.geometry_upload_mb_per_frame,
+                p.tlas_records_written_share * 100.0
+            )
+        })
         .collect();
     println!(
-        "new geometry copied by update, MB per frame: {}",
-        copied.join(", ")
+        "per frame, new geometry copied by update and TLAS records written of those built: {}",
+        copied.join("; ")
     );
     println!("validation messages: {}", s.validation_messages);
     for f in &r.files {

@@ -545,7 +545,10 @@ pub fn run_cached(
             let _policy = tracing::trace_span!("policy", name = p.name).entered();
             let uploaded = |m: &AsManager<VulkanBackend>| {
                 let c = m.backend().counters();
-                c.input_upload_bytes + c.pose_upload_bytes
+                (
+                    c.input_upload_bytes + c.pose_upload_bytes,
+                    c.tlas_records_written,
+                )
             };
             let uploaded_before = uploaded(&p.manager);
             let t = Instant::now();
@@ -562,7 +565,11 @@ pub fn run_cached(
             p.tlas = out.tlas;
             p.records.clear();
             p.records.extend_from_slice(out.instances);
-            rows.push(row.with_geometry_upload(uploaded(&p.manager) - uploaded_before));
+            let uploaded_after = uploaded(&p.manager);
+            rows.push(row.with_writes(
+                uploaded_after.0 - uploaded_before.0,
+                uploaded_after.1 - uploaded_before.1,
+            ));
             p.manager.backend_mut().record(&cmd)?;
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;

@@ -69,6 +69,9 @@ pub struct FrameRow {
     /// Bytes of new geometry (vertices, indices, skinned poses) copied from the CPU into
     /// upload buffers by this frame's `update` (the copies `update`'s time includes).
     pub geometry_upload_bytes: u64,
+    /// TLAS instance records the backend wrote this frame (the others were unchanged in the
+    /// frame slot's buffer; see `TlasDelta`).
+    pub tlas_records_written: u64,
     /// Wall time of `update` (policy and Vulkan recording), ms.
     pub update_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
@@ -109,6 +112,7 @@ impl FrameRow {
             landmark_instances: s.landmark_instances,
             landmarks_examined: s.landmarks_examined,
             geometry_upload_bytes: 0,
+            tlas_records_written: 0,
             build_budget: u64::MAX,
             over_build_budget: false,
             update_ms,
@@ -127,9 +131,11 @@ impl FrameRow {
         self
     }
 
-    /// Sets the bytes of new geometry this frame's `update` copied.
-    pub fn with_geometry_upload(mut self, bytes: u64) -> Self {
-        self.geometry_upload_bytes = bytes;
+    /// Sets the bytes of new geometry this frame's `update` copied and the TLAS records it
+    /// wrote.
+    pub fn with_writes(mut self, geometry_bytes: u64, tlas_records: u64) -> Self {
+        self.geometry_upload_bytes = geometry_bytes;
+        self.tlas_records_written = tlas_records;
         self
     }
 
@@ -165,6 +171,7 @@ struct CsvRow {
     landmark_instances: u32,
     landmarks_examined: u32,
     geometry_upload_bytes: u64,
+    tlas_records_written: u64,
     update_ms: f64,
     gpu_as_ms: f64,
     hit_mismatch: Option<f64>,
@@ -264,6 +271,9 @@ pub struct PolicySummary {
     /// New geometry copied from the CPU per frame (vertices, indices, skinned poses), mean MB
     /// (`update`'s time includes these copies; the examples' `--profile` shows them apart).
     pub geometry_upload_mb_per_frame: f64,
+    /// TLAS instance records written over those built from, over the run (1: every record
+    /// every frame; the landmarks' records persist in the frame slots' buffers).
+    pub tlas_records_written_share: f64,
     /// GPU acceleration-structure ms per frame, median.
     pub gpu_as_ms_p50: f64,
     /// GPU acceleration-structure ms per frame, 99th percentile.
@@ -463,6 +473,15 @@ impl RunReport {
                     .sum::<f64>()
                     / 1e6
                     / mine.len().max(1) as f64,
+                tlas_records_written_share: mine
+                    .iter()
+                    .map(|r| r.tlas_records_written as f64)
+                    .sum::<f64>()
+                    / mine
+                        .iter()
+                        .map(|r| f64::from(r.tlas_instances))
+                        .sum::<f64>()
+                        .max(1.0),
                 gpu_as_ms_p50: gpu.p50,
                 gpu_as_ms_p99: gpu.p99,
                 render_ms_p50: Summary::of(
@@ -557,6 +576,7 @@ impl RunReport {
                 landmark_instances: r.landmark_instances,
                 landmarks_examined: r.landmarks_examined,
                 geometry_upload_bytes: r.geometry_upload_bytes,
+                tlas_records_written: r.tlas_records_written,
                 update_ms: r.update_ms,
                 gpu_as_ms: r.gpu_as_ms,
                 hit_mismatch: s.map(|s| s.hit_mismatch),
