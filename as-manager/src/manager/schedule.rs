@@ -299,39 +299,27 @@ impl<B: AsBackend> AsManager<B> {
                     }
                 }
                 let _ = prio;
-                prims += tris as u64;
-                ms += est;
                 if proxy {
                     proxy_ms += est;
                     proxy_bytes += size.as_bytes;
                 } else {
                     detail_admitted += 1;
                 }
-                bytes += size.as_bytes;
                 self.stats.oversized_admitted |= oversized;
-                admitted.push(Admitted {
-                    entry: key,
-                    geometry,
-                    pose,
-                    class,
-                    opaque,
-                });
-                sizes.push(size);
-                if oversized {
-                    break;
-                }
-            } else {
-                prims += tris as u64;
-                ms += est;
-                bytes += size.as_bytes;
-                admitted.push(Admitted {
-                    entry: key,
-                    geometry,
-                    pose,
-                    class,
-                    opaque,
-                });
-                sizes.push(size);
+            }
+            prims += tris as u64;
+            ms += est;
+            bytes += size.as_bytes;
+            admitted.push(Admitted {
+                entry: key,
+                geometry,
+                pose,
+                class,
+                opaque,
+            });
+            sizes.push(size);
+            if budgeted && oversized {
+                break;
             }
         }
         self.stats.queued = (queue.len() - admitted.len()) as u32;

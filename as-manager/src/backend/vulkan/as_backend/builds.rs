@@ -62,18 +62,7 @@ impl VulkanBackend {
                 let (ib, iaddr, itype) = match (g.device_indices, g.indices) {
                     (Some(d), _) => (None, d.address, d.index_type),
                     (None, Some(idx)) => {
-                        let mut ib = self.create_buffer(
-                            BufferDesc {
-                                name: "BLAS indices",
-                                size: (idx.len() * 4).max(4) as u64,
-                                usage: BUILD_INPUT_USAGE,
-                                memory: MemoryKind::Upload,
-                            },
-                            true,
-                        )?;
-                        // A copy of new geometry: timed apart (reported beside `update`, not in it).
-                        tracing::trace_span!("upload_geometry")
-                            .in_scope(|| ib.write(0, bytemuck::cast_slice(idx)));
+                        let ib = self.upload_input("BLAS indices", bytemuck::cast_slice(idx))?;
                         self.counters.input_upload_bytes += (idx.len() * 4) as u64;
                         let a = ib.address;
                         (Some(ib), a, IndexType::U32)
@@ -114,19 +103,8 @@ impl VulkanBackend {
                         // The engine's buffers: nothing to upload or keep.
                         (Some(v), _, None) => (v.address, v.stride, None, None),
                         (None, Some(pos), Some(ib)) => {
-                            match self.create_buffer(
-                                BufferDesc {
-                                    name: "BLAS positions",
-                                    size: (pos.len() * 12).max(4) as u64,
-                                    usage: BUILD_INPUT_USAGE,
-                                    memory: MemoryKind::Upload,
-                                },
-                                true,
-                            ) {
-                                Ok(mut vb) => {
-                                    // A copy of new geometry: timed apart (reported beside `update`, not in it).
-                                    tracing::trace_span!("upload_geometry")
-                                        .in_scope(|| vb.write(0, bytemuck::cast_slice(pos)));
+                            match self.upload_input("BLAS positions", bytemuck::cast_slice(pos)) {
+                                Ok(vb) => {
                                     self.counters.input_upload_bytes += (pos.len() * 12) as u64;
                                     (vb.address, 12, None, Some((vb, ib)))
                                 }

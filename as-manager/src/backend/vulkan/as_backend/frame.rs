@@ -93,18 +93,7 @@ impl VulkanBackend {
         if value == 0 {
             return Ok(());
         }
-        let sems = [self.timeline];
-        let vals = [value];
-        // SAFETY: the semaphore is a timeline semaphore of this device.
-        unsafe {
-            self.ctx.device.wait_semaphores(
-                &vk::SemaphoreWaitInfo::default()
-                    .semaphores(&sems)
-                    .values(&vals),
-                u64::MAX,
-            )
-        }
-        .op("vkWaitSemaphores")
+        self.ctx.wait_timeline(self.timeline, value)
     }
 
     /// Counts `bytes` as allocated; `limited` allocations (BLAS storage and inputs, what the

@@ -100,20 +100,26 @@ impl VulkanBackend {
         }
     }
 
-    /// A new host-visible buffer holding `positions` (a skinned BLAS's pose).
-    pub(super) fn pose_buffer(&mut self, positions: &[[f32; 3]]) -> BackendResult<GpuBuffer> {
+    /// A new host-visible build-input buffer (counted against the BLAS memory limit) holding
+    /// `bytes`: a copy of new geometry, timed apart in its `upload_geometry` span (reported
+    /// beside `update`, not in it).
+    pub(super) fn upload_input(&mut self, name: &str, bytes: &[u8]) -> BackendResult<GpuBuffer> {
         let mut b = self.create_buffer(
             BufferDesc {
-                name: "skinned pose",
-                size: (positions.len() * 12).max(4) as u64,
+                name,
+                size: bytes.len().max(4) as u64,
                 usage: BUILD_INPUT_USAGE,
                 memory: MemoryKind::Upload,
             },
             true,
         )?;
-        // A copy of new geometry: timed apart (reported beside `update`, not in it).
-        tracing::trace_span!("upload_geometry")
-            .in_scope(|| b.write(0, bytemuck::cast_slice(positions)));
+        tracing::trace_span!("upload_geometry").in_scope(|| b.write(0, bytes));
+        Ok(b)
+    }
+
+    /// A new host-visible buffer holding `positions` (a skinned BLAS's pose).
+    pub(super) fn pose_buffer(&mut self, positions: &[[f32; 3]]) -> BackendResult<GpuBuffer> {
+        let b = self.upload_input("skinned pose", bytemuck::cast_slice(positions))?;
         self.counters.pose_upload_bytes += (positions.len() * 12) as u64;
         Ok(b)
     }

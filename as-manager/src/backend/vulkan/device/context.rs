@@ -552,6 +552,22 @@ impl VulkanContext {
         unsafe { self.device.queue_submit2(*queue, submit, vk::Fence::null()) }.op("vkQueueSubmit2")
     }
 
+    /// Waits until timeline semaphore `semaphore` (of this device) reaches `value`.
+    pub fn wait_timeline(&self, semaphore: vk::Semaphore, value: u64) -> VkResult<()> {
+        let sems = [semaphore];
+        let vals = [value];
+        // SAFETY: a timeline semaphore of this device (the caller's); waiting reads it only.
+        unsafe {
+            self.device.wait_semaphores(
+                &vk::SemaphoreWaitInfo::default()
+                    .semaphores(&sems)
+                    .values(&vals),
+                u64::MAX,
+            )
+        }
+        .op("vkWaitSemaphores")
+    }
+
     /// Waits until the device is idle.
     pub fn wait_idle(&self) -> VkResult<()> {
         let _queue = self.queue.lock();

@@ -151,18 +151,7 @@ impl FrameLoop {
         if !submitted {
             return Ok(());
         }
-        let sems = [self.timeline];
-        let vals = [frame + 1];
-        // SAFETY: our own timeline semaphore; the value is signalled by a submitted frame.
-        unsafe {
-            self.ctx.device.wait_semaphores(
-                &vk::SemaphoreWaitInfo::default()
-                    .semaphores(&sems)
-                    .values(&vals),
-                u64::MAX,
-            )
-        }
-        .op("vkWaitSemaphores")
+        self.ctx.wait_timeline(self.timeline, frame + 1)
     }
 
     /// Begins frame `frame` (frames strictly increasing): waits for the frame that used its
