@@ -12,6 +12,7 @@ mod far;
 mod journal;
 mod landmarks;
 mod managed;
+mod memory;
 mod registrar;
 mod schedule;
 mod state;
