@@ -37,6 +37,12 @@
 //!   LOD first, then evict the farthest / least recently traced) → cull (distance and
 //!   projected angle, AND/OR, near distance, hysteresis) → assemble (64-byte records, on
 //!   rayon's pool when many) → backend (one batched build, refits, TLAS).
+//! - The far field's landmarks (large static instances beyond r2, kept beside the proxies)
+//!   are kept incrementally: a candidate is looked at again only once the cameras may have
+//!   travelled across one of its thresholds (r2, the keep angle and range, its LOD's switch
+//!   distances), or on an event, so their cost follows what changes, not how many there are.
+//!   Their records stay at the front of the TLAS records; `AsBackend::build_tlas` is told
+//!   which records are unchanged (`TlasDelta`), and the Vulkan backend writes only the others.
 //! - Backend OOM caps the budget at what fitted and evicts; device lost is returned.
 //! - Baselines `Naive` and `SeedR1R2` ([`PolicyKind`]) run behind the same API.
 //! - tracing: a span per frame phase (`apply`, `residency`, `schedule`, `cull`, `assemble`,
