@@ -578,13 +578,19 @@ impl<B: AsBackend> AsManager<B> {
         }
         // Take the covered leaves' detail out of the TLAS list.
         if !self.far.picks.is_empty() {
-            let mut keep = Vec::with_capacity(self.tlas_list.len());
-            for (item, &g) in self.tlas_list.iter().zip(&self.tlas_groups) {
-                if g.is_none_or(|g| !self.far.is_covered(g)) {
-                    keep.push(*item);
-                }
-            }
-            self.tlas_list = keep;
+            // In place; neighbours in the list mostly share their leaf, so its answer is kept.
+            let (groups, far) = (&self.tlas_groups, &self.far);
+            let (mut i, mut last) = (0, (NO_PARENT, false));
+            self.tlas_list.retain(|_| {
+                let g = groups[i];
+                i += 1;
+                g.is_none_or(|g| {
+                    if last.0 != g {
+                        last = (g, far.is_covered(g));
+                    }
+                    !last.1
+                })
+            });
         }
         self.tlas_groups.clear();
         self.stats.proxy_instances = self.far.records.len() as u32;
