@@ -15,7 +15,6 @@
 //! ```
 
 use std::collections::{HashMap, VecDeque};
-use std::hash::BuildHasherDefault;
 
 pub use super::calibration::{CostModel, SizeModel, SizeSample};
 use super::{
@@ -23,7 +22,6 @@ use super::{
     CostOp, FaultPoint, GeometryRef, Measurement, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
-use crate::spatial::CellHasher;
 
 #[derive(Debug, Clone)]
 struct ModelBlas {
@@ -94,7 +92,56 @@ pub struct ModelBackend {
     /// The last `build_tlas` call's records, and how many of them name each BLAS: kept up to
     /// date through the calls' `TlasDelta`, so a frame costs what changed.
     records: Vec<TlasInstance>,
-    record_refs: HashMap<BlasHandle, u32, BuildHasherDefault<CellHasher>>,
+    refs: RecordRefs,
+}
+
+/// How many records name each BLAS (handles are dense: a count per handle), the handles named
+/// at all, and the records naming no handle ever made.
+#[derive(Debug, Default)]
+struct RecordRefs {
+    counts: Vec<u32>,
+    /// Position of each named handle in `named` (`u32::MAX`: not named).
+    pos: Vec<u32>,
+    named: Vec<u64>,
+    unknown: u64,
+}
+
+impl RecordRefs {
+    fn add(&mut self, address: u64, made: u64) {
+        let h = address >> 8;
+        if address & 0xff != 0 || h >= made {
+            self.unknown += 1;
+            return;
+        }
+        let h = h as usize;
+        if self.counts.len() <= h {
+            self.counts.resize(h + 1, 0);
+            self.pos.resize(h + 1, u32::MAX);
+        }
+        if self.counts[h] == 0 {
+            self.pos[h] = self.named.len() as u32;
+            self.named.push(h as u64);
+        }
+        self.counts[h] += 1;
+    }
+
+    fn remove(&mut self, address: u64, made: u64) {
+        let h = address >> 8;
+        if address & 0xff != 0 || h >= made {
+            self.unknown -= 1;
+            return;
+        }
+        let h = h as usize;
+        self.counts[h] -= 1;
+        if self.counts[h] == 0 {
+            let at = self.pos[h] as usize;
+            self.named.swap_remove(at);
+            if let Some(&moved) = self.named.get(at) {
+                self.pos[moved as usize] = at as u32;
+            }
+            self.pos[h] = u32::MAX;
+        }
+    }
 }
 
 impl ModelBackend {
@@ -120,7 +167,7 @@ impl ModelBackend {
             tlas_instances: 0,
             tlas_marks: Vec::new(),
             records: Vec::new(),
-            record_refs: HashMap::default(),
+            refs: RecordRefs::default(),
         }
     }
 
@@ -143,30 +190,23 @@ impl ModelBackend {
                 );
             }
         }
-        let refs = &mut self.record_refs;
-        let mut set = |old: Option<&TlasInstance>, new: Option<&TlasInstance>| {
-            if let Some(o) = old {
-                let h = BlasHandle(o.blas_address >> 8);
-                if let Some(n) = refs.get_mut(&h) {
-                    *n -= 1;
-                    if *n == 0 {
-                        refs.remove(&h);
-                    }
-                }
-            }
-            if let Some(n) = new {
-                *refs.entry(BlasHandle(n.blas_address >> 8)).or_insert(0) += 1;
-            }
-        };
+        // New uses first, then the old ones go: a BLAS named before and after keeps its count
+        // above zero.
+        let made = self.next_handle;
+        let refs = &mut self.refs;
         for &i in delta.changed {
             let i = i as usize;
             if i < stable {
-                set(Some(&self.records[i]), Some(&instances[i]));
+                refs.add(instances[i].blas_address, made);
+                refs.remove(self.records[i].blas_address, made);
                 self.records[i] = instances[i];
             }
         }
-        for i in stable..self.records.len().max(instances.len()) {
-            set(self.records.get(i), instances.get(i));
+        for r in &instances[stable..] {
+            refs.add(r.blas_address, made);
+        }
+        for r in &self.records[stable..] {
+            refs.remove(r.blas_address, made);
         }
         self.records.truncate(stable);
         self.records.extend_from_slice(&instances[stable..]);
@@ -432,13 +472,16 @@ impl AsBackend for ModelBackend {
         self.track_records(instances, delta);
         // Every BLAS the records name is used by this frame (a dead one is a violation per
         // record naming it): one look per BLAS, not per record.
-        for (&h, &n) in &self.record_refs {
-            match self.blases.get_mut(&h) {
+        self.counters.lifetime_violations += self.refs.unknown;
+        for &h in &self.refs.named {
+            match self.blases.get_mut(&BlasHandle(h)) {
                 Some(b) => {
-                    self.tlas_marks.push((h, b.last_tlas));
+                    self.tlas_marks.push((BlasHandle(h), b.last_tlas));
                     b.last_tlas = Some(frame);
                 }
-                None => self.counters.lifetime_violations += u64::from(n),
+                None => {
+                    self.counters.lifetime_violations += u64::from(self.refs.counts[h as usize])
+                }
             }
         }
         let units = instances.len() as u64;
