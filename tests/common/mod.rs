@@ -22,12 +22,17 @@ pub fn asset(rel: &str) -> std::path::PathBuf {
     p
 }
 
+/// `rtstream-<name>-<pid>` in the system's temporary directory (not created).
+pub fn temp_path(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("rtstream-{name}-{}", std::process::id()))
+}
+
 /// A small world (`grid` x `grid` levels of the default map, `seed`) generated and baked into a
-/// fresh temporary directory `rtstream-<name>-<pid>`; returns the directory and the world's side
-/// in metres.
+/// fresh temporary directory ([`temp_path`]); returns the directory and the world's side in
+/// metres.
 pub fn baked_small(name: &str, grid: u32, seed: u64) -> (std::path::PathBuf, f32) {
     use rtstream::streaming::{bake, generate, WorldPreset};
-    let dir = std::env::temp_dir().join(format!("rtstream-{name}-{}", std::process::id()));
+    let dir = temp_path(name);
     let _ = std::fs::remove_dir_all(&dir);
     let world = generate(&WorldPreset::small(grid, seed)).expect("generate");
     bake(&world, &dir).expect("bake");
@@ -68,6 +73,25 @@ use rtstream::as_manager as rtm;
 mod scene;
 #[allow(unused_imports)]
 pub use scene::{one_lod, one_lod_mesh, place, update_from};
+
+/// A deterministic run of the frame driver over `frames` frames of `preset`, its world baked
+/// into `<dir>/world`, that writes no files (no output directory, no maps); each test sets
+/// what else it runs with.
+pub fn driver_run(
+    preset: rtstream::streaming::WorldPreset,
+    dir: &std::path::Path,
+    frames: u64,
+) -> rtstream::driver::RunConfig {
+    rtstream::driver::RunConfig {
+        preset,
+        world_dir: dir.join("world"),
+        frames,
+        deterministic: true,
+        out_dir: None,
+        maps: 0,
+        ..rtstream::driver::RunConfig::default()
+    }
+}
 
 /// A manager of `config` on a Vulkan backend of `desc` on `ctx`.
 pub fn manager(
