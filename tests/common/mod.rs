@@ -39,8 +39,9 @@ pub fn baked_small(name: &str, grid: u32, seed: u64) -> (std::path::PathBuf, f32
     (dir, world.preset.size_m)
 }
 
-/// A context with the validation layer required (a missing layer fails the test).
-pub fn context() -> Arc<VulkanContext> {
+/// A context with the validation layer required (a missing layer fails the test), checked
+/// when it goes out of scope: see [`TestContext`].
+pub fn context() -> TestContext {
     let _ = tracing_subscriber::fmt()
         .with_test_writer()
         .with_env_filter("warn")
@@ -51,7 +52,47 @@ pub fn context() -> Arc<VulkanContext> {
         require_ray_query: true,
         ..ContextDesc::default()
     };
-    Arc::new(VulkanContext::new(&desc).unwrap_or_else(|e| panic!("Vulkan context: {e}")))
+    TestContext(Some(Arc::new(
+        VulkanContext::new(&desc).unwrap_or_else(|e| panic!("Vulkan context: {e}")),
+    )))
+}
+
+/// A test's Vulkan context ([`context`]; it derefs to the `Arc`). When it goes out of scope it
+/// fails the test if the validation layer reported anything ([`assert_no_validation_messages`]),
+/// unless the test is failing already. Declared first, it is dropped last: everything the test
+/// made from it is released, and its validation messages are in, by then. A test checks
+/// earlier, at a point of its own, with [`assert_no_validation_messages`].
+pub struct TestContext(Option<Arc<VulkanContext>>);
+
+impl TestContext {
+    /// The context itself, checked now instead of when the `TestContext` goes out of scope.
+    pub fn into_inner(mut self) -> Arc<VulkanContext> {
+        let ctx = self
+            .0
+            .take()
+            .expect("a TestContext holds its context until dropped");
+        assert_no_validation_messages(&ctx);
+        ctx
+    }
+}
+
+impl std::ops::Deref for TestContext {
+    type Target = Arc<VulkanContext>;
+    fn deref(&self) -> &Arc<VulkanContext> {
+        self.0
+            .as_ref()
+            .expect("a TestContext holds its context until dropped")
+    }
+}
+
+impl Drop for TestContext {
+    fn drop(&mut self) {
+        if let Some(ctx) = &self.0 {
+            if !std::thread::panicking() {
+                assert_no_validation_messages(ctx);
+            }
+        }
+    }
 }
 
 /// Fails the test if the validation layer reported anything.
