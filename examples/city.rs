@@ -16,7 +16,7 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use rtstream::as_manager::{CullMode, PolicyKind};
+use rtstream::as_manager::CullMode;
 use rtstream::driver::RunConfig;
 use rtstream::streaming::WorldPreset;
 use serde::Serialize;
@@ -48,17 +48,13 @@ fn main() -> anyhow::Result<()> {
         "The dense city under each culling mode: TLAS instances removed and the error it costs.",
         "out/city",
     );
-    let mut base = cli.run.run_config()?;
+    let mut base = sweep::managed_base(&cli.run)?;
     cli.run.use_preset(&mut base, WorldPreset::city());
     let preset = base.preset.clone();
     let km2 = f64::from(preset.size_m).powi(2) / 1e6;
     let density = f64::from(preset.instances) / km2;
     let d = WorldPreset::default_world();
     let default_density = f64::from(d.instances) / (f64::from(d.size_m).powi(2) / 1e6);
-    base.policies = vec![PolicyKind::Managed];
-    base.maps = 0;
-    base.all_geometry_reference = false;
-    base.out_dir = None;
     let modes = [
         ("far or small (default)", CullMode::FarOrSmall),
         ("far and small", CullMode::FarAndSmall),

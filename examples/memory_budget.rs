@@ -16,7 +16,6 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use rtstream::as_manager::PolicyKind;
 use rtstream::driver::RunConfig;
 use serde::Serialize;
 
@@ -59,11 +58,7 @@ fn main() -> anyhow::Result<()> {
         cli.own.budgets_mb.iter().all(|b| b.is_finite() && *b > 0.0),
         "every budget must be a positive number of MB"
     );
-    let mut base = cli.run.run_config()?;
-    base.policies = vec![PolicyKind::Managed];
-    base.maps = 0;
-    base.all_geometry_reference = false;
-    base.out_dir = None;
+    let base = sweep::managed_base(&cli.run)?;
     let mut budgets: Vec<Option<f64>> = vec![None];
     budgets.extend(cli.own.budgets_mb.iter().map(|&b| Some(b)));
     let points: Vec<(String, RunConfig)> = budgets

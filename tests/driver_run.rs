@@ -11,15 +11,9 @@ use rtstream::streaming::WorldPreset;
 
 fn config(dir: &std::path::Path) -> RunConfig {
     let mut c = RunConfig {
-        preset: WorldPreset::small(12, 7),
-        world_dir: dir.join("world"),
-        frames: 120,
         eval_every: 20,
         size: (64, 36),
-        deterministic: true,
-        out_dir: None,
-        maps: 0,
-        ..RunConfig::default()
+        ..common::driver_run(WorldPreset::small(12, 7), dir, 120)
     };
     // A short stream radius so that part of the map is never loaded.
     c.stream.load_radius = 250.0;
@@ -39,7 +33,7 @@ fn untimed(r: &FrameRow) -> FrameRow {
 #[test]
 fn a_deterministic_run_repeats_exactly_and_scores_against_the_whole_world() {
     let ctx = common::context();
-    let dir = std::env::temp_dir().join(format!("rtstream-driver-{}", std::process::id()));
+    let dir = common::temp_path("driver");
     let c = config(&dir);
     let mut frames_seen = 0;
     let a = driver::run_on(ctx.clone(), &c, &mut |p| frames_seen = p.frame + 1).unwrap();

@@ -94,8 +94,6 @@ fn a_failed_frame_rolls_back_and_its_number_is_retried() {
     );
     let c = s.m.backend().counters();
     assert!(c.compactions > 0 && c.refits + c.rebuilds > 0, "{c:?}");
-    drop(s);
-    common::assert_no_validation_messages(&ctx);
 }
 
 #[test]
@@ -123,6 +121,4 @@ fn device_lost_reaches_the_caller_and_stays() {
             "every later frame reports the lost device"
         );
     }
-    drop(s);
-    common::assert_no_validation_messages(&ctx);
 }

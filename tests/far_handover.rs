@@ -19,22 +19,16 @@ fn far_band(r: &FrameRow) -> f64 {
 #[test]
 fn a_slow_walk_across_r2_hands_over_without_popping() {
     let ctx = common::context();
-    let dir = std::env::temp_dir().join(format!("rtstream-handover-{}", std::process::id()));
+    let dir = common::temp_path("handover");
     let frames = 160;
     let mut c = RunConfig {
-        preset: WorldPreset::small(16, 11),
-        world_dir: dir.join("world"),
-        frames,
         policies: vec![PolicyKind::Managed],
         eval_every: 1,
         size: (128, 72),
-        deterministic: true,
         all_geometry_reference: false,
-        out_dir: None,
-        maps: 0,
         // About 1.5 m a frame along the path's diagonal.
         path_span: (0.25, 0.45),
-        ..RunConfig::default()
+        ..common::driver_run(WorldPreset::small(16, 11), &dir, frames)
     };
     // A budget the near field fills: the proxies must fit beside the detail.
     c.managed.memory.blas_bytes = 24 << 20;

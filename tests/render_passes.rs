@@ -7,8 +7,10 @@ mod common;
 mod eval;
 
 use eval::{kept_by_culler, DemoWorldDesc, EvalWorld};
+use std::sync::Arc;
+
 use glam::{Mat4, Vec3};
-use rtstream::as_manager::backend::vulkan::SceneMesh;
+use rtstream::as_manager::backend::vulkan::{SceneMesh, VulkanContext};
 use rtstream::renderer::reference::{CpuHit, ReferenceScene};
 use rtstream::renderer::skinning::linear_blend;
 use rtstream::renderer::{
@@ -28,6 +30,17 @@ fn small_world() -> EvalWorld {
     .expect("demo world loads")
 }
 
+/// Runs `test` on the small world's reference scene (every instance, the finest LODs) on a
+/// fresh context; then destroys the scene (what `test` made is dropped by then), and the
+/// context checks its validation messages.
+fn on_reference_scene(test: impl FnOnce(&EvalWorld, &Arc<VulkanContext>, &TracedScene)) {
+    let world = small_world();
+    let ctx = common::context();
+    let scene = TracedScene::reference(&ctx, &world.mesh_descs(), &world.instances).unwrap();
+    test(&world, &ctx, &scene);
+    scene.destroy(&ctx);
+}
+
 /// Share of pixels whose primary hit instance agrees with the CPU caster (miss == miss).
 fn cpu_agreement(frame: &Frame, cpu: &[Option<CpuHit>]) -> f64 {
     let same = frame
@@ -44,115 +57,106 @@ fn cpu_agreement(frame: &Frame, cpu: &[Option<CpuHit>]) -> f64 {
 
 #[test]
 fn ray_query_hits_match_cpu_reference_on_a_multi_instance_world() {
-    let world = small_world();
-    let ctx = common::context();
-    let scene = TracedScene::reference(&ctx, &world.mesh_descs(), &world.instances).unwrap();
-    let mut renderer = Renderer::new(ctx.clone()).unwrap();
-    assert_eq!(renderer.path(), RenderPath::RayQuery);
-    let camera = EvalWorld::demo_camera();
-    let desc = RenderDesc {
-        sun_radius: 1.5f32.to_radians(),
-        shadow_samples: 4,
-        ao_samples: 2,
-        ao_radius: 1.5,
-        ..RenderDesc::new(W, H, camera)
-    };
-    let frame = scene.render(&mut renderer, &desc).unwrap();
-    let cpu = world.cpu_reference().cast(&camera, W, H);
-    let agree = cpu_agreement(&frame, &cpu);
-    let distinct: std::collections::HashSet<u32> = frame
-        .hits
-        .iter()
-        .filter(|h| h.is_hit())
-        .map(|h| h.instance)
-        .collect();
-    eprintln!(
-        "{} instances, {} distinct hit; agreement with CPU {:.5}; passes {:?}",
-        world.instances.len(),
-        distinct.len(),
-        agree,
-        frame.passes
-    );
-    assert!(
-        distinct.len() >= 20,
-        "too few instances visible: {}",
-        distinct.len()
-    );
-    assert!(agree >= 0.995, "RQ vs CPU agreement {agree:.5} < 0.995");
-    assert!(frame.hit_fraction() > 0.3 && frame.hit_fraction() < 0.95);
+    on_reference_scene(|world, ctx, scene| {
+        let mut renderer = Renderer::new(ctx.clone()).unwrap();
+        assert_eq!(renderer.path(), RenderPath::RayQuery);
+        let camera = EvalWorld::demo_camera();
+        let desc = RenderDesc {
+            sun_radius: 1.5f32.to_radians(),
+            shadow_samples: 4,
+            ao_samples: 2,
+            ao_radius: 1.5,
+            ..RenderDesc::new(W, H, camera)
+        };
+        let frame = scene.render(&mut renderer, &desc).unwrap();
+        let cpu = world.cpu_reference().cast(&camera, W, H);
+        let agree = cpu_agreement(&frame, &cpu);
+        let distinct: std::collections::HashSet<u32> = frame
+            .hits
+            .iter()
+            .filter(|h| h.is_hit())
+            .map(|h| h.instance)
+            .collect();
+        eprintln!(
+            "{} instances, {} distinct hit; agreement with CPU {:.5}; passes {:?}",
+            world.instances.len(),
+            distinct.len(),
+            agree,
+            frame.passes
+        );
+        assert!(
+            distinct.len() >= 20,
+            "too few instances visible: {}",
+            distinct.len()
+        );
+        assert!(agree >= 0.995, "RQ vs CPU agreement {agree:.5} < 0.995");
+        assert!(frame.hit_fraction() > 0.3 && frame.hit_fraction() < 0.95);
 
-    // Soft shadows give penumbrae (fractional sun visibility); AO darkens somewhere.
-    let fractional = frame
-        .sun_visibility
-        .iter()
-        .filter(|&&v| v > 0.0 && v < 1.0)
-        .count();
-    let occluded = frame
-        .ambient
-        .iter()
-        .zip(&frame.hits)
-        .filter(|(a, h)| h.is_hit() && **a < 1.0)
-        .count();
-    assert!(fractional > 0, "no penumbra pixels");
-    assert!(occluded > 0, "AO found no occlusion");
-    let shadowed = frame.shadow_mask().iter().filter(|&&s| s).count();
-    assert!(shadowed > 0, "no shadowed pixels");
-    let p = frame.passes;
-    assert_eq!(p.primary_rays, u64::from(W * H));
-    assert!(p.shadow_rays > 0 && p.ao_rays > 0);
+        // Soft shadows give penumbrae (fractional sun visibility); AO darkens somewhere.
+        let fractional = frame
+            .sun_visibility
+            .iter()
+            .filter(|&&v| v > 0.0 && v < 1.0)
+            .count();
+        let occluded = frame
+            .ambient
+            .iter()
+            .zip(&frame.hits)
+            .filter(|(a, h)| h.is_hit() && **a < 1.0)
+            .count();
+        assert!(fractional > 0, "no penumbra pixels");
+        assert!(occluded > 0, "AO found no occlusion");
+        let shadowed = frame.shadow_mask().iter().filter(|&&s| s).count();
+        assert!(shadowed > 0, "no shadowed pixels");
+        let p = frame.passes;
+        assert_eq!(p.primary_rays, u64::from(W * H));
+        assert!(p.shadow_rays > 0 && p.ao_rays > 0);
 
-    // Any resolution: one that is not a multiple of the 8x8 workgroup.
-    let (w, h) = (61, 37);
-    let odd = scene
-        .render(&mut renderer, &RenderDesc::new(w, h, camera))
-        .unwrap();
-    assert_eq!(
-        (odd.hits.len(), odd.color.len()),
-        ((w * h) as usize, (w * h) as usize)
-    );
-    let agree_odd = cpu_agreement(&odd, &world.cpu_reference().cast(&camera, w, h));
-    assert!(agree_odd >= 0.995, "{w}x{h}: agreement {agree_odd:.5}");
-
-    drop(renderer);
-    scene.destroy(&ctx);
-    common::assert_no_validation_messages(&ctx);
+        // Any resolution: one that is not a multiple of the 8x8 workgroup.
+        let (w, h) = (61, 37);
+        let odd = scene
+            .render(&mut renderer, &RenderDesc::new(w, h, camera))
+            .unwrap();
+        assert_eq!(
+            (odd.hits.len(), odd.color.len()),
+            ((w * h) as usize, (w * h) as usize)
+        );
+        let agree_odd = cpu_agreement(&odd, &world.cpu_reference().cast(&camera, w, h));
+        assert!(agree_odd >= 0.995, "{w}x{h}: agreement {agree_odd:.5}");
+    });
 }
 
 #[test]
 fn ray_query_and_ray_tracing_pipeline_paths_agree() {
-    let world = small_world();
-    let ctx = common::context();
-    assert!(ctx.info().ray_tracing_pipeline, "lavapipe has RT pipelines");
-    let scene = TracedScene::reference(&ctx, &world.mesh_descs(), &world.instances).unwrap();
-    let desc = RenderDesc {
-        sun_radius: 1.0f32.to_radians(),
-        shadow_samples: 2,
-        ..RenderDesc::new(W, H, EvalWorld::demo_camera())
-    };
-    let mut rq = Renderer::with_path(ctx.clone(), RenderPath::RayQuery).unwrap();
-    let mut rt = Renderer::with_path(ctx.clone(), RenderPath::RayTracingPipeline).unwrap();
-    assert_eq!(rt.path(), RenderPath::RayTracingPipeline);
-    let a = scene.render(&mut rq, &desc).unwrap();
-    let b = scene.render(&mut rt, &desc).unwrap();
-    let n = a.hits.len() as f64;
-    let same_hit = a
-        .hits
-        .iter()
-        .zip(&b.hits)
-        .filter(|(x, y)| x.instance == y.instance && x.primitive == y.primitive)
-        .count() as f64
-        / n;
-    let m = FrameMetrics::compare(&b, &a).unwrap();
-    eprintln!("RQ vs RT: hit buffers equal on {same_hit:.5} of pixels; {m:?}");
-    assert!(
-        same_hit >= 0.999,
-        "RQ and RT hit buffers agree on {same_hit:.5}"
-    );
-    assert!(m.shadow_mismatch <= 0.001, "{m:?}");
-    assert!(m.color_rmse < 0.01, "{m:?}");
-    drop((rq, rt));
-    scene.destroy(&ctx);
-    common::assert_no_validation_messages(&ctx);
+    on_reference_scene(|_, ctx, scene| {
+        assert!(ctx.info().ray_tracing_pipeline, "lavapipe has RT pipelines");
+        let desc = RenderDesc {
+            sun_radius: 1.0f32.to_radians(),
+            shadow_samples: 2,
+            ..RenderDesc::new(W, H, EvalWorld::demo_camera())
+        };
+        let mut rq = Renderer::with_path(ctx.clone(), RenderPath::RayQuery).unwrap();
+        let mut rt = Renderer::with_path(ctx.clone(), RenderPath::RayTracingPipeline).unwrap();
+        assert_eq!(rt.path(), RenderPath::RayTracingPipeline);
+        let a = scene.render(&mut rq, &desc).unwrap();
+        let b = scene.render(&mut rt, &desc).unwrap();
+        let n = a.hits.len() as f64;
+        let same_hit = a
+            .hits
+            .iter()
+            .zip(&b.hits)
+            .filter(|(x, y)| x.instance == y.instance && x.primitive == y.primitive)
+            .count() as f64
+            / n;
+        let m = FrameMetrics::compare(&b, &a).unwrap();
+        eprintln!("RQ vs RT: hit buffers equal on {same_hit:.5} of pixels; {m:?}");
+        assert!(
+            same_hit >= 0.999,
+            "RQ and RT hit buffers agree on {same_hit:.5}"
+        );
+        assert!(m.shadow_mismatch <= 0.001, "{m:?}");
+        assert!(m.color_rmse < 0.01, "{m:?}");
+    });
 }
 
 #[test]
@@ -203,8 +207,6 @@ fn metrics_are_zero_for_identical_frames_and_grow_with_the_culling_angle() {
         "8 degrees culls visible things: {m:?}"
     );
     assert!(m.shadow_mismatch > 0.0 && m.color_rmse > 0.0 && m.psnr_db.is_finite());
-    drop(renderer);
-    common::assert_no_validation_messages(&ctx);
 }
 
 /// A vertical cylinder (radius 0.25, height 2, closed), skinned to two joints: joint 0 holds the
@@ -323,8 +325,6 @@ fn skinned_silhouette_follows_the_pose_and_matches_cpu_skinning() {
         share > 0.02,
         "the bent pose looks like the straight one ({share:.4})"
     );
-    drop(renderer);
-    common::assert_no_validation_messages(&ctx);
 }
 
 /// The pipelined renderer (`Renderer::record` into a `FrameLoop`'s command buffers, three
@@ -334,42 +334,39 @@ fn skinned_silhouette_follows_the_pose_and_matches_cpu_skinning() {
 #[test]
 fn recorded_frames_equal_blocking_frames_on_both_paths() {
     use rtstream::as_manager::backend::vulkan::FrameLoop;
-    let world = small_world();
-    let ctx = common::context();
-    let scene = TracedScene::reference(&ctx, &world.mesh_descs(), &world.instances).unwrap();
-    for path in [RenderPath::RayQuery, RenderPath::RayTracingPipeline] {
-        let mut r = Renderer::with_path(ctx.clone(), path).unwrap();
-        let mut frames = FrameLoop::new(&ctx, 3).unwrap();
-        let base = EvalWorld::demo_camera();
-        let desc_of = |f: u64| {
-            let mut c = base;
-            c.position += Vec3::new(0.2 * f as f32, 0.0, 0.0);
-            RenderDesc::new(W, H, c)
-        };
-        let mut recorded = Vec::new();
-        for f in 0..8u64 {
-            let cmd = frames.begin(f).unwrap();
-            while let Some(img) = r.take(recorded.len() as u64, cmd.completed()).unwrap() {
+    on_reference_scene(|_, ctx, scene| {
+        for path in [RenderPath::RayQuery, RenderPath::RayTracingPipeline] {
+            let mut r = Renderer::with_path(ctx.clone(), path).unwrap();
+            let mut frames = FrameLoop::new(ctx, 3).unwrap();
+            let base = EvalWorld::demo_camera();
+            let desc_of = |f: u64| {
+                let mut c = base;
+                c.position += Vec3::new(0.2 * f as f32, 0.0, 0.0);
+                RenderDesc::new(W, H, c)
+            };
+            let mut recorded = Vec::new();
+            for f in 0..8u64 {
+                let cmd = frames.begin(f).unwrap();
+                while let Some(img) = r.take(recorded.len() as u64, cmd.completed()).unwrap() {
+                    recorded.push(img);
+                }
+                r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc_of(f))
+                    .unwrap();
+                frames.submit(cmd).unwrap();
+            }
+            frames.wait_all().unwrap();
+            while let Some(img) = r.take(recorded.len() as u64, Some(7)).unwrap() {
                 recorded.push(img);
             }
-            r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc_of(f))
-                .unwrap();
-            frames.submit(cmd).unwrap();
+            assert_eq!(recorded.len(), 8, "{path:?}: every frame reads back");
+            for (f, img) in recorded.iter().enumerate() {
+                let blocking = scene.render(&mut r, &desc_of(f as u64)).unwrap();
+                assert_eq!(img.hits, blocking.hits, "{path:?} frame {f}");
+                assert_eq!(img.color, blocking.color, "{path:?} frame {f}");
+                assert!(img.passes.primary_ms > 0.0, "{path:?}: GPU pass times");
+            }
+            drop(frames);
+            drop(r);
         }
-        frames.wait_all().unwrap();
-        while let Some(img) = r.take(recorded.len() as u64, Some(7)).unwrap() {
-            recorded.push(img);
-        }
-        assert_eq!(recorded.len(), 8, "{path:?}: every frame reads back");
-        for (f, img) in recorded.iter().enumerate() {
-            let blocking = scene.render(&mut r, &desc_of(f as u64)).unwrap();
-            assert_eq!(img.hits, blocking.hits, "{path:?} frame {f}");
-            assert_eq!(img.color, blocking.color, "{path:?} frame {f}");
-            assert!(img.passes.primary_ms > 0.0, "{path:?}: GPU pass times");
-        }
-        drop(frames);
-        drop(r);
-    }
-    scene.destroy(&ctx);
-    common::assert_no_validation_messages(&ctx);
+    });
 }

@@ -200,9 +200,6 @@ fn an_unrefitted_skinned_blas_shades_with_its_last_pose_while_others_refit() {
     });
     assert!(n > 1000, "both cloths fill the view ({n} pixels)");
     assert_most_agree(n, same_prim, same_normal, "same triangle");
-    drop(renderer);
-    drop(m);
-    common::assert_no_validation_messages(&ctx);
 }
 
 #[test]
@@ -265,7 +262,4 @@ fn a_split_mesh_reports_and_shades_its_own_triangles_on_every_part() {
         same_normal,
         "pixels report the mesh's triangle",
     );
-    drop(renderer);
-    drop(m);
-    common::assert_no_validation_messages(&ctx);
 }

@@ -120,7 +120,7 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
     drop(m);
     drop(world);
     assert_eq!(ctx.live_buffers(), 0, "every GPU buffer was destroyed");
-    let ctx = Arc::try_unwrap(ctx).expect("the test holds the last context");
+    let ctx = Arc::try_unwrap(ctx.into_inner()).expect("the test holds the last context");
     drop(ctx);
     assert_eq!(
         live_vulkan_handles(),

@@ -20,18 +20,12 @@ use rtstream::driver::{self, FrameRow, RunConfig};
 use rtstream::streaming::WorldPreset;
 
 fn config(name: &str, frames: u64) -> RunConfig {
-    let dir = std::env::temp_dir().join(format!("rtstream-stress-{name}-{}", std::process::id()));
+    let dir = common::temp_path(&format!("stress-{name}"));
     let mut c = RunConfig {
-        preset: WorldPreset::small(8, 7),
-        world_dir: dir.join("world"),
-        frames,
         policies: vec![PolicyKind::Managed],
         eval_every: 0,
-        deterministic: true,
-        out_dir: None,
-        maps: 0,
         validation: Validation::Required,
-        ..RunConfig::default()
+        ..common::driver_run(WorldPreset::small(8, 7), &dir, frames)
     };
     c.stream.load_radius = 300.0;
     c.stream.unload_radius = 350.0;

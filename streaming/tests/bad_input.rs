@@ -104,14 +104,9 @@ fn broken_models_as_levels_fail_and_the_world_keeps_working() {
     let cam = [StreamFocus::from(Vec3::ZERO)];
     let events = common::settle(&mut w, 0, &cam);
     for (level, path) in &broken_levels {
-        let failure = events.iter().find_map(|e| match e {
-            WorldEvent::LoadFailed {
-                level: Some(l),
-                error,
-                ..
-            } if l == level => Some(error.clone()),
-            _ => None,
-        });
+        let failure = common::failures(&events)
+            .find(|f| f.level == Some(*level))
+            .map(|f| f.error);
         let error = failure.unwrap_or_else(|| panic!("no LoadFailed for {}", path.display()));
         assert!(error_names(&error, path), "{}: {error}", path.display());
         assert!(!w.is_loaded(*level));
@@ -180,17 +175,9 @@ fn corrupted_baked_files_fail_and_other_levels_keep_streaming() {
     let mut w = World::open(&dir, config).expect("open");
     let events = common::settle(&mut w, 0, &[StreamFocus::from(Vec3::ZERO)]);
     for (i, reason) in &bad {
-        let err = events
-            .iter()
-            .find_map(|e| match e {
-                WorldEvent::LoadFailed {
-                    level: Some(l),
-                    mesh: None,
-                    error,
-                    ..
-                } if l.0 as usize == *i => Some(error.clone()),
-                _ => None,
-            })
+        let err = common::failures(&events)
+            .find(|f| f.level.is_some_and(|l| l.0 as usize == *i) && f.mesh.is_none())
+            .map(|f| f.error)
             .unwrap_or_else(|| panic!("no LoadFailed for level {i}"));
         let msg = err.to_string().to_lowercase();
         assert!(msg.contains(&manifest.levels[*i].file), "level {i}: {msg}");
@@ -235,16 +222,8 @@ fn a_corrupt_mesh_chunk_fails_that_lod_only() {
     let cam = [StreamFocus::from(Vec3::ZERO)];
     let mut events = common::settle(&mut w, 0, &cam);
     events.extend(common::settle(&mut w, 1, &cam));
-    let failed: Vec<_> = events
-        .iter()
-        .filter_map(|e| match e {
-            WorldEvent::LoadFailed {
-                mesh: Some(m),
-                error,
-                ..
-            } => Some((*m, error.to_string())),
-            _ => None,
-        })
+    let failed: Vec<_> = common::failures(&events)
+        .filter_map(|f| Some((f.mesh?, f.error.to_string())))
         .collect();
     let uses = |m: u32| {
         world

@@ -143,16 +143,8 @@ fn a_corrupt_proxy_is_a_typed_error_and_the_levels_still_stream() {
     bytes[n - 20] ^= 0xff;
     std::fs::write(&path, &bytes).unwrap();
     let events = stream(&dir, StreamConfig::default(), 4);
-    let failed: Vec<_> = events
-        .iter()
-        .filter_map(|e| match e {
-            WorldEvent::LoadFailed {
-                proxy: Some(p),
-                error,
-                ..
-            } => Some((*p, error.clone())),
-            _ => None,
-        })
+    let failed: Vec<_> = common::failures(&events)
+        .filter_map(|f| Some((f.proxy?, f.error)))
         .collect();
     assert_eq!(failed.len(), 1, "one corrupt node");
     assert!(matches!(*failed[0].1, StreamingError::Format { .. }));

@@ -22,20 +22,26 @@ pub fn asset(rel: &str) -> std::path::PathBuf {
     p
 }
 
+/// `rtstream-<name>-<pid>` in the system's temporary directory (not created).
+pub fn temp_path(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("rtstream-{name}-{}", std::process::id()))
+}
+
 /// A small world (`grid` x `grid` levels of the default map, `seed`) generated and baked into a
-/// fresh temporary directory `rtstream-<name>-<pid>`; returns the directory and the world's side
-/// in metres.
+/// fresh temporary directory ([`temp_path`]); returns the directory and the world's side in
+/// metres.
 pub fn baked_small(name: &str, grid: u32, seed: u64) -> (std::path::PathBuf, f32) {
     use rtstream::streaming::{bake, generate, WorldPreset};
-    let dir = std::env::temp_dir().join(format!("rtstream-{name}-{}", std::process::id()));
+    let dir = temp_path(name);
     let _ = std::fs::remove_dir_all(&dir);
     let world = generate(&WorldPreset::small(grid, seed)).expect("generate");
     bake(&world, &dir).expect("bake");
     (dir, world.preset.size_m)
 }
 
-/// A context with the validation layer required (a missing layer fails the test).
-pub fn context() -> Arc<VulkanContext> {
+/// A context with the validation layer required (a missing layer fails the test), checked
+/// when it goes out of scope: see [`TestContext`].
+pub fn context() -> TestContext {
     let _ = tracing_subscriber::fmt()
         .with_test_writer()
         .with_env_filter("warn")
@@ -46,7 +52,47 @@ pub fn context() -> Arc<VulkanContext> {
         require_ray_query: true,
         ..ContextDesc::default()
     };
-    Arc::new(VulkanContext::new(&desc).unwrap_or_else(|e| panic!("Vulkan context: {e}")))
+    TestContext(Some(Arc::new(
+        VulkanContext::new(&desc).unwrap_or_else(|e| panic!("Vulkan context: {e}")),
+    )))
+}
+
+/// A test's Vulkan context ([`context`]; it derefs to the `Arc`). When it goes out of scope it
+/// fails the test if the validation layer reported anything ([`assert_no_validation_messages`]),
+/// unless the test is failing already. Declared first, it is dropped last: everything the test
+/// made from it is released, and its validation messages are in, by then. A test checks
+/// earlier, at a point of its own, with [`assert_no_validation_messages`].
+pub struct TestContext(Option<Arc<VulkanContext>>);
+
+impl TestContext {
+    /// The context itself, checked now instead of when the `TestContext` goes out of scope.
+    pub fn into_inner(mut self) -> Arc<VulkanContext> {
+        let ctx = self
+            .0
+            .take()
+            .expect("a TestContext holds its context until dropped");
+        assert_no_validation_messages(&ctx);
+        ctx
+    }
+}
+
+impl std::ops::Deref for TestContext {
+    type Target = Arc<VulkanContext>;
+    fn deref(&self) -> &Arc<VulkanContext> {
+        self.0
+            .as_ref()
+            .expect("a TestContext holds its context until dropped")
+    }
+}
+
+impl Drop for TestContext {
+    fn drop(&mut self) {
+        if let Some(ctx) = &self.0 {
+            if !std::thread::panicking() {
+                assert_no_validation_messages(ctx);
+            }
+        }
+    }
 }
 
 /// Fails the test if the validation layer reported anything.
@@ -68,6 +114,25 @@ use rtstream::as_manager as rtm;
 mod scene;
 #[allow(unused_imports)]
 pub use scene::{one_lod, one_lod_mesh, place, update_from};
+
+/// A deterministic run of the frame driver over `frames` frames of `preset`, its world baked
+/// into `<dir>/world`, that writes no files (no output directory, no maps); each test sets
+/// what else it runs with.
+pub fn driver_run(
+    preset: rtstream::streaming::WorldPreset,
+    dir: &std::path::Path,
+    frames: u64,
+) -> rtstream::driver::RunConfig {
+    rtstream::driver::RunConfig {
+        preset,
+        world_dir: dir.join("world"),
+        frames,
+        deterministic: true,
+        out_dir: None,
+        maps: 0,
+        ..rtstream::driver::RunConfig::default()
+    }
+}
 
 /// A manager of `config` on a Vulkan backend of `desc` on `ctx`.
 pub fn manager(

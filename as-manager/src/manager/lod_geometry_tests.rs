@@ -39,6 +39,20 @@ fn place_ahead(m: &AsManager<ModelBackend>, mesh: MeshId, z: f32) -> InstanceId 
     .unwrap()
 }
 
+/// The scene most scenarios start from: the [`chain_mesh`] with the LODs of `resident` (LOD,
+/// grid cells per side) loaded, placed `z` metres ahead of the camera.
+fn chain_ahead(
+    m: &AsManager<ModelBackend>,
+    resident: &[(usize, u32)],
+    z: f32,
+) -> (MeshId, InstanceId) {
+    let mesh = chain_mesh(m);
+    for &(lod, n) in resident {
+        m.set_lod_geometry(mesh, lod, data(n)).unwrap();
+    }
+    (mesh, place_ahead(m, mesh, z))
+}
+
 /// A LOD's geometry evicted: its vertex and triangle counts only.
 fn counts(vertices: u32, triangles: u32) -> LodGeometry {
     LodGeometry::Counts {
@@ -76,9 +90,7 @@ fn run(m: &mut AsManager<ModelBackend>, from: u64, to: u64) -> usize {
 fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
     let mut m = gpu_like();
     // Near: the selector wants LOD 0, but only the coarsest (2) is resident.
-    let mesh = chain_mesh(&m);
-    m.set_lod_geometry(mesh, 2, data(8)).unwrap();
-    let inst = place_ahead(&m, mesh, 4.0);
+    let (mesh, inst) = chain_ahead(&m, &[(2, 8)], 4.0);
     assert_eq!(run(&mut m, 0, 4), 1, "shown at the resident LOD");
     assert_eq!(m.instance_lod(inst), Some(2));
 
@@ -109,9 +121,7 @@ fn builds_only_lods_with_data_and_refines_when_finer_data_arrives() {
 #[test]
 fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
     let mut m = gpu_like();
-    let mesh = chain_mesh(&m);
-    m.set_lod_geometry(mesh, 1, data(12)).unwrap();
-    let inst = place_ahead(&m, mesh, 4.0);
+    let (mesh, inst) = chain_ahead(&m, &[(1, 12)], 4.0);
     assert_eq!(run(&mut m, 0, 4), 1);
     assert_eq!(
         m.instance_lod(inst),
@@ -133,8 +143,7 @@ fn evicted_lod_is_not_rebuilt_and_falls_back_to_nearest_with_data() {
 #[test]
 fn no_lod_with_data_means_no_blas_and_no_error() {
     let mut m = gpu_like();
-    let mesh = chain_mesh(&m);
-    place_ahead(&m, mesh, 4.0);
+    chain_ahead(&m, &[], 4.0);
     assert_eq!(run(&mut m, 0, 5), 0);
     assert_eq!(m.stats().blas_count, 0);
 }
@@ -143,8 +152,7 @@ fn no_lod_with_data_means_no_blas_and_no_error() {
 fn model_backend_without_data_requirement_uses_counts() {
     let mut m = AsManager::new(Config::default(), ModelBackend::lavapipe()).unwrap();
     assert!(!m.backend().needs_geometry());
-    let mesh = chain_mesh(&m);
-    let inst = place_ahead(&m, mesh, 4.0);
+    let (_, inst) = chain_ahead(&m, &[], 4.0);
     assert_eq!(run(&mut m, 0, 4), 1);
     assert_eq!(m.instance_lod(inst), Some(0));
 }
@@ -187,10 +195,8 @@ fn baseline(policy: PolicyKind) -> AsManager<ModelBackend> {
 #[test]
 fn naive_builds_exactly_the_loaded_lods_and_shows_the_finest() {
     let mut m = baseline(PolicyKind::Naive);
-    let mesh = chain_mesh(&m);
-    m.set_lod_geometry(mesh, 2, data(8)).unwrap();
     // Far away: Naive has no culling and no residency radius.
-    place_ahead(&m, mesh, 5000.0);
+    let (mesh, _) = chain_ahead(&m, &[(2, 8)], 5000.0);
     assert_eq!(run(&mut m, 0, 3), 1, "shown at the only loaded LOD");
     assert_eq!(
         m.stats().blas_count,
@@ -217,10 +223,7 @@ fn naive_builds_exactly_the_loaded_lods_and_shows_the_finest() {
 #[test]
 fn seed_builds_the_finest_loaded_lod_and_keeps_it() {
     let mut m = baseline(PolicyKind::SeedR1R2);
-    let mesh = chain_mesh(&m);
-    m.set_lod_geometry(mesh, 1, data(12)).unwrap();
-    m.set_lod_geometry(mesh, 2, data(8)).unwrap();
-    place_ahead(&m, mesh, 5.0);
+    let (mesh, _) = chain_ahead(&m, &[(1, 12), (2, 8)], 5.0);
     assert_eq!(run(&mut m, 0, 6), 1);
     assert_eq!(
         m.stats().blas_count,

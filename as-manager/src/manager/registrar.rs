@@ -99,6 +99,53 @@ fn finite(transform: &Affine3A) -> bool {
     transform.matrix3.is_finite() && transform.translation.is_finite()
 }
 
+/// An id the registrar hands out and checks: meshes, instances and groups each have their own
+/// allocator in [`Pending`] and their own error for an id that is not live.
+trait QueuedId: Copy {
+    /// The allocator of this kind of id.
+    fn slots(p: &Pending) -> &IdAllocator;
+    /// The same, to kill an id.
+    fn slots_mut(p: &mut Pending) -> &mut IdAllocator;
+    /// `(index, generation)`.
+    fn slot(self) -> (u32, u32);
+    /// The error for this id when it is not live.
+    fn unknown(self) -> AsError;
+}
+
+/// Implements [`QueuedId`] for an id type, its allocator field of [`Pending`] and its error.
+macro_rules! queued_id {
+    ($id:ty, $slots:ident, $unknown:path) => {
+        impl QueuedId for $id {
+            fn slots(p: &Pending) -> &IdAllocator {
+                &p.$slots
+            }
+            fn slots_mut(p: &mut Pending) -> &mut IdAllocator {
+                &mut p.$slots
+            }
+            fn slot(self) -> (u32, u32) {
+                (self.index, self.generation)
+            }
+            fn unknown(self) -> AsError {
+                $unknown(self)
+            }
+        }
+    };
+}
+
+queued_id!(MeshId, meshes, AsError::UnknownMesh);
+queued_id!(InstanceId, instances, AsError::UnknownInstance);
+queued_id!(GroupId, groups, AsError::UnknownGroup);
+
+/// `Ok` if `id` is live, its kind's `Unknown*` error if not.
+fn live<I: QueuedId>(p: &Pending, id: I) -> Result<()> {
+    let (index, generation) = id.slot();
+    if I::slots(p).is_live(index, generation) {
+        Ok(())
+    } else {
+        Err(id.unknown())
+    }
+}
+
 impl Registrar {
     /// Validates and queues a mesh (with its LOD chain).
     pub fn register_mesh(&self, desc: MeshDesc) -> Result<MeshId> {
@@ -186,9 +233,7 @@ impl Registrar {
             .map(|l| l.geometry)
             .expect("one LOD");
         let mut p = self.pending.lock();
-        if !p.meshes.is_live(mesh.index, mesh.generation) {
-            return Err(AsError::UnknownMesh(mesh));
-        }
+        live(&p, mesh)?;
         let lods = p.mesh_lods[mesh.index as usize] as usize;
         if lod >= lods {
             return Err(AsError::InvalidMesh {
@@ -203,12 +248,17 @@ impl Registrar {
 
     /// Queues the removal of a mesh, its BLASes and all its instances.
     pub fn unregister_mesh(&self, id: MeshId) -> Result<()> {
+        self.queue_removal(id, Command::UnregisterMesh(id))
+    }
+
+    /// Queues `command`, the removal of `id`: its kind's `Unknown*` error unless it is live;
+    /// later calls see it as unknown at once (its slot is recycled once the manager applied
+    /// the removal).
+    fn queue_removal<I: QueuedId>(&self, id: I, command: Command) -> Result<()> {
         let mut p = self.pending.lock();
-        if !p.meshes.is_live(id.index, id.generation) {
-            return Err(AsError::UnknownMesh(id));
-        }
-        p.meshes.kill(id.index);
-        p.commands.push(Command::UnregisterMesh(id));
+        live(&p, id)?;
+        I::slots_mut(&mut p).kill(id.slot().0);
+        p.commands.push(command);
         Ok(())
     }
 
@@ -223,11 +273,9 @@ impl Registrar {
             ));
         }
         let mut p = self.pending.lock();
-        if !p.meshes.is_live(desc.mesh.index, desc.mesh.generation) {
-            return Err(AsError::UnknownMesh(desc.mesh));
-        }
+        live(&p, desc.mesh)?;
         if let Some(g) = desc.group {
-            Self::live_group(&p, g)?;
+            live(&p, g)?;
         }
         let skinned = p.mesh_kind[desc.mesh.index as usize] == MeshKind::Skinned;
         let (index, generation) = p.instances.alloc();
@@ -238,14 +286,6 @@ impl Registrar {
         let id = InstanceId { index, generation };
         p.commands.push(Command::AddInstance(id, desc));
         Ok(id)
-    }
-
-    fn live_group(p: &Pending, id: GroupId) -> Result<()> {
-        if p.groups.is_live(id.index, id.generation) {
-            Ok(())
-        } else {
-            Err(AsError::UnknownGroup(id))
-        }
     }
 
     /// Queues a far-field group (a node of the proxy tree; register parents first).
@@ -261,7 +301,7 @@ impl Registrar {
         }
         let mut p = self.pending.lock();
         if let Some(parent) = desc.parent {
-            Self::live_group(&p, parent)?;
+            live(&p, parent)?;
         }
         let (index, generation) = p.groups.alloc();
         let id = GroupId { index, generation };
@@ -275,11 +315,9 @@ impl Registrar {
     /// are beyond r2 (see [`crate::FarFieldConfig`]).
     pub fn set_group_proxy(&self, group: GroupId, proxy: Option<(MeshId, f32)>) -> Result<()> {
         let mut p = self.pending.lock();
-        Self::live_group(&p, group)?;
+        live(&p, group)?;
         if let Some((mesh, error)) = proxy {
-            if !p.meshes.is_live(mesh.index, mesh.generation) {
-                return Err(AsError::UnknownMesh(mesh));
-            }
+            live(&p, mesh)?;
             if p.mesh_kind[mesh.index as usize] != MeshKind::Static || !error.is_finite() {
                 return Err(AsError::InvalidGroup(
                     "a proxy is a static mesh with a finite error".into(),
@@ -293,19 +331,7 @@ impl Registrar {
     /// Queues the removal of a group (its instances keep their place but lose their proxy;
     /// its children become roots).
     pub fn unregister_group(&self, id: GroupId) -> Result<()> {
-        let mut p = self.pending.lock();
-        Self::live_group(&p, id)?;
-        p.groups.kill(id.index);
-        p.commands.push(Command::UnregisterGroup(id));
-        Ok(())
-    }
-
-    fn live_instance(p: &Pending, id: InstanceId) -> Result<()> {
-        if p.instances.is_live(id.index, id.generation) {
-            Ok(())
-        } else {
-            Err(AsError::UnknownInstance(id))
-        }
+        self.queue_removal(id, Command::UnregisterGroup(id))
     }
 
     /// Queues `command` about instance `id`: `UnknownInstance` unless it is live, and
@@ -317,7 +343,7 @@ impl Registrar {
         command: Command,
     ) -> Result<()> {
         let mut p = self.pending.lock();
-        Self::live_instance(&p, id)?;
+        live(&p, id)?;
         if skinned_only && !p.instance_skinned[id.index as usize] {
             return Err(AsError::NotSkinned(id));
         }
@@ -335,11 +361,7 @@ impl Registrar {
 
     /// Queues the removal of an instance.
     pub fn remove_instance(&self, id: InstanceId) -> Result<()> {
-        let mut p = self.pending.lock();
-        Self::live_instance(&p, id)?;
-        p.instances.kill(id.index);
-        p.commands.push(Command::RemoveInstance(id));
-        Ok(())
+        self.queue_removal(id, Command::RemoveInstance(id))
     }
 
     /// Queues a new pose of a skinned instance: mesh-space positions of the LOD it is built at

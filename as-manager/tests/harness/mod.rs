@@ -40,6 +40,19 @@ pub trait Probe: AsBackend {
     fn disarm(&mut self);
 }
 
+/// The [`Probe`] methods both backends answer with an inherent method of the same name and
+/// meaning (a macro: the two backends are different types with no shared trait for these).
+macro_rules! probe_by_same_name {
+    () => {
+        fn live_blases(&self) -> usize {
+            self.live_blas_count()
+        }
+        fn arm(&mut self, at: FaultPoint, error: BackendError) {
+            self.inject_fault(at, error);
+        }
+    };
+}
+
 impl Probe for ModelBackend {
     const NEEDS_DATA: bool = false;
     fn lifetime_violations(&self) -> u64 {
@@ -51,12 +64,7 @@ impl Probe for ModelBackend {
     fn blas_allocated(&self) -> u64 {
         self.allocated_bytes()
     }
-    fn live_blases(&self) -> usize {
-        self.live_blas_count()
-    }
-    fn arm(&mut self, at: FaultPoint, error: BackendError) {
-        self.inject_fault(at, error);
-    }
+    probe_by_same_name!();
     fn armed(&self) -> bool {
         !self.faults.is_empty()
     }
@@ -79,12 +87,7 @@ impl Probe for VulkanBackend {
         // them against it fails; an engine shades from its own vertex buffers).
         self.blas_storage_bytes()
     }
-    fn live_blases(&self) -> usize {
-        self.live_blas_count()
-    }
-    fn arm(&mut self, at: FaultPoint, error: BackendError) {
-        self.inject_fault(at, error);
-    }
+    probe_by_same_name!();
     fn armed(&self) -> bool {
         self.pending_faults() > 0
     }

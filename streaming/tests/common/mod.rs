@@ -2,10 +2,12 @@
 #![allow(dead_code)]
 
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use rtstream_streaming::{
-    bake, generate, GeneratedWorld, StreamFocus, World, WorldEvent, WorldPreset, ASSIMP_GLTF2_DIR,
+    bake, generate, GeneratedWorld, LevelId, ProxyId, StreamFocus, StreamingError, World,
+    WorldEvent, WorldMeshId, WorldPreset, ASSIMP_GLTF2_DIR,
 };
 
 /// The assimp-testmodels glTF2 directory; fails the test with a clear message when missing.
@@ -34,6 +36,33 @@ pub fn baked_small(name: &str, grid: u32) -> (GeneratedWorld, PathBuf) {
     let dir = scratch(name);
     bake(&world, &dir).expect("bake");
     (world, dir)
+}
+
+/// What a `LoadFailed` event names (see [`WorldEvent::LoadFailed`]), and its error.
+#[derive(Debug, Clone)]
+pub struct Failure {
+    pub level: Option<LevelId>,
+    pub mesh: Option<(WorldMeshId, u8)>,
+    pub proxy: Option<ProxyId>,
+    pub error: Arc<StreamingError>,
+}
+
+/// The `LoadFailed` events among `events`, in order.
+pub fn failures(events: &[WorldEvent]) -> impl Iterator<Item = Failure> + '_ {
+    events.iter().filter_map(|e| match e {
+        WorldEvent::LoadFailed {
+            level,
+            mesh,
+            proxy,
+            error,
+        } => Some(Failure {
+            level: *level,
+            mesh: *mesh,
+            proxy: *proxy,
+            error: error.clone(),
+        }),
+        _ => None,
+    })
 }
 
 pub const SETTLE: Duration = Duration::from_secs(30);

@@ -95,6 +95,18 @@ fn describe_devices(devices: &[(String, String)]) -> String {
 /// The backend's result alias.
 pub type VkResult<T> = std::result::Result<T, VulkanError>;
 
+/// `items[index]` for an index a caller passed in, or [`VulkanError::Unsupported`] with the
+/// message `what` makes of how many items there are.
+pub(crate) fn caller_index<T>(
+    items: &[T],
+    index: usize,
+    what: impl FnOnce(usize) -> String,
+) -> VkResult<&T> {
+    items
+        .get(index)
+        .ok_or_else(|| VulkanError::Unsupported(what(items.len())))
+}
+
 /// Extension trait mapping `ash`'s results to [`VulkanError`], naming the operation.
 pub(crate) trait VkResultExt<T> {
     fn op(self, op: &'static str) -> VkResult<T>;

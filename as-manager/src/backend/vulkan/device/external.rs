@@ -16,7 +16,7 @@ use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use parking_lot::Mutex;
 
 use crate::backend::vulkan::device::context::{handle_created, handle_destroyed, VulkanContext};
-use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
+use crate::backend::vulkan::error::{caller_index, VkResult, VkResultExt, VulkanError};
 
 /// Device features rtstream uses. An engine says which it enabled on its device (Vulkan cannot
 /// be asked afterwards); [`DeviceFeatures::REQUIRED`] is what it must enable.
@@ -235,12 +235,11 @@ impl VulkanContext {
             ext.instance
                 .get_physical_device_queue_family_properties(ext.physical_device)
         };
-        let family = families.get(ext.queue_family as usize).ok_or_else(|| {
-            VulkanError::Unsupported(format!(
-                "queue family {} does not exist ({} families)",
-                ext.queue_family,
-                families.len()
-            ))
+        let family = caller_index(&families, ext.queue_family as usize, |n| {
+            format!(
+                "queue family {} does not exist ({n} families)",
+                ext.queue_family
+            )
         })?;
         if !family.queue_flags.contains(vk::QueueFlags::COMPUTE) {
             return Err(VulkanError::Unsupported(format!(

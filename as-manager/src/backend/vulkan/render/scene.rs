@@ -11,7 +11,7 @@ use crate::backend::vulkan::as_backend::class_flags;
 use crate::backend::vulkan::device::accel::{AccelStruct, TriangleGeometry, BUILD_INPUT_USAGE};
 use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
-use crate::backend::vulkan::error::{VkResult, VulkanError};
+use crate::backend::vulkan::error::{caller_index, VkResult, VulkanError};
 use crate::backend::vulkan::render::geometry::{GpuGeometry, SceneMesh};
 use crate::backend::BlasClass;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
@@ -164,12 +164,8 @@ impl StaticScene {
 
         let mut records = Vec::with_capacity(instances.len());
         for (i, inst) in instances.iter().enumerate() {
-            let mesh = built.get(inst.mesh as usize).ok_or_else(|| {
-                VulkanError::Unsupported(format!(
-                    "instance {i} names mesh {} of {}",
-                    inst.mesh,
-                    built.len()
-                ))
+            let mesh = caller_index(built, inst.mesh as usize, |n| {
+                format!("instance {i} names mesh {} of {n}", inst.mesh)
             })?;
             if !inst.transform.iter().all(|v| v.is_finite()) {
                 return Err(VulkanError::Unsupported(format!(
