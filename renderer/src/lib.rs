@@ -32,6 +32,7 @@ mod recorded;
 pub mod reference;
 mod renderer;
 pub mod skinning;
+mod slot;
 mod traced_scene;
 
 pub use camera::Camera;

@@ -7,8 +7,7 @@
 //! in flight reads. Pass times come from GPU timestamps, not from the host.
 
 use rtstream_as_manager::backend::vulkan::{
-    ash::vk, BufferDesc, FrameCmd, GpuBuffer, MemoryKind, Pass, PassTimer, QueryKind, QueryPool,
-    RECORDED_SETS,
+    ash::vk, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind, QueryPool, RECORDED_SETS,
 };
 
 use crate::error::{RenderError, Result};
@@ -16,6 +15,7 @@ use crate::frame::Frame;
 use crate::renderer::{
     push_constants, read_frame, shading_table, validate, InstanceShading, Tracer,
 };
+use crate::slot::RenderSlot;
 use crate::{RenderDesc, Renderer};
 
 /// Readback buffers, their bytes per pixel: colour, hits, surface, light.
@@ -25,34 +25,6 @@ const OUTPUTS: [(&str, u64); 4] = [
     ("render surface", 16),
     ("render light", 16),
 ];
-
-/// What one frame in flight owns.
-#[derive(Debug)]
-pub(crate) struct RenderSlot {
-    /// The frame recorded into these resources last, and whether it was read back.
-    frame: Option<u64>,
-    taken: bool,
-    size: (u32, u32),
-    outputs: Vec<GpuBuffer>,
-    instances: Option<GpuBuffer>,
-    timer: QueryPool,
-    /// The timer's results, copied there on the GPU.
-    times: GpuBuffer,
-}
-
-impl RenderSlot {
-    pub(crate) fn destroy(self, ctx: &rtstream_as_manager::backend::vulkan::VulkanContext) {
-        for b in self
-            .outputs
-            .into_iter()
-            .chain(self.instances)
-            .chain(std::iter::once(self.times))
-        {
-            ctx.destroy_buffer(b);
-        }
-        self.timer.destroy(ctx);
-    }
-}
 
 impl Renderer {
     /// Records the three passes of `desc` over `tlas` into `cmd` (after the manager's work for

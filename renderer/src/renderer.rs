@@ -160,7 +160,7 @@ pub struct Renderer {
     pub(crate) ctx: Arc<VulkanContext>,
     pub(crate) tracer: Option<Tracer>,
     /// Per-frame resources of recorded frames ([`record`](Self::record)).
-    pub(crate) slots: Vec<crate::recorded::RenderSlot>,
+    pub(crate) slots: Vec<crate::slot::RenderSlot>,
 }
 
 impl Renderer {

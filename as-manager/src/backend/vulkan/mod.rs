@@ -31,7 +31,8 @@ pub use device::external::{DeviceFeatures, ExternalDevice, REQUIRED_DEVICE_EXTEN
 pub use device::frames::{FrameCmd, FrameLoop};
 pub use device::query::{QueryKind, QueryPool};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
-pub use render::compute::{BindingKind, Bound, ComputePipeline};
+pub use render::binding::{BindingKind, Bound};
+pub use render::compute::ComputePipeline;
 pub use render::geometry::{GpuGeometry, SceneMesh};
 pub use render::ring::{Pass, PassTimer, RECORDED_SETS};
 pub use render::rt_pipeline::{RayTracingPipeline, RtShaders};

@@ -11,7 +11,7 @@ use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::device::query::QueryPool;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
-use crate::backend::vulkan::render::compute::{
+use crate::backend::vulkan::render::binding::{
     descriptor_type, write_descriptor_set, BindingKind, Bound,
 };
 

@@ -14,7 +14,7 @@ use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
-use crate::backend::vulkan::render::compute::{BindingKind, Bound};
+use crate::backend::vulkan::render::binding::{BindingKind, Bound};
 use crate::backend::vulkan::render::ring::{
     check_timer, create_layouts, destroy_pipeline, record_passes, Pass, PassTimer, Recorder,
     SetRing,
