@@ -13,20 +13,15 @@
 //! eviction (their BLASes retire after the frames that used them) and residency marks; a retry
 //! makes the same decisions again.
 
-use super::state::{EntryKey, EntryState};
+use super::state::{EntryKey, EntryState, RefitState};
 use super::AsManager;
 use crate::backend::{AsBackend, BlasHandle};
-use crate::quality::RefitQuality;
 
 /// A refit's bookkeeping before the frame.
 #[derive(Debug)]
 pub(crate) struct RefitUndo {
     pub entry: EntryKey,
-    pub pose_version: u64,
-    pub refit_frame: u64,
-    pub quality: Option<RefitQuality>,
-    pub last_ratio: f32,
-    pub gpu_ratio: Option<f32>,
+    pub before: RefitState,
 }
 
 /// A compaction: the source (freed at commit) and the copy (freed on rollback).
@@ -111,11 +106,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         for r in j.refitted.drain(..).rev() {
             if let Some(e) = self.tables.entries.get_mut(r.entry) {
-                e.pose_version = r.pose_version;
-                e.refit_frame = r.refit_frame;
-                e.quality = r.quality;
-                e.last_ratio = r.last_ratio;
-                e.gpu_ratio = r.gpu_ratio;
+                e.refit = r.before;
             }
         }
         for (key, handle) in j.built.drain(..).rev() {

@@ -288,11 +288,11 @@ impl<B: AsBackend> AsManager<B> {
                     e.bytes = s.as_bytes;
                     e.sizes = *s;
                     e.created = frame;
-                    e.refit_frame = frame;
-                    e.pose_version = pose_version;
-                    e.quality = quality;
-                    e.last_ratio = 1.0;
-                    e.gpu_ratio = None;
+                    e.refit.refit_frame = frame;
+                    e.refit.pose_version = pose_version;
+                    e.refit.quality = quality;
+                    e.refit.last_ratio = 1.0;
+                    e.refit.gpu_ratio = None;
                     e.needs_compaction = a.class == BlasClass::Static;
                     if e.needs_compaction {
                         self.compact_pending.push(a.entry);
@@ -328,8 +328,8 @@ impl<B: AsBackend> AsManager<B> {
                 continue;
             }
             if let Some(inst) = self.tables.instances[owner as usize].as_ref() {
-                if inst.pose_version > e.pose_version {
-                    dirty.push((e.refit_frame, s));
+                if inst.pose_version > e.refit.pose_version {
+                    dirty.push((e.refit.refit_frame, s));
                 }
             }
         }
@@ -356,15 +356,15 @@ impl<B: AsBackend> AsManager<B> {
             }
             let pose = pose_of(&self.tables, e.owner);
             let mut rebuild = false;
-            let mut ratio = e.last_ratio;
-            match (&e.quality, &pose, geometry.data()) {
+            let mut ratio = e.refit.last_ratio;
+            match (&e.refit.quality, &pose, geometry.data()) {
                 (Some(q), Some(PoseSrc::Cpu(p)), Some(d)) if p.len() == d.positions().len() => {
                     ratio = q.ratio(p, d.indices());
                     rebuild = ratio > bound;
                 }
                 // Posed on the GPU: the backend's latest measurement (frames late).
                 (_, Some(PoseSrc::Device(_)), _) => {
-                    if let Some(r) = e.gpu_ratio {
+                    if let Some(r) = e.refit.gpu_ratio {
                         ratio = r;
                         rebuild = r > bound;
                     }
@@ -375,17 +375,13 @@ impl<B: AsBackend> AsManager<B> {
             let e = &mut self.tables.entries[s];
             self.journal.refitted.push(RefitUndo {
                 entry: s,
-                pose_version: e.pose_version,
-                refit_frame: e.refit_frame,
-                quality: e.quality.clone(),
-                last_ratio: e.last_ratio,
-                gpu_ratio: e.gpu_ratio,
+                before: e.refit.clone(),
             });
-            e.last_ratio = if rebuild { 1.0 } else { ratio };
+            e.refit.last_ratio = if rebuild { 1.0 } else { ratio };
             if rebuild {
-                e.gpu_ratio = None;
+                e.refit.gpu_ratio = None;
             }
-            self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(e.last_ratio);
+            self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(e.refit.last_ratio);
             jobs.push((s, geometry, pose, rebuild, mesh.desc.opaque));
             if budgeted && prims >= max {
                 break;
@@ -415,12 +411,12 @@ impl<B: AsBackend> AsManager<B> {
                 .as_ref()
                 .map_or(0, |i| i.pose_version);
             let e = &mut self.tables.entries[s];
-            e.pose_version = version;
-            e.refit_frame = frame;
+            e.refit.pose_version = version;
+            e.refit.refit_frame = frame;
             if rebuild {
                 self.stats.rebuilds += 1;
                 if let (Some(PoseSrc::Cpu(p)), Some(d)) = (&p, g.data()) {
-                    e.quality = Some(RefitQuality::at_build(p, d.indices()));
+                    e.refit.quality = Some(RefitQuality::at_build(p, d.indices()));
                 }
             } else {
                 self.stats.refits += 1;
@@ -452,7 +448,7 @@ impl<B: AsBackend> AsManager<B> {
         for (h, ratio) in reports {
             if let Some(&s) = by_handle.get(&h) {
                 let e = &mut self.tables.entries[s];
-                e.gpu_ratio = Some(ratio);
+                e.refit.gpu_ratio = Some(ratio);
                 self.stats.worst_refit_quality = self.stats.worst_refit_quality.max(ratio);
             }
         }

@@ -141,6 +141,20 @@ pub(crate) enum EntryState {
     Built,
 }
 
+/// A skinned BLAS's refit bookkeeping.
+#[derive(Debug, Clone)]
+pub(crate) struct RefitState {
+    /// Pose version last refitted or built, and the frame of it.
+    pub pose_version: u64,
+    pub refit_frame: u64,
+    /// The quality metric at the last build, and the last refit's ratio to it.
+    pub quality: Option<RefitQuality>,
+    pub last_ratio: f32,
+    /// Posed on the GPU: the latest quality ratio the backend measured
+    /// (`AsBackend::take_refit_quality`), not yet acted on.
+    pub gpu_ratio: Option<f32>,
+}
+
 #[derive(Debug)]
 pub(crate) struct BlasEntry {
     pub mesh: u32,
@@ -169,14 +183,8 @@ pub(crate) struct BlasEntry {
     pub queued_since: u64,
     /// Static: waiting for compaction.
     pub needs_compaction: bool,
-    /// Skinned: pose version last refitted/built, frame of it, quality bookkeeping.
-    pub pose_version: u64,
-    pub refit_frame: u64,
-    pub quality: Option<RefitQuality>,
-    pub last_ratio: f32,
-    /// Skinned, posed on the GPU: the latest quality ratio the backend measured
-    /// (`AsBackend::take_refit_quality`), not yet acted on.
-    pub gpu_ratio: Option<f32>,
+    /// Skinned: what the refits and rebuilds keep (a failed frame puts it back as it was).
+    pub refit: RefitState,
     /// Seed baseline: instances holding a reference.
     pub refs: u32,
     /// Index in `Tables::active`.
@@ -273,11 +281,13 @@ impl Tables {
             in_view: false,
             queued_since: frame,
             needs_compaction: false,
-            pose_version: 0,
-            refit_frame: frame,
-            quality: None,
-            last_ratio: 1.0,
-            gpu_ratio: None,
+            refit: RefitState {
+                pose_version: 0,
+                refit_frame: frame,
+                quality: None,
+                last_ratio: 1.0,
+                gpu_ratio: None,
+            },
             refs: 0,
             active_index,
         });
