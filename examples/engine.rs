@@ -198,11 +198,7 @@ fn run(args: Args) -> anyhow::Result<()> {
     let mut shading: Vec<InstanceShading> = scene
         .instances
         .iter()
-        .map(|inst| InstanceShading {
-            vertices: 0,
-            indices: 0,
-            base_color: scene.meshes[inst.mesh].base_color,
-        })
+        .map(|inst| InstanceShading::colour_only(scene.meshes[inst.mesh].base_color))
         .collect();
     for r in &records {
         let (vertices, indices) = backend

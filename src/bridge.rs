@@ -735,18 +735,10 @@ impl WorldBridge {
         let mut table: Vec<InstanceShading> = self
             .slots
             .iter()
-            .map(|s| InstanceShading {
-                vertices: 0,
-                indices: 0,
-                base_color: s.map_or([0.5, 0.5, 0.5, 1.0], |s| s.base_color),
-            })
+            .map(|s| InstanceShading::colour_only(s.map_or([0.5, 0.5, 0.5, 1.0], |s| s.base_color)))
             .collect();
         if table.is_empty() {
-            table.push(InstanceShading {
-                vertices: 0,
-                indices: 0,
-                base_color: [0.5; 4],
-            });
+            table.push(InstanceShading::colour_only([0.5; 4]));
         }
         for r in records {
             let ci = (r.custom_index_and_mask & 0x00ff_ffff) as usize;

@@ -76,14 +76,7 @@ fn render(
 ) -> Frame {
     let backend = m.backend_mut();
     backend.wait_idle().expect("frame completes");
-    let mut table = vec![
-        InstanceShading {
-            vertices: 0,
-            indices: 0,
-            base_color: [1.0; 4],
-        };
-        8
-    ];
+    let mut table = vec![InstanceShading::colour_only([1.0; 4]); 8];
     for r in records {
         let (v, i) = backend.shading_geometry(r.blas_address).expect("live BLAS");
         table[r.custom_index() as usize] = InstanceShading {

@@ -124,14 +124,7 @@ fn render(
 ) -> Vec<u32> {
     let backend = scene.manager.backend_mut();
     backend.wait_idle().expect("frame completes");
-    let mut table = vec![
-        InstanceShading {
-            vertices: 0,
-            indices: 0,
-            base_color: [0.7, 0.7, 0.7, 1.0]
-        };
-        64
-    ];
+    let mut table = vec![InstanceShading::colour_only([0.7, 0.7, 0.7, 1.0]); 64];
     for r in records {
         let (v, i) = backend
             .shading_geometry(r.blas_address)

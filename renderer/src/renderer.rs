@@ -41,13 +41,21 @@ pub struct InstanceShading {
     pub base_color: [f32; 4],
 }
 
+impl InstanceShading {
+    /// An entry shaded by its colour alone, with a view-facing normal (no geometry to read):
+    /// what a table holds for instances whose mesh buffers it does not know.
+    pub const fn colour_only(base_color: [f32; 4]) -> Self {
+        Self {
+            vertices: 0,
+            indices: 0,
+            base_color,
+        }
+    }
+}
+
 /// The shading table of a frame given no instances: one grey, view-facing entry, so the
 /// shaders always have a table to read.
-const NO_INSTANCES: [InstanceShading; 1] = [InstanceShading {
-    vertices: 0,
-    indices: 0,
-    base_color: [0.8; 4],
-}];
+const NO_INSTANCES: [InstanceShading; 1] = [InstanceShading::colour_only([0.8; 4])];
 
 /// `instances`, or the one-entry fallback table when there are none.
 pub(crate) fn shading_table(instances: &[InstanceShading]) -> &[InstanceShading] {
