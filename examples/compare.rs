@@ -32,30 +32,30 @@ mod eval;
 
 use eval::{kept_by_culler, DemoWorldDesc, EvalWorld};
 
-fn main() {
+fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
         .with_writer(std::io::stderr)
         .init();
-    if let Err(e) = run() {
-        eprintln!("error: {e}");
-        let mut source = std::error::Error::source(&*e);
-        while let Some(s) = source {
-            eprintln!("  caused by: {s}");
-            source = s.source();
-        }
-        std::process::exit(1);
-    }
+    run()
 }
 
-fn passes_json(p: &PassStats) -> String {
+/// One render's pass times and ray rates (the `--json` object's `passes`).
+fn passes_json(p: &PassStats) -> serde_json::Value {
     let (a, b, c) = p.mrays_per_s();
-    format!(
-        "{{\"primary_ms\":{:.3},\"shadow_ms\":{:.3},\"ao_shade_ms\":{:.3},\"primary_rays\":{},\"shadow_rays\":{},\"ao_rays\":{},\"primary_mrays_per_s\":{a:.3},\"shadow_mrays_per_s\":{b:.3},\"ao_mrays_per_s\":{c:.3}}}",
-        p.primary_ms, p.shadow_ms, p.ao_shade_ms, p.primary_rays, p.shadow_rays, p.ao_rays
-    )
+    serde_json::json!({
+        "primary_ms": p.primary_ms,
+        "shadow_ms": p.shadow_ms,
+        "ao_shade_ms": p.ao_shade_ms,
+        "primary_rays": p.primary_rays,
+        "shadow_rays": p.shadow_rays,
+        "ao_rays": p.ao_rays,
+        "primary_mrays_per_s": a,
+        "shadow_mrays_per_s": b,
+        "ao_mrays_per_s": c,
+    })
 }
 
 /// A managed frame next to its reference, with the difference image.
@@ -104,7 +104,7 @@ fn parse_path(s: &str) -> Result<RenderPath, String> {
     }
 }
 
-fn run() -> Result<(), Box<dyn std::error::Error>> {
+fn run() -> anyhow::Result<()> {
     let args = Args::parse();
     let (width, height) = args.size;
     let (angle_deg, out, json, path) = (args.angle, args.out, args.json, args.path);
@@ -187,33 +187,42 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         out.display()
     );
     if json {
-        let psnr = if metrics.psnr_db.is_finite() {
-            format!("{:.3}", metrics.psnr_db)
-        } else {
-            "null".into()
-        };
-        println!(
-            "{{\"device\":{:?},\"path\":\"{:?}\",\"width\":{width},\"height\":{height},\"instances\":{},\"traced_instances\":{},\"instanced_triangles\":{},\"cull_angle_deg\":{angle_deg},\"sun_radius_deg\":{soft_deg},\"shadow_samples\":{shadow_samples},\"ao_samples\":{ao_samples},\"reference\":{{\"render_ms\":{:.3},\"passes\":{}}},\"managed\":{{\"render_ms\":{:.3},\"passes\":{}}},\"metrics\":{{\"primary_mismatch\":{:.6},\"shadow_mismatch\":{:.6},\"color_rmse\":{:.6},\"psnr_db\":{psnr}}}}}",
-            info.name,
-            renderer.path(),
-            world.instances.len(),
-            managed.traced_instances,
-            world.instanced_triangles(),
-            ref_frame.render_ms,
-            passes_json(&ref_frame.passes),
-            frame.render_ms,
-            passes_json(&frame.passes),
-            metrics.primary_mismatch,
-            metrics.shadow_mismatch,
-            metrics.color_rmse,
-        );
+        // serde_json writes a non-finite PSNR (identical images) as null.
+        let summary = serde_json::json!({
+            "device": info.name,
+            "path": format!("{:?}", renderer.path()),
+            "width": width,
+            "height": height,
+            "instances": world.instances.len(),
+            "traced_instances": managed.traced_instances,
+            "instanced_triangles": world.instanced_triangles(),
+            "cull_angle_deg": angle_deg,
+            "sun_radius_deg": soft_deg,
+            "shadow_samples": shadow_samples,
+            "ao_samples": ao_samples,
+            "reference": {
+                "render_ms": ref_frame.render_ms,
+                "passes": passes_json(&ref_frame.passes),
+            },
+            "managed": {
+                "render_ms": frame.render_ms,
+                "passes": passes_json(&frame.passes),
+            },
+            "metrics": {
+                "primary_mismatch": metrics.primary_mismatch,
+                "shadow_mismatch": metrics.shadow_mismatch,
+                "color_rmse": metrics.color_rmse,
+                "psnr_db": metrics.psnr_db,
+            },
+        });
+        println!("{summary}");
     }
     drop(renderer);
     reference.destroy(&ctx);
     managed.destroy(&ctx);
     let failures = ctx.validation_log().failure_count();
     if failures > 0 {
-        return Err(format!("{failures} validation messages").into());
+        anyhow::bail!("{failures} validation messages");
     }
     Ok(())
 }

@@ -1,31 +1,43 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [million] [cams]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M]`
 
 use std::time::Instant;
+
+use clap::Parser;
 
 use rtstream_as_manager::backend::model::ModelBackend;
 use rtstream_as_manager::synth::{SynthParams, SynthWorld};
 use rtstream_as_manager::{AsManager, Config, FrameInput, Viewpoint};
 use rtstream_stats::Samples;
 
+/// `update`'s per-frame cost on a synthetic world, on the model backend.
+#[derive(Debug, Parser)]
+struct Args {
+    /// The 1,000,000-instance world (default: the 104,366-instance one).
+    #[arg(long)]
+    million: bool,
+    /// Cameras (a squad within 60 m of the lead camera).
+    #[arg(long, default_value_t = 1)]
+    cams: usize,
+    /// The residency grid's cell size, metres (default: the configuration's).
+    #[arg(long)]
+    cell_size: Option<f32>,
+}
+
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let params = if args.iter().any(|a| a == "million") {
+    let args = Args::parse();
+    let params = if args.million {
         SynthParams::million()
     } else {
         SynthParams::default_world()
     };
-    let cams: usize = args
-        .iter()
-        .filter_map(|a| a.parse().ok())
-        .next()
-        .unwrap_or(1);
+    let cams = args.cams;
     let world = SynthWorld::generate(params);
     let mut config = Config::default();
-    if let Ok(c) = std::env::var("CELL") {
-        config.residency.cell_size = c.parse().unwrap();
+    if let Some(c) = args.cell_size {
+        config.residency.cell_size = c;
     }
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
     world.populate(&m).unwrap();
