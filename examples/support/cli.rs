@@ -63,6 +63,10 @@ pub struct RunArgs {
     /// Where the baked world is kept (default: out/world-<preset>-<seed>).
     #[arg(long)]
     pub world: Option<PathBuf>,
+    /// Instances of the world (terrain included) on the preset's map instead of its own count:
+    /// `--instances 1100000` is the default map at ten times its density.
+    #[arg(long)]
+    pub instances: Option<u32>,
     /// Frames to run.
     #[arg(long, default_value_t = 600)]
     pub frames: u64,
@@ -267,7 +271,12 @@ impl RunArgs {
 
     /// The world preset.
     pub fn world_preset(&self) -> WorldPreset {
-        world_preset(self.preset, self.seed, &self.assets)
+        let mut p = world_preset(self.preset, self.seed, &self.assets);
+        if let Some(n) = self.instances {
+            p.instances = n;
+            p.name = format!("{}-{n}", p.name);
+        }
+        p
     }
 
     /// The driver configuration.
