@@ -40,7 +40,7 @@ impl VulkanBackend {
             accels: Vec<AccelStruct>,
             scratch: Vec<u64>,
             skinned: Option<SkinnedInputs>,
-            inputs: Option<(GpuBuffer, GpuBuffer)>,
+            inputs: Option<StaticInputs>,
             shading: (u64, u64),
             shading_plain: bool,
             /// Bytes of one index.
@@ -50,6 +50,7 @@ impl VulkanBackend {
         }
         let mut planned: Vec<Planned> = Vec::with_capacity(builds.len());
         let align = self.ctx.info().min_scratch_alignment;
+        let plan = tracing::trace_span!("plan").entered();
         let result: BackendResult<()> = (|| {
             for b in builds {
                 let g = &b.geometry;
@@ -58,35 +59,46 @@ impl VulkanBackend {
                     return Err(BackendError::MissingGeometry);
                 }
                 let parts = self.parts_of(g, b.class, &b.sizes);
-                // Indices: the engine's (read in place) or the CPU's (uploaded once).
-                let (ib, iaddr, itype) = match (g.device_indices, g.indices) {
-                    (Some(d), _) => (None, d.address, d.index_type),
-                    (None, Some(idx)) => {
-                        let ib = self.upload_input("BLAS indices", bytemuck::cast_slice(idx))?;
-                        self.counters.input_upload_bytes += (idx.len() * 4) as u64;
-                        let a = ib.address;
-                        (Some(ib), a, IndexType::U32)
-                    }
-                    (None, None) => return Err(BackendError::MissingGeometry),
-                };
                 let format = device_v.map_or(VertexFormat::F32x3, |v| v.format);
-                let (vaddr, stride, skinned, inputs) = if b.class == BlasClass::Skinned {
-                    let (vaddr, stride, poses) = match (device_v, g.positions) {
-                        (Some(v), _) => (v.address, v.stride, Vec::new()),
-                        (None, Some(pos)) => match self.pose_buffer(pos) {
-                            Ok(pb) => (pb.address, 12, vec![pb]),
-                            Err(e) => {
-                                self.destroy_all(ib);
-                                return Err(e);
-                            }
-                        },
-                        (None, None) => unreachable!("checked above"),
+                let cpu_static = b.class == BlasClass::Static
+                    && device_v.is_none()
+                    && g.device_indices.is_none();
+                let (iaddr, itype, vaddr, stride, skinned, inputs) = if cpu_static {
+                    // CPU positions and indices: one buffer holds both.
+                    let (Some(pos), Some(idx)) = (g.positions, g.indices) else {
+                        return Err(BackendError::MissingGeometry);
                     };
-                    let next = poses.len();
-                    (
-                        vaddr,
-                        stride,
-                        Some(SkinnedInputs {
+                    let s = self.upload_static_inputs(pos, idx)?;
+                    let a = s.buffer.address;
+                    let iaddr = a + StaticInputs::index_offset(s.positions_bytes);
+                    (iaddr, IndexType::U32, a, 12, None, Some(s))
+                } else {
+                    // Indices: the engine's (read in place) or the CPU's (uploaded once).
+                    let (ib, iaddr, itype) = match (g.device_indices, g.indices) {
+                        (Some(d), _) => (None, d.address, d.index_type),
+                        (None, Some(idx)) => {
+                            let ib =
+                                self.upload_input("BLAS indices", bytemuck::cast_slice(idx))?;
+                            self.counters.input_upload_bytes += (idx.len() * 4) as u64;
+                            let a = ib.address;
+                            (Some(ib), a, IndexType::U32)
+                        }
+                        (None, None) => return Err(BackendError::MissingGeometry),
+                    };
+                    if b.class == BlasClass::Skinned {
+                        let (vaddr, stride, poses) = match (device_v, g.positions) {
+                            (Some(v), _) => (v.address, v.stride, Vec::new()),
+                            (None, Some(pos)) => match self.pose_buffer(pos) {
+                                Ok(pb) => (pb.address, 12, vec![pb]),
+                                Err(e) => {
+                                    self.destroy_all(ib);
+                                    return Err(e);
+                                }
+                            },
+                            (None, None) => unreachable!("checked above"),
+                        };
+                        let next = poses.len();
+                        let skinned = SkinnedInputs {
                             indices: ib,
                             index_address: iaddr,
                             index_type: itype,
@@ -95,30 +107,18 @@ impl VulkanBackend {
                             vertices: g.vertex_count,
                             poses,
                             next,
-                        }),
-                        None,
-                    )
-                } else {
-                    match (device_v, g.positions, ib) {
-                        // The engine's buffers: nothing to upload or keep.
-                        (Some(v), _, None) => (v.address, v.stride, None, None),
-                        (None, Some(pos), Some(ib)) => {
-                            match self.upload_input("BLAS positions", bytemuck::cast_slice(pos)) {
-                                Ok(vb) => {
-                                    self.counters.input_upload_bytes += (pos.len() * 12) as u64;
-                                    (vb.address, 12, None, Some((vb, ib)))
-                                }
-                                Err(e) => {
-                                    self.destroy(Retired::BlasBuffer(ib));
-                                    return Err(e);
-                                }
+                        };
+                        (iaddr, itype, vaddr, stride, Some(skinned), None)
+                    } else {
+                        match (device_v, ib) {
+                            // The engine's buffers: nothing to upload or keep.
+                            (Some(v), None) => (iaddr, itype, v.address, v.stride, None, None),
+                            (_, ib) => {
+                                self.destroy_all(ib);
+                                return Err(BackendError::Other(
+                                    "static geometry mixes device and CPU inputs".into(),
+                                ));
                             }
-                        }
-                        (_, _, ib) => {
-                            self.destroy_all(ib);
-                            return Err(BackendError::Other(
-                                "static geometry mixes device and CPU inputs".into(),
-                            ));
                         }
                     }
                 };
@@ -175,6 +175,7 @@ impl VulkanBackend {
             let total: u64 = planned.iter().flat_map(|p| p.scratch.iter()).sum();
             self.ensure_scratch(total)
         })();
+        drop(plan);
         if let Err(e) = result {
             // All or nothing: release what this call created (nothing was recorded yet).
             for p in planned {
@@ -184,9 +185,8 @@ impl VulkanBackend {
                 for b in p.skinned.into_iter().flat_map(SkinnedInputs::buffers) {
                     self.destroy(Retired::BlasBuffer(b));
                 }
-                if let Some((vb, ib)) = p.inputs {
-                    self.destroy(Retired::BlasBuffer(vb));
-                    self.destroy(Retired::BlasBuffer(ib));
+                if let Some(s) = p.inputs {
+                    self.destroy(Retired::BlasBuffer(s.buffer));
                 }
             }
             return Err(e);
@@ -226,9 +226,11 @@ impl VulkanBackend {
             CostOp::BuildStatic
         };
         let t = self.timestamp_begin(op, tris);
+        let recording = tracing::trace_span!("cmd_build").entered();
         // SAFETY: cmd is recording; inputs are the BLASes' own buffers, retired with them after
         // the frame completes; scratch ranges are disjoint and aligned.
         unsafe { self.ctx.cmd_build_blases(cmd, &raw_builds) };
+        drop(recording);
         self.timestamp_end(t);
         drop(raw_builds);
         // Compacted-size queries for static BLASes (single-part only).

@@ -277,7 +277,7 @@ impl VulkanBackend {
         let value = self.slots[slot].submitted_value;
         let engine = self.desc.recording == Recording::Engine;
         if !engine {
-            self.wait_value(value)?;
+            tracing::trace_span!("wait").in_scope(|| self.wait_value(value))?;
         }
         if value > 0 {
             let done = value - 1;
@@ -288,6 +288,7 @@ impl VulkanBackend {
                 self.slots[slot].compact_queries.clear();
                 self.slots[slot].quality_jobs.clear();
             } else {
+                let _s = tracing::trace_span!("harvest").entered();
                 self.read_completed_slot(slot)?;
                 self.read_quality(slot);
             }
@@ -304,6 +305,7 @@ impl VulkanBackend {
         if reached > 0 {
             self.completed = Some(self.completed.map_or(reached - 1, |c| c.max(reached - 1)));
         }
+        let retire = tracing::trace_span!("retire").entered();
         while let Some((f, _)) = self.retiring.front() {
             if self.completed.is_some_and(|c| c >= *f) {
                 let (_, r) = self.retiring.pop_front().expect("front exists");
@@ -315,6 +317,8 @@ impl VulkanBackend {
                 break;
             }
         }
+        drop(retire);
+        let _s = tracing::trace_span!("begin_cmd").entered();
         let s = &mut self.slots[slot];
         s.frame = frame;
         s.scratch_used.clear();

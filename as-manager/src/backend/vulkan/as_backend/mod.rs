@@ -172,8 +172,9 @@ struct BlasEntry {
     sizes: BlasSizes,
     /// Skinned: the index buffer that updates reuse, the poses the shading reads.
     skinned: Option<SkinnedInputs>,
-    /// Static: the vertex and index buffers it was built from (kept for shading lookups).
-    static_inputs: Option<(GpuBuffer, GpuBuffer)>,
+    /// Static: the buffer of positions and indices it was built from (kept for shading
+    /// lookups).
+    static_inputs: Option<StaticInputs>,
     /// Skinned with `separate_refit_targets`: the other structures of the ring (the current
     /// one is `parts[0]`); a refit writes the oldest and makes it current.
     spares: Vec<AccelStruct>,
@@ -187,6 +188,22 @@ struct BlasEntry {
     /// Skinned BLAS built or refitted from the engine's GPU buffer: the GPU quality pass's
     /// bookkeeping (`gpu_quality.rs`).
     gpu_quality: Option<gpu_quality::GpuQuality>,
+}
+
+/// A static BLAS's uploaded inputs: one host-visible buffer, its `[f32; 3]` positions first and
+/// its `u32` indices after them (one allocation per BLAS, not two).
+#[derive(Debug)]
+pub(super) struct StaticInputs {
+    buffer: GpuBuffer,
+    /// Bytes of positions at the buffer's start; the indices start at the next multiple of 16.
+    positions_bytes: u64,
+}
+
+impl StaticInputs {
+    /// Offset of the indices in the buffer.
+    fn index_offset(positions_bytes: u64) -> u64 {
+        positions_bytes.next_multiple_of(16)
+    }
 }
 
 /// A skinned BLAS's own inputs. The positions of each build or refit go to the next buffer of
@@ -215,7 +232,7 @@ impl BlasEntry {
     fn into_owned(self) -> impl Iterator<Item = Retired> {
         let accels = self.parts.into_iter().chain(self.spares);
         let skinned = self.skinned.into_iter().flat_map(SkinnedInputs::buffers);
-        let statics = self.static_inputs.into_iter().flat_map(|(vb, ib)| [vb, ib]);
+        let statics = self.static_inputs.into_iter().map(|s| s.buffer);
         accels
             .map(Retired::BlasAccel)
             .chain(skinned.chain(statics).map(Retired::BlasBuffer))

@@ -39,7 +39,7 @@ impl VulkanBackend {
     #[doc(hidden)]
     pub fn input_buffer_bytes(&self, address: u64) -> Option<Vec<u8>> {
         let live = self.blases.values().flat_map(|e| {
-            let statics = e.static_inputs.iter().flat_map(|(v, i)| [v, i]);
+            let statics = e.static_inputs.iter().map(|s| &s.buffer);
             let skinned = e
                 .skinned
                 .iter()
@@ -50,9 +50,13 @@ impl VulkanBackend {
             Retired::BlasBuffer(b) => Some(b),
             _ => None,
         });
+        // A static BLAS's indices start inside its buffer: the bytes from `address` on.
         live.chain(retiring)
-            .find(|b| b.address == address && address != 0)
-            .and_then(|b| b.mapped().map(<[u8]>::to_vec))
+            .find(|b| address != 0 && (b.address..b.address + b.size).contains(&address))
+            .and_then(|b| {
+                let from = (address - b.address) as usize;
+                b.mapped().map(|m| m[from..].to_vec())
+            })
     }
 
     pub(super) fn insert(&mut self, e: BlasEntry) -> BlasHandle {
@@ -117,6 +121,34 @@ impl VulkanBackend {
         Ok(b)
     }
 
+    /// A static BLAS's positions and indices in one new host-visible buffer.
+    pub(super) fn upload_static_inputs(
+        &mut self,
+        positions: &[[f32; 3]],
+        indices: &[u32],
+    ) -> BackendResult<StaticInputs> {
+        let positions_bytes = std::mem::size_of_val(positions) as u64;
+        let at = StaticInputs::index_offset(positions_bytes);
+        let mut b = self.create_buffer(
+            BufferDesc {
+                name: "BLAS inputs",
+                size: (at + std::mem::size_of_val(indices) as u64).max(4),
+                usage: BUILD_INPUT_USAGE,
+                memory: MemoryKind::Upload,
+            },
+            true,
+        )?;
+        tracing::trace_span!("upload_geometry").in_scope(|| {
+            b.write(0, bytemuck::cast_slice(positions));
+            b.write(at as usize, bytemuck::cast_slice(indices));
+        });
+        self.counters.input_upload_bytes += positions_bytes + std::mem::size_of_val(indices) as u64;
+        Ok(StaticInputs {
+            buffer: b,
+            positions_bytes,
+        })
+    }
+
     /// A new host-visible buffer holding `positions` (a skinned BLAS's pose).
     pub(super) fn pose_buffer(&mut self, positions: &[[f32; 3]]) -> BackendResult<GpuBuffer> {
         let b = self.upload_input("skinned pose", bytemuck::cast_slice(positions))?;
@@ -177,13 +209,15 @@ impl VulkanBackend {
     pub fn shading_positions(&self, blas_address: u64) -> Option<Vec<[f32; 3]>> {
         let key = *self.by_address.get(&blas_address)?;
         let e = self.blases.get(key)?;
-        let buffers = e
-            .skinned
-            .iter()
-            .flat_map(|sk| sk.poses.iter())
-            .chain(e.static_inputs.iter().map(|(vb, _)| vb));
-        let b = buffers.into_iter().find(|b| b.address == e.shading.0)?;
-        let bytes = b.mapped()?;
+        let bytes = match &e.static_inputs {
+            Some(s) => &s.buffer.mapped()?[..s.positions_bytes as usize],
+            None => e
+                .skinned
+                .iter()
+                .flat_map(|sk| sk.poses.iter())
+                .find(|b| b.address == e.shading.0)?
+                .mapped()?,
+        };
         let n = bytes.len() / 12;
         Some(
             bytes[..n * 12]

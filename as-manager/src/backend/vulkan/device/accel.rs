@@ -300,6 +300,7 @@ impl VulkanContext {
         size: u64,
         name: &str,
     ) -> VkResult<AccelStruct> {
+        let _s = tracing::trace_span!("create_accel").entered();
         let buffer = self.create_buffer(&BufferDesc {
             name,
             size,

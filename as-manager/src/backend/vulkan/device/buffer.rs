@@ -81,6 +81,7 @@ impl VulkanContext {
                 desc.name
             )));
         }
+        let _s = tracing::trace_span!("create_buffer").entered();
         let info = vk::BufferCreateInfo::default()
             .size(desc.size)
             .usage(desc.usage)
@@ -94,12 +95,14 @@ impl VulkanContext {
             MemoryKind::Upload => MemoryLocation::CpuToGpu,
             MemoryKind::Readback => MemoryLocation::GpuToCpu,
         };
-        let allocation = self.allocator.lock().allocate(&AllocationCreateDesc {
-            name: desc.name,
-            requirements,
-            location,
-            linear: true,
-            allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+        let allocation = tracing::trace_span!("allocate").in_scope(|| {
+            self.allocator.lock().allocate(&AllocationCreateDesc {
+                name: desc.name,
+                requirements,
+                location,
+                linear: true,
+                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+            })
         });
         let allocation = match allocation {
             Ok(a) => a,
