@@ -3,8 +3,9 @@
 /// Metres of camera travel per bucket of the due queue (a candidate may be looked at up to this
 /// much early, never late).
 const BUCKET_M: f64 = 1.0;
-/// Buckets in the ring (16 km of travel ahead); farther ones wait in the overflow list.
-const RING: u64 = 1 << 14;
+/// Buckets in the ring (4 km of travel ahead: its headers stay in cache); farther ones wait in
+/// the overflow list, brought in every kilometre.
+const RING: u64 = 1 << 12;
 
 /// When each candidate is due, as camera travel: a ring of one-metre buckets of (candidate
 /// index, stamp).
@@ -18,6 +19,9 @@ pub(super) struct DueQueue {
     soon: Vec<(u32, u32)>,
     /// (bucket, slot, stamp) beyond the ring.
     overflow: Vec<(u64, u32, u32)>,
+    /// Emptied buckets' vectors, handed to buckets that get their first entry: each bucket is
+    /// used once per 4 km of travel, so its allocation goes round the ring instead.
+    spares: Vec<Vec<(u32, u32)>>,
 }
 
 impl Default for DueQueue {
@@ -27,6 +31,7 @@ impl Default for DueQueue {
             base: 0,
             soon: Vec::new(),
             overflow: Vec::new(),
+            spares: Vec::new(),
         }
     }
 }
@@ -46,7 +51,13 @@ impl DueQueue {
         } else if b - self.base >= RING {
             self.overflow.push((b, slot, stamp));
         } else {
-            self.ring[(b % RING) as usize].push((slot, stamp));
+            let bucket = &mut self.ring[(b % RING) as usize];
+            if bucket.capacity() == 0 {
+                if let Some(v) = self.spares.pop() {
+                    *bucket = v;
+                }
+            }
+            bucket.push((slot, stamp));
         }
     }
 
@@ -55,7 +66,11 @@ impl DueQueue {
         let current = (odo / BUCKET_M) as u64;
         out.append(&mut self.soon);
         while self.base <= current {
-            out.append(&mut self.ring[(self.base % RING) as usize]);
+            let mut bucket = std::mem::take(&mut self.ring[(self.base % RING) as usize]);
+            if bucket.capacity() > 0 {
+                out.append(&mut bucket);
+                self.spares.push(bucket);
+            }
             self.base += 1;
             if self.base % (RING / 4) == 0 && !self.overflow.is_empty() {
                 // A quarter of the ring passed: bring the overflow that now fits into it.
