@@ -101,9 +101,11 @@ impl<B: AsBackend> AsManager<B> {
         }
         let mut errors = [0.0; MAX_LODS];
         let mut lod_tris = [0; MAX_LODS];
+        let mut buildable = 0u8;
         for (i, l) in desc.lods.iter().enumerate() {
             errors[i] = l.geometric_error;
             lod_tris[i] = l.geometry.triangles();
+            buildable |= u8::from(l.geometry.is_buildable()) << i;
         }
         if self.tables.meshes[slot].is_none() {
             self.live_meshes += 1;
@@ -113,6 +115,7 @@ impl<B: AsBackend> AsManager<B> {
             nlods: desc.lods.len() as u8,
             errors,
             lod_tris,
+            buildable,
             desc,
             lod_entry: [None; MAX_LODS],
             lod_floor: 0,
@@ -140,6 +143,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         let errors_before = m.errors;
         let tris = geometry.triangles();
+        m.buildable = (m.buildable & !(1 << lod)) | (u8::from(geometry.is_buildable()) << lod);
         let d = Arc::make_mut(&mut m.desc);
         d.lods[lod].geometry = geometry;
         m.lod_tris[lod] = tris;

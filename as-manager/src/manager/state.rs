@@ -31,6 +31,9 @@ pub(crate) struct MeshState {
     pub errors: [f32; MAX_LODS],
     /// Triangles per LOD.
     pub lod_tris: [u32; MAX_LODS],
+    /// Bit `l`: LOD `l` has data a backend can build from (`LodGeometry::is_buildable`), kept
+    /// with `desc` so that `with_data` reads no LOD descriptions.
+    pub buildable: u8,
     /// Static: the shared entry per LOD.
     pub lod_entry: [Option<EntryKey>; MAX_LODS],
     /// Memory fallback: finest LOD allowed now.
@@ -63,15 +66,14 @@ impl MeshState {
         need_data: bool,
         built: impl Fn(usize) -> bool,
     ) -> Option<usize> {
-        let lods = &self.desc.lods;
         if !need_data {
             return Some(lod);
         }
-        let has = |l: usize| lods[l].geometry.is_buildable();
+        let has = |l: usize| self.buildable & (1 << l) != 0;
         if has(lod) || built(lod) {
             return Some(lod);
         }
-        let n = lods.len();
+        let n = self.nlods as usize;
         let finer_first = (0..lod).rev().chain(lod + 1..n);
         if let Some(l) = finer_first.clone().find(|&l| built(l)) {
             return Some(l);

@@ -22,6 +22,7 @@ pub use as_backend::{class_flags, Recording, VulkanBackend, VulkanBackendDesc, V
 pub use device::accel::{
     align_up, AccelStruct, AsSizes, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
 };
+pub use device::arena::{ArenaRange, BufferArena, UNIT as ARENA_UNIT};
 pub use device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 pub use device::context::{
     live_vulkan_handles, ContextDesc, DeviceInfo, DeviceKind, Validation, ValidationLog,

@@ -69,7 +69,7 @@ impl VulkanBackend {
                         return Err(BackendError::MissingGeometry);
                     };
                     let s = self.upload_static_inputs(pos, idx)?;
-                    let a = s.buffer.address;
+                    let a = s.range.address;
                     let iaddr = a + StaticInputs::index_offset(s.positions_bytes);
                     (iaddr, IndexType::U32, a, 12, None, Some(s))
                 } else {
@@ -186,7 +186,7 @@ impl VulkanBackend {
                     self.destroy(Retired::BlasBuffer(b));
                 }
                 if let Some(s) = p.inputs {
-                    self.destroy(Retired::BlasBuffer(s.buffer));
+                    self.destroy(Retired::BlasInput(s.range));
                 }
             }
             return Err(e);

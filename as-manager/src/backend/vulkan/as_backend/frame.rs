@@ -142,7 +142,10 @@ impl VulkanBackend {
     }
 
     pub(super) fn destroy(&mut self, r: Retired) {
-        let limited = matches!(r, Retired::BlasAccel(_) | Retired::BlasBuffer(_));
+        let limited = matches!(
+            r,
+            Retired::BlasAccel(_) | Retired::BlasBuffer(_) | Retired::BlasInput(_)
+        );
         match r {
             Retired::Accel(a) | Retired::BlasAccel(a) => {
                 self.unreserve(a.size, limited);
@@ -151,6 +154,10 @@ impl VulkanBackend {
             Retired::Buffer(b) | Retired::BlasBuffer(b) => {
                 self.unreserve(b.size, limited);
                 self.ctx.destroy_buffer(b);
+            }
+            Retired::BlasInput(r) => {
+                self.unreserve(r.size, limited);
+                self.inputs.free(&self.ctx, r);
             }
         }
     }

@@ -58,6 +58,7 @@ use ash::vk;
 use crate::backend::vulkan::device::accel::{
     align_up, AccelStruct, BlasBuildInput, ScratchLayout, TriangleGeometry, BUILD_INPUT_USAGE,
 };
+use crate::backend::vulkan::device::arena::{ArenaRange, BufferArena};
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
@@ -152,6 +153,8 @@ impl Default for VulkanBackendDesc {
 }
 
 const QUERIES_PER_SLOT: u32 = 16;
+/// Bytes per block of the static input arena (the default world keeps about 20 MB of inputs).
+const INPUT_BLOCK_BYTES: u64 = 8 << 20;
 const COMPACT_QUERIES_PER_SLOT: u32 = 4096;
 
 slotmap::new_key_type! {
@@ -190,17 +193,17 @@ struct BlasEntry {
     gpu_quality: Option<gpu_quality::GpuQuality>,
 }
 
-/// A static BLAS's uploaded inputs: one host-visible buffer, its `[f32; 3]` positions first and
-/// its `u32` indices after them (one allocation per BLAS, not two).
+/// A static BLAS's uploaded inputs: one range of the input arena (`VulkanBackend::inputs`), its
+/// `[f32; 3]` positions first and its `u32` indices after them.
 #[derive(Debug)]
 pub(super) struct StaticInputs {
-    buffer: GpuBuffer,
-    /// Bytes of positions at the buffer's start; the indices start at the next multiple of 16.
+    range: ArenaRange,
+    /// Bytes of positions at the range's start; the indices start at the next multiple of 16.
     positions_bytes: u64,
 }
 
 impl StaticInputs {
-    /// Offset of the indices in the buffer.
+    /// Offset of the indices in the range.
     fn index_offset(positions_bytes: u64) -> u64 {
         positions_bytes.next_multiple_of(16)
     }
@@ -232,10 +235,14 @@ impl BlasEntry {
     fn into_owned(self) -> impl Iterator<Item = Retired> {
         let accels = self.parts.into_iter().chain(self.spares);
         let skinned = self.skinned.into_iter().flat_map(SkinnedInputs::buffers);
-        let statics = self.static_inputs.into_iter().map(|s| s.buffer);
+        let statics = self
+            .static_inputs
+            .into_iter()
+            .map(|s| Retired::BlasInput(s.range));
         accels
             .map(Retired::BlasAccel)
-            .chain(skinned.chain(statics).map(Retired::BlasBuffer))
+            .chain(skinned.map(Retired::BlasBuffer))
+            .chain(statics)
     }
 }
 
@@ -255,6 +262,8 @@ enum Retired {
     BlasAccel(AccelStruct),
     /// A BLAS input buffer (counted against `memory_limit`).
     BlasBuffer(GpuBuffer),
+    /// A static BLAS's inputs in the input arena (counted against `memory_limit`).
+    BlasInput(ArenaRange),
 }
 
 #[derive(Debug)]
@@ -371,6 +380,9 @@ pub struct VulkanBackend {
     /// Sizes by (triangles, vertices, opaque, class): they depend on nothing else, and the
     /// manager asks for every queued item every frame (one driver call each, before).
     size_cache: std::cell::RefCell<HashMap<SizeKey, BlasSizes>>,
+    /// Static BLASes' uploaded positions and indices, as ranges of a few large host-visible
+    /// buffers (`device/arena.rs`).
+    inputs: BufferArena,
     /// Engine-recorded: the slot ended last and not yet handed to the engine's command buffer.
     to_record: Option<usize>,
     /// The GPU refit-quality pass, created at its first use.
@@ -552,6 +564,12 @@ impl VulkanBackend {
             engine_done: None,
             to_record: None,
             size_cache: Default::default(),
+            inputs: BufferArena::new(
+                "BLAS inputs",
+                BUILD_INPUT_USAGE,
+                MemoryKind::Upload,
+                INPUT_BLOCK_BYTES,
+            ),
             quality_pipeline: None,
             quality_reports: Vec::new(),
         })
@@ -777,6 +795,7 @@ impl Drop for VulkanBackend {
         for o in objects {
             self.destroy(o);
         }
+        self.inputs.destroy(&self.ctx);
         if let Some(p) = self.quality_pipeline.take() {
             p.destroy(&self.ctx);
         }

@@ -38,25 +38,44 @@ impl VulkanBackend {
     /// (static vertices or indices, a skinned pose or index buffer), live or retiring.
     #[doc(hidden)]
     pub fn input_buffer_bytes(&self, address: u64) -> Option<Vec<u8>> {
-        let live = self.blases.values().flat_map(|e| {
-            let statics = e.static_inputs.iter().map(|s| &s.buffer);
-            let skinned = e
-                .skinned
+        if address == 0 {
+            return None;
+        }
+        let skinned = self.blases.values().flat_map(|e| {
+            e.skinned
                 .iter()
-                .flat_map(|s| s.indices.iter().chain(&s.poses));
-            statics.chain(skinned)
+                .flat_map(|s| s.indices.iter().chain(&s.poses))
         });
         let retiring = self.retiring.iter().filter_map(|(_, r)| match r {
             Retired::BlasBuffer(b) => Some(b),
             _ => None,
         });
-        // A static BLAS's indices start inside its buffer: the bytes from `address` on.
-        live.chain(retiring)
-            .find(|b| address != 0 && (b.address..b.address + b.size).contains(&address))
+        let buffer = skinned
+            .chain(retiring)
+            .find(|b| (b.address..b.address + b.size).contains(&address))
             .and_then(|b| {
-                let from = (address - b.address) as usize;
-                b.mapped().map(|m| m[from..].to_vec())
-            })
+                b.mapped()
+                    .map(|m| m[(address - b.address) as usize..].to_vec())
+            });
+        // A static BLAS's inputs are a range of the input arena; its indices start inside it.
+        let statics = self
+            .blases
+            .values()
+            .filter_map(|e| e.static_inputs.as_ref());
+        let retiring = self.retiring.iter().filter_map(|(_, r)| match r {
+            Retired::BlasInput(r) => Some(r),
+            _ => None,
+        });
+        buffer.or_else(|| {
+            statics
+                .map(|s| &s.range)
+                .chain(retiring)
+                .find(|r| (r.address..r.address + r.size).contains(&address))
+                .and_then(|r| {
+                    let from = (address - r.address) as usize;
+                    self.inputs.bytes(r).map(|b| b[from..].to_vec())
+                })
+        })
     }
 
     pub(super) fn insert(&mut self, e: BlasEntry) -> BlasHandle {
@@ -129,22 +148,28 @@ impl VulkanBackend {
     ) -> BackendResult<StaticInputs> {
         let positions_bytes = std::mem::size_of_val(positions) as u64;
         let at = StaticInputs::index_offset(positions_bytes);
-        let mut b = self.create_buffer(
-            BufferDesc {
-                name: "BLAS inputs",
-                size: (at + std::mem::size_of_val(indices) as u64).max(4),
-                usage: BUILD_INPUT_USAGE,
-                memory: MemoryKind::Upload,
-            },
-            true,
-        )?;
+        let size = (at + std::mem::size_of_val(indices) as u64).max(4);
+        self.reserve(size, true)?;
+        let range = match self.inputs.alloc(&self.ctx, size) {
+            Ok(r) => r,
+            Err(e) => {
+                self.unreserve(size, true);
+                return Err(backend_err(e));
+            }
+        };
         tracing::trace_span!("upload_geometry").in_scope(|| {
-            b.write(0, bytemuck::cast_slice(positions));
-            b.write(at as usize, bytemuck::cast_slice(indices));
+            let dst = self
+                .inputs
+                .bytes_mut(&range)
+                .expect("the input arena is host-visible");
+            let p: &[u8] = bytemuck::cast_slice(positions);
+            dst[..p.len()].copy_from_slice(p);
+            let i: &[u8] = bytemuck::cast_slice(indices);
+            dst[at as usize..at as usize + i.len()].copy_from_slice(i);
         });
         self.counters.input_upload_bytes += positions_bytes + std::mem::size_of_val(indices) as u64;
         Ok(StaticInputs {
-            buffer: b,
+            range,
             positions_bytes,
         })
     }
@@ -210,7 +235,7 @@ impl VulkanBackend {
         let key = *self.by_address.get(&blas_address)?;
         let e = self.blases.get(key)?;
         let bytes = match &e.static_inputs {
-            Some(s) => &s.buffer.mapped()?[..s.positions_bytes as usize],
+            Some(s) => &self.inputs.bytes(&s.range)?[..s.positions_bytes as usize],
             None => e
                 .skinned
                 .iter()
