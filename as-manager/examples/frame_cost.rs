@@ -1,7 +1,7 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG]`
 
 use std::time::Instant;
 
@@ -24,6 +24,13 @@ struct Args {
     /// The residency grid's cell size, metres (default: the configuration's).
     #[arg(long)]
     cell_size: Option<f32>,
+    /// The far field on, as the bench's `managed_far` (a group tree of the default world's
+    /// level blocks, proxies, landmarks); off: the near field alone.
+    #[arg(long)]
+    far: bool,
+    /// The far field's keep angle, degrees (0: no landmarks; default: the configuration's).
+    #[arg(long)]
+    keep_angle: Option<f32>,
 }
 
 fn main() {
@@ -39,8 +46,17 @@ fn main() {
     if let Some(c) = args.cell_size {
         config.residency.cell_size = c;
     }
+    config.far_field.enabled = args.far;
+    if let Some(a) = args.keep_angle {
+        config.far_field.keep_angle = a.to_radians();
+    }
     let mut m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
-    world.populate(&m).unwrap();
+    if args.far {
+        // The default world's level blocks: 2x2 levels of 71 m, four depths (as the bench).
+        world.populate_with_groups(&m, 143.0, 4).unwrap();
+    } else {
+        world.populate(&m).unwrap();
+    }
     let cameras = |f: u64| -> Vec<Viewpoint> {
         let lead = world.camera_on_path(f, 0.5);
         let off = [
