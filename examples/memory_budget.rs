@@ -103,10 +103,10 @@ fn main() -> anyhow::Result<()> {
             .map(|p| (p.budget_mb.unwrap_or(0.0).log2(), f(p)))
             .collect()
     };
-    let mut files = charts::lines(
-        &cli.run.out.join("error_vs_budget"),
+    let by_budget = charts::LineCharts::new(&cli.run.out, "log2(budget / MB)");
+    let mut files = by_budget.draw(
+        "error_vs_budget",
         "BLAS budget against image error (full-world ground truth)",
-        "log2(budget / MB)",
         "mismatched pixels, %",
         &[
             (
@@ -119,10 +119,9 @@ fn main() -> anyhow::Result<()> {
             ),
         ],
     )?;
-    files.extend(charts::lines(
-        &cli.run.out.join("memory_vs_budget"),
+    files.extend(by_budget.draw(
+        "memory_vs_budget",
         "BLAS budget against peak BLAS memory",
-        "log2(budget / MB)",
         "MB",
         &[
             ("peak BLAS MB".into(), series(|p| p.peak_blas_mb)),
