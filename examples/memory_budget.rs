@@ -16,7 +16,6 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use rtstream::driver::RunConfig;
 use serde::Serialize;
 
 /// The example's own flag.
@@ -61,14 +60,10 @@ fn main() -> anyhow::Result<()> {
     let base = sweep::managed_base(&cli.run)?;
     let mut budgets: Vec<Option<f64>> = vec![None];
     budgets.extend(cli.own.budgets_mb.iter().map(|&b| Some(b)));
-    let points: Vec<(String, RunConfig)> = budgets
-        .iter()
-        .map(|b| {
-            let mut c = base.clone();
-            c.managed.memory.blas_bytes = b.map_or(1 << 50, |mb| (mb * 1024.0 * 1024.0) as u64);
-            (b.map_or("no budget".into(), |mb| format!("{mb} MB")), c)
-        })
-        .collect();
+    let points = sweep::points(&base, &budgets, |c, b| {
+        c.managed.memory.blas_bytes = b.map_or(1 << 50, |mb| (mb * 1024.0 * 1024.0) as u64);
+        b.map_or("no budget".into(), |mb| format!("{mb} MB"))
+    });
     let ctx = sweep::context(&base)?;
     let reports = sweep::run_points(&ctx, &points, cli.output.quiet)?;
     let mut out = Vec::new();
