@@ -17,7 +17,6 @@ mod cli;
 mod sweep;
 
 use rtstream::as_manager::CullMode;
-use rtstream::driver::RunConfig;
 use rtstream::streaming::WorldPreset;
 use serde::Serialize;
 
@@ -62,14 +61,10 @@ fn main() -> anyhow::Result<()> {
         ("small only", CullMode::Small),
         ("off", CullMode::Off),
     ];
-    let points: Vec<(String, RunConfig)> = modes
-        .iter()
-        .map(|(name, mode)| {
-            let mut c = base.clone();
-            c.managed.cull.mode = *mode;
-            (format!("cull {name}"), c)
-        })
-        .collect();
+    let points = sweep::points(&base, &modes, |c, (name, mode)| {
+        c.managed.cull.mode = *mode;
+        format!("cull {name}")
+    });
     let ctx = sweep::context(&base)?;
     let world = rtstream::driver::prepare_world(&base.preset, &base.world_dir)?;
     let instances = world.instance_count();

@@ -33,12 +33,7 @@ mod eval;
 use eval::{kept_by_culler, DemoWorldDesc, EvalWorld};
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    cli::init_tracing_at("info");
     run()
 }
 

@@ -183,17 +183,16 @@ fn main() -> anyhow::Result<()> {
                 })
                 .collect()
         };
-        files = charts::lines(
-            &cli.run.out.join("rss"),
+        let by_frame = charts::LineCharts::new(&cli.run.out, "frame");
+        files = by_frame.draw(
+            "rss",
             "Resident memory along a path across the map",
-            "frame",
             "MiB",
             &series(|x| x.rss_mib),
         )?;
-        files.extend(charts::lines(
-            &cli.run.out.join("open_files"),
+        files.extend(by_frame.draw(
+            "open_files",
             "Open files along a path across the map",
-            "frame",
             "file descriptors",
             &series(|x| x.open_files as f64),
         )?);

@@ -16,7 +16,6 @@ mod cli;
 #[path = "support/sweep.rs"]
 mod sweep;
 
-use rtstream::driver::RunConfig;
 use serde::Serialize;
 
 /// The example's own flag.
@@ -61,14 +60,10 @@ fn main() -> anyhow::Result<()> {
     let base = sweep::managed_base(&cli.run)?;
     let mut budgets: Vec<Option<f64>> = vec![None];
     budgets.extend(cli.own.budgets_mb.iter().map(|&b| Some(b)));
-    let points: Vec<(String, RunConfig)> = budgets
-        .iter()
-        .map(|b| {
-            let mut c = base.clone();
-            c.managed.memory.blas_bytes = b.map_or(1 << 50, |mb| (mb * 1024.0 * 1024.0) as u64);
-            (b.map_or("no budget".into(), |mb| format!("{mb} MB")), c)
-        })
-        .collect();
+    let points = sweep::points(&base, &budgets, |c, b| {
+        c.managed.memory.blas_bytes = b.map_or(1 << 50, |mb| (mb * 1024.0 * 1024.0) as u64);
+        b.map_or("no budget".into(), |mb| format!("{mb} MB"))
+    });
     let ctx = sweep::context(&base)?;
     let reports = sweep::run_points(&ctx, &points, cli.output.quiet)?;
     let mut out = Vec::new();
@@ -103,10 +98,10 @@ fn main() -> anyhow::Result<()> {
             .map(|p| (p.budget_mb.unwrap_or(0.0).log2(), f(p)))
             .collect()
     };
-    let mut files = charts::lines(
-        &cli.run.out.join("error_vs_budget"),
+    let by_budget = charts::LineCharts::new(&cli.run.out, "log2(budget / MB)");
+    let mut files = by_budget.draw(
+        "error_vs_budget",
         "BLAS budget against image error (full-world ground truth)",
-        "log2(budget / MB)",
         "mismatched pixels, %",
         &[
             (
@@ -119,10 +114,9 @@ fn main() -> anyhow::Result<()> {
             ),
         ],
     )?;
-    files.extend(charts::lines(
-        &cli.run.out.join("memory_vs_budget"),
+    files.extend(by_budget.draw(
+        "memory_vs_budget",
         "BLAS budget against peak BLAS memory",
-        "log2(budget / MB)",
         "MB",
         &[
             ("peak BLAS MB".into(), series(|p| p.peak_blas_mb)),

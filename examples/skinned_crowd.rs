@@ -145,39 +145,39 @@ fn main() -> anyhow::Result<()> {
     );
     std::fs::create_dir_all(&cli.run.out)?;
     let per_frame = |f: fn(&FrameRow) -> f64| cli::per_frame(&rows, f);
-    let mut files = charts::lines(
-        &cli.run.out.join("refits"),
+    let by_frame = charts::LineCharts::new(&cli.run.out, "frame");
+    let mut files = by_frame.draw(
+        "refits",
         "Skinned crowd: refits and rebuilds per frame",
-        "frame",
         "BLASes",
         &[
             ("refits".into(), per_frame(|r| f64::from(r.refits))),
             ("rebuilds".into(), per_frame(|r| f64::from(r.rebuilds))),
         ],
     )?;
-    files.extend(charts::lines(
-        &cli.run.out.join("refit_quality"),
-        "Skinned crowd: worst refit quality per frame (1 = fresh build)",
-        "frame",
-        "SAH cost ratio",
-        &[
-            (
-                "worst refit quality".into(),
-                per_frame(|r| f64::from(r.worst_refit_quality)),
-            ),
-            (
-                "rebuild bound".into(),
-                per_frame(|_| 0.0)
-                    .into_iter()
-                    .map(|(x, _)| (x, f64::from(summary.rebuild_quality_bound)))
-                    .collect(),
-            ),
-        ],
-    )?);
-    files.extend(charts::lines(
-        &cli.run.out.join("gpu_ms"),
+    files.extend(
+        by_frame.draw(
+            "refit_quality",
+            "Skinned crowd: worst refit quality per frame (1 = fresh build)",
+            "SAH cost ratio",
+            &[
+                (
+                    "worst refit quality".into(),
+                    per_frame(|r| f64::from(r.worst_refit_quality)),
+                ),
+                (
+                    "rebuild bound".into(),
+                    per_frame(|_| 0.0)
+                        .into_iter()
+                        .map(|(x, _)| (x, f64::from(summary.rebuild_quality_bound)))
+                        .collect(),
+                ),
+            ],
+        )?,
+    );
+    files.extend(by_frame.draw(
+        "gpu_ms",
         "Skinned crowd: GPU acceleration-structure ms per frame",
-        "frame",
         "ms",
         &[("GPU AS ms".into(), per_frame(|r| r.gpu_as_ms))],
     )?);

@@ -108,10 +108,10 @@ fn main() -> anyhow::Result<()> {
     print_table(&summary);
     std::fs::create_dir_all(&cli.run.out)?;
     let per_frame = |f: fn(&FrameRow) -> f64| cli::per_frame(&rows, f);
-    let mut files = charts::lines(
-        &cli.run.out.join("build_work"),
+    let by_frame = charts::LineCharts::new(&cli.run.out, "frame");
+    let mut files = by_frame.draw(
+        "build_work",
         &format!("Teleport every {} frames: build work per frame", every),
-        "frame",
         "triangles built",
         &[
             (
@@ -124,13 +124,12 @@ fn main() -> anyhow::Result<()> {
             ),
         ],
     )?;
-    files.extend(charts::lines(
-        &cli.run.out.join("coverage"),
+    files.extend(by_frame.draw(
+        "coverage",
         &format!(
             "Teleport every {} frames: instances within r1 short of target",
             every
         ),
-        "frame",
         "instances",
         &[
             ("within r1".into(), per_frame(|r| f64::from(r.within_r1))),

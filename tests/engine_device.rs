@@ -17,7 +17,7 @@
 
 mod common;
 
-use std::ffi::{c_void, CStr, CString};
+use std::ffi::{c_void, CString};
 use std::sync::{Arc, Mutex};
 
 use ash::{ext, khr, vk};
@@ -33,32 +33,20 @@ use rtstream::renderer::{Camera, RenderDesc, Renderer};
 /// Validation warnings and errors the engine's messenger received.
 static MESSAGES: Mutex<Vec<String>> = Mutex::new(Vec::new());
 
+/// Records every message: the messenger is made for validation and performance warnings and
+/// errors only.
 unsafe extern "system" fn on_message(
-    severity: vk::DebugUtilsMessageSeverityFlagsEXT,
-    types: vk::DebugUtilsMessageTypeFlagsEXT,
+    _severity: vk::DebugUtilsMessageSeverityFlagsEXT,
+    _types: vk::DebugUtilsMessageTypeFlagsEXT,
     data: *const vk::DebugUtilsMessengerCallbackDataEXT<'_>,
     _user: *mut c_void,
 ) -> vk::Bool32 {
-    let failure = types.intersects(
-        vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
-            | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
-    ) && severity.intersects(
-        vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
-            | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
-    );
-    if failure {
-        // SAFETY: the loader passes valid callback data for the call's duration.
-        let text = unsafe { data.as_ref() }
-            .filter(|d| !d.p_message.is_null())
-            .map(|d| {
-                // SAFETY: as above; p_message is NUL-terminated.
-                unsafe { CStr::from_ptr(d.p_message) }
-                    .to_string_lossy()
-                    .into_owned()
-            })
-            .unwrap_or_default();
-        MESSAGES.lock().unwrap().push(text);
-    }
+    // SAFETY: the loader passes valid callback data for the call's duration, and a non-null
+    // p_message is NUL-terminated.
+    let text = unsafe { data.as_ref().and_then(|d| d.message_as_c_str()) }
+        .map(|m| m.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    MESSAGES.lock().unwrap().push(text);
     vk::FALSE
 }
 
@@ -126,8 +114,7 @@ impl Engine {
             )
             .message_type(
                 vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
-                    | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE
-                    | vk::DebugUtilsMessageTypeFlagsEXT::GENERAL,
+                    | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
             )
             .pfn_user_callback(Some(on_message));
         // SAFETY: valid instance; the callback is a plain function.

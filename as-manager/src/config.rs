@@ -299,14 +299,6 @@ pub struct Config {
     pub freeze_cost_model: bool,
 }
 
-fn check(ok: bool, what: &str) -> Result<()> {
-    if ok {
-        Ok(())
-    } else {
-        Err(AsError::InvalidConfig(what.to_string()))
-    }
-}
-
 fn pos(v: f32) -> bool {
     v.is_finite() && v > 0.0
 }
@@ -318,90 +310,94 @@ fn nonneg(v: f32) -> bool {
 impl Config {
     /// Checks ranges: finite values, 0 < r1 <= r2, positive budgets, 0 < fov < pi, ...
     pub fn validate(&self) -> Result<()> {
-        let r = &self.residency;
-        check(
-            pos(r.r1) && pos(r.r2),
-            "residency.r1/r2 must be finite and > 0",
-        )?;
-        check(r.r1 <= r.r2, "residency.r1 must be <= r2")?;
-        check(
-            pos(r.cell_size),
-            "residency.cell_size must be finite and > 0",
-        )?;
-        check(
-            r.create_threshold <= 1_000_000 && r.release_threshold <= 1_000_000,
-            "thresholds must be <= 1e6 frames",
-        )?;
-        let l = &self.lod;
-        check(pos(l.max_pixel_error), "lod.max_pixel_error must be > 0")?;
-        check(pos(l.screen_height_px), "lod.screen_height_px must be > 0")?;
-        check(
-            pos(l.vertical_fov) && l.vertical_fov < std::f32::consts::PI,
-            "lod.vertical_fov must be in (0, pi)",
-        )?;
-        check(nonneg(l.hysteresis), "lod.hysteresis must be >= 0")?;
-        let f = &self.far_field;
-        check(
-            f.far_radius > 0.0 && !f.far_radius.is_nan(),
-            "far_field.far_radius must be > 0",
-        )?;
-        check(
-            pos(f.max_pixel_error),
-            "far_field.max_pixel_error must be > 0",
-        )?;
-        check(
-            nonneg(f.handover_margin) && nonneg(f.lookahead),
-            "far_field.handover_margin and lookahead must be >= 0",
-        )?;
-        check(
-            (0.0..=1.0).contains(&f.build_share) && (0.0..=1.0).contains(&f.memory_share),
-            "far_field.build_share and memory_share must be in [0, 1]",
-        )?;
-        check(
-            nonneg(f.keep_angle) && f.keep_angle < std::f32::consts::FRAC_PI_2,
-            "far_field.keep_angle must be in [0, pi/2)",
-        )?;
-        check(
-            f.keep_range > 0.0 && !f.keep_range.is_nan(),
-            "far_field.keep_range must be > 0",
-        )?;
-        let b = &self.build;
-        check(b.max_primitives > 0, "build.max_primitives must be > 0")?;
-        check(pos(b.max_gpu_ms), "build.max_gpu_ms must be > 0")?;
-        check(
-            nonneg(b.aging_per_frame) && nonneg(b.in_view_bonus),
-            "build.aging/in_view_bonus must be >= 0",
-        )?;
-        check(
-            nonneg(b.max_compaction_ms),
-            "build.max_compaction_ms must be >= 0",
-        )?;
-        check(
-            b.rebuild_quality_bound.is_finite() && b.rebuild_quality_bound >= 1.0,
-            "build.rebuild_quality_bound must be >= 1",
-        )?;
-        check(
-            (0.0..1.0).contains(&b.min_compaction_saving),
-            "build.min_compaction_saving must be in [0, 1)",
-        )?;
-        check(self.memory.blas_bytes > 0, "memory.blas_bytes must be > 0")?;
+        let (r, l, f) = (&self.residency, &self.lod, &self.far_field);
+        let (b, c) = (&self.build, &self.cull);
         let h = self.memory.compaction_headroom;
-        check(
-            h.is_finite() && (0.0..0.9).contains(&h),
-            "memory.compaction_headroom must be in [0, 0.9)",
-        )?;
-        let c = &self.cull;
-        check(pos(c.far_distance), "cull.far_distance must be > 0")?;
-        check(
-            nonneg(c.min_angle) && c.min_angle < std::f32::consts::FRAC_PI_2,
-            "cull.min_angle must be in [0, pi/2)",
-        )?;
-        check(nonneg(c.near_distance), "cull.near_distance must be >= 0")?;
-        check(
-            nonneg(c.hysteresis) && c.hysteresis < 1.0,
-            "cull.hysteresis must be in [0, 1)",
-        )?;
-        check(self.assembly.threads >= 1, "assembly.threads must be >= 1")?;
+        // Each rule with the error it gives, in the order that decides which error a
+        // configuration with several faults reports.
+        let rules = [
+            (
+                pos(r.r1) && pos(r.r2),
+                "residency.r1/r2 must be finite and > 0",
+            ),
+            (r.r1 <= r.r2, "residency.r1 must be <= r2"),
+            (
+                pos(r.cell_size),
+                "residency.cell_size must be finite and > 0",
+            ),
+            (
+                r.create_threshold <= 1_000_000 && r.release_threshold <= 1_000_000,
+                "thresholds must be <= 1e6 frames",
+            ),
+            (pos(l.max_pixel_error), "lod.max_pixel_error must be > 0"),
+            (pos(l.screen_height_px), "lod.screen_height_px must be > 0"),
+            (
+                pos(l.vertical_fov) && l.vertical_fov < std::f32::consts::PI,
+                "lod.vertical_fov must be in (0, pi)",
+            ),
+            (nonneg(l.hysteresis), "lod.hysteresis must be >= 0"),
+            (
+                f.far_radius > 0.0 && !f.far_radius.is_nan(),
+                "far_field.far_radius must be > 0",
+            ),
+            (
+                pos(f.max_pixel_error),
+                "far_field.max_pixel_error must be > 0",
+            ),
+            (
+                nonneg(f.handover_margin) && nonneg(f.lookahead),
+                "far_field.handover_margin and lookahead must be >= 0",
+            ),
+            (
+                (0.0..=1.0).contains(&f.build_share) && (0.0..=1.0).contains(&f.memory_share),
+                "far_field.build_share and memory_share must be in [0, 1]",
+            ),
+            (
+                nonneg(f.keep_angle) && f.keep_angle < std::f32::consts::FRAC_PI_2,
+                "far_field.keep_angle must be in [0, pi/2)",
+            ),
+            (
+                f.keep_range > 0.0 && !f.keep_range.is_nan(),
+                "far_field.keep_range must be > 0",
+            ),
+            (b.max_primitives > 0, "build.max_primitives must be > 0"),
+            (pos(b.max_gpu_ms), "build.max_gpu_ms must be > 0"),
+            (
+                nonneg(b.aging_per_frame) && nonneg(b.in_view_bonus),
+                "build.aging/in_view_bonus must be >= 0",
+            ),
+            (
+                nonneg(b.max_compaction_ms),
+                "build.max_compaction_ms must be >= 0",
+            ),
+            (
+                b.rebuild_quality_bound.is_finite() && b.rebuild_quality_bound >= 1.0,
+                "build.rebuild_quality_bound must be >= 1",
+            ),
+            (
+                (0.0..1.0).contains(&b.min_compaction_saving),
+                "build.min_compaction_saving must be in [0, 1)",
+            ),
+            (self.memory.blas_bytes > 0, "memory.blas_bytes must be > 0"),
+            (
+                h.is_finite() && (0.0..0.9).contains(&h),
+                "memory.compaction_headroom must be in [0, 0.9)",
+            ),
+            (pos(c.far_distance), "cull.far_distance must be > 0"),
+            (
+                nonneg(c.min_angle) && c.min_angle < std::f32::consts::FRAC_PI_2,
+                "cull.min_angle must be in [0, pi/2)",
+            ),
+            (nonneg(c.near_distance), "cull.near_distance must be >= 0"),
+            (
+                nonneg(c.hysteresis) && c.hysteresis < 1.0,
+                "cull.hysteresis must be in [0, 1)",
+            ),
+            (self.assembly.threads >= 1, "assembly.threads must be >= 1"),
+        ];
+        if let Some((_, what)) = rules.iter().find(|(ok, _)| !ok) {
+            return Err(AsError::InvalidConfig(what.to_string()));
+        }
         self.cost_prior.validate()
     }
 

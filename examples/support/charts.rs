@@ -292,6 +292,33 @@ pub fn lines(
     png_and_svg!(stem, draw_lines(title, x_label, y_label, series))
 }
 
+/// Line charts written to one directory, all with the same x axis (an example's charts over
+/// frames, say).
+pub struct LineCharts<'a> {
+    /// Where they go: `<dir>/<stem>.png` and `.svg`.
+    dir: &'a Path,
+    /// Every chart's x axis.
+    x_label: &'a str,
+}
+
+impl<'a> LineCharts<'a> {
+    /// Charts in `dir` along `x_label`.
+    pub fn new(dir: &'a Path, x_label: &'a str) -> Self {
+        Self { dir, x_label }
+    }
+
+    /// [`lines`] to `<dir>/<stem>`.
+    pub fn draw(
+        &self,
+        stem: &str,
+        title: &str,
+        y_label: &str,
+        series: &[(String, Vec<(f64, f64)>)],
+    ) -> anyhow::Result<Vec<PathBuf>> {
+        lines(&self.dir.join(stem), title, self.x_label, y_label, series)
+    }
+}
+
 fn draw_lines<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,

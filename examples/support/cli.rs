@@ -348,12 +348,25 @@ impl RunArgs {
 
 /// Logs to stderr, `RUST_LOG` or warnings.
 pub fn init_tracing() {
-    init_tracing_with(None::<tracing_subscriber::layer::Identity>);
+    init_tracing_at("warn");
+}
+
+/// Logs to stderr, `RUST_LOG` or `default` (a filter such as `"info"`).
+pub fn init_tracing_at(default: &str) {
+    install_tracing(None::<tracing_subscriber::layer::Identity>, default);
 }
 
 /// [`init_tracing`] plus an extra layer that sees every span at any level (a profiler), and
 /// no events.
 pub fn init_tracing_with<L>(extra: Option<L>)
+where
+    L: tracing_subscriber::Layer<tracing_subscriber::Registry> + Send + Sync + 'static,
+{
+    install_tracing(extra, "warn");
+}
+
+/// Events to stderr through `RUST_LOG` or `default`, and `extra` for every span.
+fn install_tracing<L>(extra: Option<L>, default: &str)
 where
     L: tracing_subscriber::Layer<tracing_subscriber::Registry> + Send + Sync + 'static,
 {
@@ -368,7 +381,7 @@ where
                 .with_writer(std::io::stderr)
                 .with_filter(
                     tracing_subscriber::EnvFilter::try_from_default_env()
-                        .unwrap_or_else(|_| "warn".into()),
+                        .unwrap_or_else(|_| default.into()),
                 ),
         )
         .init();

@@ -59,6 +59,22 @@ pub fn context(base: &RunConfig) -> anyhow::Result<Arc<VulkanContext>> {
     })?))
 }
 
+/// One sweep point per value: `base` changed by `set`, titled with what `set` returns.
+pub fn points<T>(
+    base: &RunConfig,
+    values: &[T],
+    set: impl Fn(&mut RunConfig, &T) -> String,
+) -> Vec<(String, RunConfig)> {
+    values
+        .iter()
+        .map(|v| {
+            let mut c = base.clone();
+            let title = set(&mut c, v);
+            (title, c)
+        })
+        .collect()
+}
+
 /// Runs every `(title, config)` in order on `ctx` and returns their reports.
 pub fn run_points(
     ctx: &Arc<VulkanContext>,

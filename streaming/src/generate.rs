@@ -24,7 +24,8 @@ use crate::error::{Result, StreamingError};
 use crate::gltf_import::load_gltf;
 use crate::lod::build_lod_chain;
 use crate::model::{
-    Aabb, Instance, Level, LevelId, MaterialClass, Mesh, Motion, WorldInstanceId, WorldMeshId,
+    Aabb, Instance, Level, LevelId, MaterialClass, Mesh, MeshLod, Motion, WorldInstanceId,
+    WorldMeshId,
 };
 use crate::procedural::{self, Rng};
 
@@ -208,12 +209,7 @@ impl GeneratedWorld {
             non_opaque,
             skinned,
             meshes: self.meshes.len(),
-            mesh_triangles: self
-                .meshes
-                .iter()
-                .flat_map(|m| &m.lods)
-                .map(|l| l.triangle_count())
-                .sum(),
+            mesh_triangles: self.lods().map(|l| l.triangle_count()).sum(),
         }
     }
 
@@ -243,11 +239,12 @@ impl GeneratedWorld {
 
     /// CPU bytes of all mesh geometry (every LOD).
     pub fn mesh_bytes(&self) -> usize {
-        self.meshes
-            .iter()
-            .flat_map(|m| &m.lods)
-            .map(|l| l.byte_size())
-            .sum()
+        self.lods().map(|l| l.byte_size()).sum()
+    }
+
+    /// Every LOD of every mesh.
+    fn lods(&self) -> impl Iterator<Item = &Arc<MeshLod>> {
+        self.meshes.iter().flat_map(|m| &m.lods)
     }
 }
 

@@ -75,11 +75,7 @@ fn every_broken_model_is_a_typed_error_naming_the_file() {
 #[test]
 fn broken_models_as_levels_fail_and_the_world_keeps_working() {
     let dir = common::assets();
-    let config = StreamConfig {
-        load_radius: 50.0,
-        unload_radius: 80.0,
-        ..StreamConfig::default()
-    };
+    let config = StreamConfig::within(50.0, 80.0);
     let mut w = World::empty(config).expect("world");
     let mut broken_levels = Vec::new();
     for (k, rel) in BROKEN.iter().enumerate() {
@@ -167,11 +163,7 @@ fn corrupted_baked_files_fail_and_other_levels_keep_streaming() {
         (7, ""),
     ];
 
-    let config = StreamConfig {
-        load_radius: 2000.0,
-        unload_radius: 2500.0,
-        ..StreamConfig::default()
-    };
+    let config = StreamConfig::within(2000.0, 2500.0);
     let mut w = World::open(&dir, config).expect("open");
     let events = common::settle(&mut w, 0, &[StreamFocus::from(Vec3::ZERO)]);
     for (i, reason) in &bad {
@@ -213,10 +205,8 @@ fn a_corrupt_mesh_chunk_fails_that_lod_only() {
     std::fs::write(&lib, bytes).expect("write");
 
     let config = StreamConfig {
-        load_radius: 2000.0,
-        unload_radius: 2500.0,
         lod_error_angle: 1e-6, // Want LOD0 of everything.
-        ..StreamConfig::default()
+        ..StreamConfig::within(2000.0, 2500.0)
     };
     let mut w = World::open(&dir, config).expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];

@@ -15,12 +15,10 @@ use rtstream_streaming::{
 fn failed_loads_are_retried_with_backoff_and_the_rest_carries_on() {
     let (world, dir) = common::baked_small("load-faults", 3);
     let config = StreamConfig {
-        load_radius: 1.0e4,
-        unload_radius: 2.0e4,
         apply_after_frames: Some(1),
         retry_after_frames: 8,
         max_load_attempts: 4,
-        ..StreamConfig::default()
+        ..StreamConfig::within(1.0e4, 2.0e4)
     };
     let mut w = World::open(&dir, config).expect("open");
     let n = w.level_count();

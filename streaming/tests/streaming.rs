@@ -78,12 +78,7 @@ impl Consumer {
 #[test]
 fn camera_path_streams_levels_with_hysteresis() {
     let (world, dir) = common::baked_small("path", 12);
-    let config = StreamConfig {
-        load_radius: 120.0,
-        unload_radius: 200.0,
-        mesh_budget_bytes: 64 << 20,
-        ..StreamConfig::default()
-    };
+    let config = StreamConfig::within(120.0, 200.0).with_mesh_budget(64 << 20);
     let mut w = World::open(&dir, config).expect("open");
     assert_eq!(w.level_count(), world.levels.len());
     let mut c = Consumer::default();
@@ -144,12 +139,7 @@ fn camera_path_streams_levels_with_hysteresis() {
 #[test]
 fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     let (_world, dir) = common::baked_small("budget", 6);
-    let big = StreamConfig {
-        load_radius: 1000.0,
-        unload_radius: 1500.0,
-        mesh_budget_bytes: 1 << 30,
-        ..StreamConfig::default()
-    };
+    let big = StreamConfig::within(1000.0, 1500.0).with_mesh_budget(1 << 30);
     // Unlimited: everything near wants LOD0; measure what that takes.
     let mut w = World::open(&dir, big).expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];
@@ -161,10 +151,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     drop(w);
 
     // Half of that: stays within budget, still streams some finer LODs.
-    let tight = StreamConfig {
-        mesh_budget_bytes: unlimited / 2,
-        ..big
-    };
+    let tight = big.with_mesh_budget(unlimited / 2);
     let mut w = World::open(&dir, tight).expect("open");
     let mut c = Consumer::default();
     for f in 0..5 {
@@ -205,15 +192,7 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
 #[test]
 fn skinned_instances_deform_each_frame() {
     let (_world, dir) = common::baked_small("skin", 8);
-    let mut w = World::open(
-        &dir,
-        StreamConfig {
-            load_radius: 1000.0,
-            unload_radius: 1100.0,
-            ..StreamConfig::default()
-        },
-    )
-    .expect("open");
+    let mut w = World::open(&dir, StreamConfig::within(1000.0, 1100.0)).expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];
     let _ = common::settle(&mut w, 0, &cam);
     let a = w.skin_frame(0.0, 2);
@@ -237,11 +216,7 @@ fn skinned_instances_deform_each_frame() {
 #[test]
 fn two_cameras_keep_two_areas_loaded() {
     let (world, dir) = common::baked_small("two-cams", 10);
-    let config = StreamConfig {
-        load_radius: 80.0,
-        unload_radius: 150.0,
-        ..StreamConfig::default()
-    };
+    let config = StreamConfig::within(80.0, 150.0);
     let mut w = World::open(&dir, config).expect("open");
     let (lo, hi) = (world.extent.min, world.extent.max);
     let a = Vec3::new(lo.x + 60.0, 0.0, lo.z + 60.0);

@@ -5,7 +5,7 @@ use std::collections::{HashMap, HashSet};
 
 use glam::{Affine3A, Vec3};
 
-use super::tests::run_frame;
+use super::tests::{mesh, run_frame};
 use crate::backend::model::ModelBackend;
 use crate::synth::counts_chain;
 use crate::*;
@@ -25,13 +25,8 @@ struct World {
 fn world(config: Config) -> World {
     let m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
     let proxy_mesh = |m: &AsManager<ModelBackend>, n: u32| {
-        m.register_mesh(MeshDesc::new(
-            format!("proxy{n}"),
-            MeshKind::Static,
-            50.0,
-            counts_chain(512, 1, 0.0),
-        ))
-        .unwrap()
+        let lods = counts_chain(512, 1, 0.0);
+        mesh(m, format!("proxy{n}"), MeshKind::Static, 50.0, lods)
     };
     // The n-th group (custom index PROXY_CI + n): a square of `side` metres from `lo`, 10 m
     // tall, with its own proxy of geometric error `error`.
@@ -72,21 +67,15 @@ fn world(config: Config) -> World {
                 leaves_of.insert(leaf.index(), vec![leaf_no]);
                 leaf_ids.insert(leaf_no, leaf);
                 // A house mesh per leaf, so detail memory grows with what is near.
-                let mesh = m
-                    .register_mesh(MeshDesc::new(
-                        format!("house{leaf_no}"),
-                        MeshKind::Static,
-                        2.0,
-                        counts_chain(2000, 3, 0.02),
-                    ))
-                    .unwrap();
+                let lods = counts_chain(2000, 3, 0.02);
+                let house = mesh(&m, format!("house{leaf_no}"), MeshKind::Static, 2.0, lods);
                 for k in 0..4 {
                     let p = Vec3::new(
                         lo[0] + 12.0 + 25.0 * (k % 2) as f32,
                         2.0,
                         lo[2] + 12.0 + 25.0 * (k / 2) as f32,
                     );
-                    let mut d = InstanceDesc::new(mesh, Affine3A::from_translation(p));
+                    let mut d = InstanceDesc::new(house, Affine3A::from_translation(p));
                     d.custom_index = leaf_no;
                     d.group = Some(leaf);
                     m.add_instance(d).unwrap();
@@ -244,14 +233,7 @@ fn group_registration_errors_are_typed() {
         }),
         Err(AsError::UnknownGroup(_))
     ));
-    let skinned = m
-        .register_mesh(MeshDesc::new(
-            "s",
-            MeshKind::Skinned,
-            1.0,
-            counts_chain(64, 1, 0.0),
-        ))
-        .unwrap();
+    let skinned = mesh(&m, "s", MeshKind::Skinned, 1.0, counts_chain(64, 1, 0.0));
     let g2 = m
         .register_group(GroupDesc {
             parent: None,

@@ -22,14 +22,22 @@ fn cam(x: f32, z: f32) -> [Viewpoint; 1] {
     [Viewpoint::new(Vec3::new(x, 0.0, z), Vec3::Z)]
 }
 
+/// Registers mesh `name` of `kind` with `lods`, centred at the origin with bounding radius
+/// `radius` (also used by the sibling test modules).
+pub(super) fn mesh(
+    m: &AsManager<ModelBackend>,
+    name: impl Into<String>,
+    kind: MeshKind,
+    radius: f32,
+    lods: Vec<LodDesc>,
+) -> MeshId {
+    m.register_mesh(MeshDesc::new(name, kind, radius, lods))
+        .unwrap()
+}
+
 fn static_mesh(m: &AsManager<ModelBackend>, tris: u32, radius: f32) -> MeshId {
-    m.register_mesh(MeshDesc::new(
-        "m",
-        MeshKind::Static,
-        radius,
-        counts_chain(tris, 4, radius * 0.002),
-    ))
-    .unwrap()
+    let lods = counts_chain(tris, 4, radius * 0.002);
+    mesh(m, "m", MeshKind::Static, radius, lods)
 }
 
 /// Frame `frame` of `m` seen from `cameras` (also used by the sibling test modules).
@@ -479,22 +487,16 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
         cfg.cost_prior.batch_fixed_ms = 0.0;
         let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
         for i in 0..40 {
-            let mesh = m
-                .register_mesh(MeshDesc::new(
-                    format!("m{i}"),
-                    MeshKind::Static,
-                    1.0,
-                    vec![LodDesc {
-                        geometry: LodGeometry::Counts {
-                            vertices: 600,
-                            triangles: 1000,
-                        },
-                        geometric_error: 0.0,
-                    }],
-                ))
-                .unwrap();
+            let lod = LodDesc {
+                geometry: LodGeometry::Counts {
+                    vertices: 600,
+                    triangles: 1000,
+                },
+                geometric_error: 0.0,
+            };
+            let id = mesh(&m, format!("m{i}"), MeshKind::Static, 1.0, vec![lod]);
             let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
-            m.add_instance(InstanceDesc::new(mesh, t)).unwrap();
+            m.add_instance(InstanceDesc::new(id, t)).unwrap();
         }
         let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
         let mut frame = 0;

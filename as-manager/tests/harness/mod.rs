@@ -219,13 +219,17 @@ pub fn config() -> impl Strategy<Value = Config> {
 /// `r2`, thresholds and minimum residency 0, 32 m cells, 1,000 triangles and 5 ms of builds a
 /// frame, a 500 KB BLAS budget (the regression tests found by the property tests).
 pub fn shrunk_config(r1: f32, r2: f32) -> Config {
-    let mut c = Config::default();
-    c.residency.r1 = r1;
-    c.residency.r2 = r2;
-    c.residency.create_threshold = 0;
-    c.residency.release_threshold = 0;
-    c.residency.min_resident_frames = 0;
-    c.residency.cell_size = 32.0;
+    let mut c = Config {
+        residency: ResidencyConfig {
+            r1,
+            r2,
+            create_threshold: 0,
+            release_threshold: 0,
+            min_resident_frames: 0,
+            cell_size: 32.0,
+        },
+        ..Config::default()
+    };
     c.build.max_primitives = 1000;
     c.build.max_gpu_ms = 5.0;
     c.memory.blas_bytes = 500_000;

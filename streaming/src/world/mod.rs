@@ -548,63 +548,82 @@ impl World {
                 level,
                 ticket,
                 result,
-            } => {
-                let Some(slot) = self.levels.get(level.0 as usize) else {
-                    return;
-                };
-                if !matches!(slot.state, LevelState::Loading(t) if t == ticket) {
-                    return; // Unloaded while loading: drop silently.
-                }
-                match result {
-                    Err(e) => {
-                        let slot = &mut self.levels[level.0 as usize];
-                        slot.failures += 1;
-                        let backoff = u64::from(self.config.retry_after_frames)
-                            << (slot.failures - 1).min(16);
-                        tracing::warn!(level = level.0, error = %e, attempts = slot.failures, "level load failed");
-                        slot.state = LevelState::Failed {
-                            attempts: slot.failures,
-                            retry_at: self.frame + backoff,
-                        };
-                        ev.push(WorldEvent::LoadFailed {
-                            level: Some(level),
-                            mesh: None,
-                            proxy: None,
-                            error: Arc::new(e),
-                        });
-                    }
-                    Ok(loaded) => {
-                        self.levels[level.0 as usize].failures = 0;
-                        self.level_arrived(level, loaded, ev);
-                    }
-                }
-            }
+            } => self.level_done(level, ticket, result, ev),
             Done::Lod {
                 mesh,
                 lod,
                 ticket,
                 result,
-            } => {
-                let Some(slot) = self.meshes.get_mut(mesh.0 as usize) else {
-                    return;
+            } => self.lod_done(mesh, lod, ticket, result, ev),
+        }
+    }
+
+    /// The load of `level` with `ticket` ended with `result` (dropped if no longer wanted).
+    fn level_done(
+        &mut self,
+        level: LevelId,
+        ticket: u64,
+        result: Result<LoadedLevel>,
+        ev: &mut Vec<WorldEvent>,
+    ) {
+        let Some(slot) = self.levels.get(level.0 as usize) else {
+            return;
+        };
+        if !matches!(slot.state, LevelState::Loading(t) if t == ticket) {
+            return; // Unloaded while loading: drop silently.
+        }
+        match result {
+            Err(e) => {
+                let slot = &mut self.levels[level.0 as usize];
+                slot.failures += 1;
+                let backoff =
+                    u64::from(self.config.retry_after_frames) << (slot.failures - 1).min(16);
+                tracing::warn!(level = level.0, error = %e, attempts = slot.failures, "level load failed");
+                slot.state = LevelState::Failed {
+                    attempts: slot.failures,
+                    retry_at: self.frame + backoff,
                 };
-                if slot.pending != Some((lod, ticket)) {
-                    return; // Cancelled (its bytes were released then).
-                }
-                slot.pending = None;
-                self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
-                match result {
-                    Err(e) => slot.fail(mesh, lod, None, e, ev),
-                    Ok(g) => {
-                        let coarsest = slot.coarsest();
-                        slot.arrive(mesh, lod, g, &mut self.mesh_bytes, ev);
-                        // Keep one finer LOD: drop the others (not the coarsest).
-                        for k in 0..coarsest {
-                            if k != lod && slot.resident[k].take().is_some() {
-                                self.mesh_bytes -= slot.lods[k].0;
-                                ev.push(WorldEvent::MeshLodEvicted { mesh, lod: k as u8 });
-                            }
-                        }
+                ev.push(WorldEvent::LoadFailed {
+                    level: Some(level),
+                    mesh: None,
+                    proxy: None,
+                    error: Arc::new(e),
+                });
+            }
+            Ok(loaded) => {
+                self.levels[level.0 as usize].failures = 0;
+                self.level_arrived(level, loaded, ev);
+            }
+        }
+    }
+
+    /// The load of LOD `lod` of `mesh` with `ticket` ended with `result` (dropped if cancelled).
+    fn lod_done(
+        &mut self,
+        mesh: WorldMeshId,
+        lod: usize,
+        ticket: u64,
+        result: Result<Arc<MeshLod>>,
+        ev: &mut Vec<WorldEvent>,
+    ) {
+        let Some(slot) = self.meshes.get_mut(mesh.0 as usize) else {
+            return;
+        };
+        if slot.pending != Some((lod, ticket)) {
+            return; // Cancelled (its bytes were released then).
+        }
+        slot.pending = None;
+        self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
+        match result {
+            Err(e) => slot.fail(mesh, lod, None, e, ev),
+            Ok(g) => {
+                let coarsest = slot.coarsest();
+                slot.arrive(mesh, lod, g, &mut self.mesh_bytes, ev);
+                // Keep one finer LOD: drop the others (not the coarsest).
+                for k in 0..coarsest {
+                    if k != lod && slot.resident[k].take().is_some() {
+                        self.mesh_bytes -= slot.lods[k].0;
+                        ev.push(WorldEvent::MeshLodEvicted { mesh, lod: k as u8 });
                     }
                 }
             }

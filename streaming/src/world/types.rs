@@ -75,6 +75,26 @@ impl Default for StreamConfig {
     }
 }
 
+impl StreamConfig {
+    /// The default configuration but for its radii: levels load within `load_radius` of a
+    /// camera and unload beyond `unload_radius`.
+    pub fn within(load_radius: f32, unload_radius: f32) -> StreamConfig {
+        StreamConfig {
+            load_radius,
+            unload_radius,
+            ..StreamConfig::default()
+        }
+    }
+
+    /// This configuration with a budget of `bytes` for mesh LOD data.
+    pub fn with_mesh_budget(self, bytes: usize) -> StreamConfig {
+        StreamConfig {
+            mesh_budget_bytes: bytes,
+            ..self
+        }
+    }
+}
+
 /// [`World::update_until_idle`](super::World::update_until_idle) ran out of time with loads
 /// still in flight. Nothing is lost: the events of the frames it did run are here, and the
 /// loads still in flight arrive on later updates.
