@@ -97,6 +97,7 @@ impl<B: AsBackend> AsManager<B> {
         self.near_boxes = boxes;
         self.stats.instances_visited = self.visits.len() as u32 + self.landmarks.examined;
         self.stats.landmarks_examined = self.landmarks.examined;
+        self.stats.landmarks_waited = self.landmarks.waited;
     }
 
     /// Creation after `create_threshold` requested frames; release after `release_threshold`

@@ -132,6 +132,9 @@ pub struct FrameStats {
     /// Landmark candidates looked at this frame (the landmarks are kept incrementally: a
     /// candidate is looked at only when the cameras may have crossed one of its thresholds).
     pub landmarks_examined: u32,
+    /// Landmark candidates due by camera travel whose distance was still inside the band of
+    /// their last look: they only waited again, without a look.
+    pub landmarks_waited: u32,
     /// Bytes of the proxies' BLASes in the TLAS.
     pub proxy_blas_bytes: u64,
     /// Proxy BLASes evicted (memory) this frame: near detail goes first, proxies last.

@@ -26,6 +26,7 @@ impl<B: AsBackend> AsManager<B> {
     /// at the due candidates and sets the residency marks of the pairs the landmarks use.
     pub(crate) fn landmarks_residency(&mut self) {
         self.landmarks.examined = 0;
+        self.landmarks.waited = 0;
         let Some(p) = self.landmark_params() else {
             self.far.flipped.clear();
             return;
@@ -66,14 +67,20 @@ impl<B: AsBackend> AsManager<B> {
         for x in due.iter_mut() {
             *x = landmarks.index.get(*x as usize).copied().unwrap_or(NONE);
         }
+        let events = due.len();
         due.extend_from_slice(&queued);
-        for &ci in &due {
-            let Some(c) = landmarks.cands.get_mut(ci as usize) else {
+        for (k, &ci) in due.iter().enumerate() {
+            let Some(c) = landmarks.cands.get(ci as usize) else {
                 continue;
             };
             if c.slot == NONE || c.seen == p.frame {
                 continue;
             }
+            // Due by travel alone: a look only if the distance left the last look's band.
+            if k >= events && landmarks.wait_if_inside(ci, look.cams) {
+                continue;
+            }
+            let c = &mut landmarks.cands[ci as usize];
             c.seen = p.frame;
             c.waiting = false;
             landmarks.evaluate(ci, &mut look);

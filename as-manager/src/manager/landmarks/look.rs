@@ -107,7 +107,28 @@ impl Landmarks {
         }
         // A margin for rounding in the distances (f32) and the odometer.
         let slack = (slack - 0.01 - 1e-4 * d).max(0.0);
+        self.cands[ci as usize].band = (d - slack, d + slack);
         self.queue.push(self.odo + f64::from(slack), ci, stamp);
+    }
+
+    /// A queued candidate whose distance is still inside the band of its last look: the look
+    /// would decide the same (every other input changes by an event, which looks at it in
+    /// full), so it waits again, for the travel to the band's nearer end. Touches the
+    /// candidate and the queue only.
+    pub(super) fn wait_if_inside(&mut self, ci: u32, cams: &[Vec3]) -> bool {
+        let c = &self.cands[ci as usize];
+        if c.unsettled || (c.member == NONE && c.waiting) {
+            return false;
+        }
+        let d = nearest2(cams, c.center).sqrt();
+        let (lo, hi) = c.band;
+        if !(d > lo && d < hi) {
+            return false;
+        }
+        let slack = ((d - lo).min(hi - d) - 0.01).max(0.0);
+        self.queue.push(self.odo + f64::from(slack), ci, c.stamp);
+        self.waited += 1;
+        true
     }
 }
 

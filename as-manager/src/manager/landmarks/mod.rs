@@ -85,6 +85,10 @@ struct Cand {
     sel: u8,
     /// A landmark that chooses its BLAS every frame (`Landmarks::unsettled`).
     unsettled: bool,
+    /// Distances from the nearest camera between which its last look's outcome holds (that
+    /// look's distance, less and plus its slack): a queued look that finds the distance still
+    /// inside only waits again (`Landmarks::wait_if_inside`).
+    band: (f32, f32),
 }
 
 /// A shown landmark (a member of the set).
@@ -201,6 +205,8 @@ pub(crate) struct Landmarks {
     due_scratch: Vec<(u32, u32)>,
     /// Candidates looked at this frame.
     pub examined: u32,
+    /// Queued candidates found still inside their band this frame (they only waited again).
+    pub waited: u32,
     /// Indices of the landmark records written since the last TLAS build (`TlasDelta`).
     pub changed: Vec<u32>,
 }
@@ -231,6 +237,7 @@ impl Default for Landmarks {
             queued_scratch: Vec::new(),
             due_scratch: Vec::new(),
             examined: 0,
+            waited: 0,
             changed: Vec::new(),
         }
     }
@@ -367,6 +374,7 @@ impl Landmarks {
             lod: NONE_LOD,
             sel: NONE_LOD,
             unsettled: false,
+            band: (0.0, 0.0),
         };
         let ci = slab_insert(&mut self.cands, &mut self.free_cands, cand);
         self.index[slot as usize] = ci;
