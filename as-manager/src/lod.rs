@@ -64,11 +64,32 @@ impl LodSelector {
         current: usize,
         distance: f32,
     ) -> f32 {
+        let (below, above) = self.stable_band(errors, scale, current, distance);
+        (distance - below).min(above - distance)
+    }
+
+    /// The distances between which [`LodSelector::select`] (from `current`, the floor fixed)
+    /// answers as it does at `distance`: the nearest switch point below it (`-inf`: none) and
+    /// the nearest above it (`inf`: none).
+    pub fn stable_band(
+        &self,
+        errors: &[f32],
+        scale: f32,
+        current: usize,
+        distance: f32,
+    ) -> (f32, f32) {
         let current = current.min(errors.len() - 1);
         let ks = self.k * scale;
-        let mut slack = f32::INFINITY;
-        let mut switch_at =
-            |e: f32, limit: f32| slack = slack.min((distance - e * ks / limit).abs());
+        let (mut below, mut above) = (f32::NEG_INFINITY, f32::INFINITY);
+        let mut switch_at = |e: f32, limit: f32| {
+            let at = e * ks / limit;
+            if at <= distance {
+                below = below.max(at);
+            }
+            if at >= distance {
+                above = above.min(at);
+            }
+        };
         // Coarser: coarsest_within(coarsen_below) steps at each coarser error.
         for &e in &errors[current + 1..] {
             switch_at(e, self.coarsen_below);
@@ -81,7 +102,7 @@ impl LodSelector {
                 switch_at(e, self.threshold);
             }
         }
-        slack
+        (below, above)
     }
 
     pub fn select(
@@ -148,6 +169,43 @@ mod tests {
             "{slack} vs {}",
             at * 0.1
         );
+    }
+
+    #[test]
+    fn select_is_constant_within_its_stable_band() {
+        let s = LodSelector::new(&LodConfig::default());
+        let errors = [0.0, 0.02, 0.1, 0.5, 2.0];
+        let mut checked = 0;
+        for scale in [0.5f32, 1.0, 3.0] {
+            for current in 0..errors.len() {
+                for floor in 0..=current {
+                    for i in 1..400 {
+                        let d = 1.02f32.powi(i * 2);
+                        let r = s.select(&errors, scale, d, current, floor);
+                        let (lo, hi) = s.stable_band(&errors, scale, current, d);
+                        assert!(lo <= d && d <= hi, "{lo} {d} {hi}");
+                        let (lo, hi) = (lo.max(0.0), hi.min(1e6));
+                        for t in [0.001f32, 0.1, 0.5, 0.9, 0.999] {
+                            for d2 in [d + t * (lo - d), d + t * (hi - d)] {
+                                assert_eq!(
+                                    s.select(&errors, scale, d2, current, floor),
+                                    r,
+                                    "current {current} floor {floor} scale {scale}: {d} -> {d2} (band {lo}..{hi})"
+                                );
+                                checked += 1;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(checked > 10_000);
+        // Just past a known switch the answer changes: from LOD 1, coarsening to 2 at
+        // 0.1 * k / coarsen_below.
+        let at = 0.1 * s.k / s.coarsen_below;
+        let (_, hi) = s.stable_band(&errors, 1.0, 1, at * 0.9);
+        assert!((hi - at).abs() < 1e-3 * at, "{hi} vs {at}");
+        assert_eq!(s.select(&errors, 1.0, at * 1.001, 1, 0), 2);
     }
 
     #[test]

@@ -96,18 +96,22 @@ impl Landmarks {
         self.due_scratch = due;
     }
 
-    /// Looks at the candidate again once the cameras travelled `slack` more metres (never,
-    /// for an infinite slack: only an event makes it due).
-    pub(super) fn due_after(&mut self, ci: u32, slack: f32, d: f32) {
+    /// Looks at the candidate again once its distance may have left `lo..hi` (the distances
+    /// between which this look's outcome holds; never, for an unbounded band: only an event
+    /// makes it due). Queued for the travel to the nearer end; `wait_if_inside` waits again
+    /// while it is still inside.
+    pub(super) fn due_between(&mut self, ci: u32, lo: f32, hi: f32, d: f32) {
         self.next_stamp = self.next_stamp.wrapping_add(1);
         let stamp = self.next_stamp;
         self.cands[ci as usize].stamp = stamp;
-        if !slack.is_finite() {
+        if lo <= 0.0 && hi == f32::INFINITY {
             return;
         }
         // A margin for rounding in the distances (f32) and the odometer.
-        let slack = (slack - 0.01 - 1e-4 * d).max(0.0);
-        self.cands[ci as usize].band = (d - slack, d + slack);
+        let m = 0.01 + 1e-4 * d;
+        let band = (lo + m, hi - m);
+        self.cands[ci as usize].band = band;
+        let slack = (d - band.0).min(band.1 - d).max(0.0);
         self.queue.push(self.odo + f64::from(slack), ci, stamp);
     }
 
@@ -184,8 +188,8 @@ impl Landmarks {
                 self.leave(slot, x.records);
             }
             // The leaf flipping back is an event; within r2, leaving it is the threshold.
-            let slack = if within_r2 { reach - d } else { f32::INFINITY };
-            self.due_after(ci, slack, d);
+            let hi = if within_r2 { reach } else { f32::INFINITY };
+            self.due_between(ci, f32::NEG_INFINITY, hi, d);
             return;
         }
         let (kt, range) = (x.p.keep_tan, x.p.range);
@@ -194,13 +198,14 @@ impl Landmarks {
             if is_member {
                 self.leave(slot, x.records);
             }
+            // Farther it stays out.
             let join = (radius / kt).min(range + radius);
-            self.due_after(ci, d - join, d);
+            self.due_between(ci, join, f32::INFINITY, d);
             return;
         }
         if near_leaf(x) {
             // Detail of a near leaf (not a landmark now): its leaf flipping is an event.
-            self.due_after(ci, f32::INFINITY, d);
+            self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
             return;
         }
         let mesh_ix = cand.mesh;
@@ -233,7 +238,7 @@ impl Landmarks {
             }
             // Not shown next frame either: it joins once within both limits (no hysteresis).
             let join = (radius / kt).min(range + radius);
-            self.due_after(ci, d - join, d);
+            self.due_between(ci, join, f32::INFINITY, d);
             return;
         }
         let surface = (d - radius).max(0.0);
@@ -260,17 +265,23 @@ impl Landmarks {
                 c.waiting = true;
                 self.pair(sel_pair).unusable.push(slot);
             }
-            self.due_after(ci, f32::INFINITY, d);
+            self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
             return;
         };
         // Next time `current` is this LOD: the selection holds while the surface distance
         // stays within `lod_slack`.
-        let lod_slack = x
-            .lod
-            .stable_distance(mesh.errors(), cand.scale, lodi, surface);
+        let (lod_lo, lod_hi) = x.lod.stable_band(mesh.errors(), cand.scale, lodi, surface);
         let tris = mesh.lod_tris[lodi];
         let leave_at = (radius / (kt * 0.9)).min(range + radius);
-        let slack = (leave_at - d).min(d - reach).min(lod_slack);
+        // The band in centre distance: from r2 (or the LOD's switch below) to where it
+        // leaves (or the LOD's switch above). A surface distance clamped at 0 is the same
+        // for every centre distance below the radius.
+        let lod_lo = if lod_lo <= 0.0 {
+            f32::NEG_INFINITY
+        } else {
+            lod_lo + radius
+        };
+        let (lo, hi) = (reach.max(lod_lo), leave_at.min(lod_hi + radius));
         if is_member
             && !cand.unsettled
             && cand.lod as usize == lodi
@@ -280,7 +291,7 @@ impl Landmarks {
             // A landmark that stays as it is: its pairs and BLAS are unchanged (its target is
             // built, so its pair's distances only bound the eviction order: the ones from its
             // last change still do).
-            self.due_after(ci, slack, d);
+            self.due_between(ci, lo, hi, d);
             return;
         }
         let in_view = x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
@@ -357,6 +368,6 @@ impl Landmarks {
         let c = &mut self.cands[ci as usize];
         (c.lod, c.sel) = (lodi as u8, selected as u8);
         // Next look: the nearest threshold (shown next frame: the hysteresis one).
-        self.due_after(ci, slack, d);
+        self.due_between(ci, lo, hi, d);
     }
 }
