@@ -227,6 +227,12 @@ pub struct FarFieldConfig {
     /// side by side with the baselines), and the default world's 4 km map barely reaches past
     /// it: the same TLAS and figures as unlimited (`docs/RESULTS.md`).
     pub keep_range: f32,
+    /// The detail of near leaves beyond r2 (a leaf within r2 shows all its instances, also
+    /// those beyond it) is kept incrementally with the landmarks: each static instance is
+    /// looked at when the cameras may have crossed one of its thresholds (r2, its LOD's switch
+    /// points, the culling angle) or on an event, not every frame. `false`: the residency pass
+    /// visits it every frame, the reference the tests compare with. Default `true`.
+    pub incremental_detail: bool,
 }
 
 impl Default for FarFieldConfig {
@@ -241,6 +247,7 @@ impl Default for FarFieldConfig {
             memory_share: 0.5,
             keep_angle: 0.5f32.to_radians(),
             keep_range: 3000.0,
+            incremental_detail: true,
         }
     }
 }

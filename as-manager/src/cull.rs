@@ -46,6 +46,21 @@ impl InstanceCuller {
         }
     }
 
+    /// The centre distance beyond which [`InstanceCuller::cull_small`] culls an instance of
+    /// bounding `radius` (infinite when the mode never culls for size).
+    pub fn small_beyond(&self, radius: f32, was_culled: bool) -> f32 {
+        let tan2 = if was_culled {
+            self.tan2_back
+        } else {
+            self.tan2
+        };
+        match self.mode {
+            CullMode::Off | CullMode::Far => f32::INFINITY,
+            _ if tan2 > 0.0 => radius / tan2.sqrt(),
+            _ => f32::INFINITY,
+        }
+    }
+
     /// Whether to cull an instance of bounding `radius` whose centre is `center_dist` from the
     /// nearest camera; `was_culled` applies the hysteresis (a culled instance needs to be
     /// clearly inside the thresholds to come back).

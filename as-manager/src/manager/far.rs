@@ -73,6 +73,8 @@ pub(crate) struct FarField {
     unready_leaves: Vec<u32>,
     /// Nodes of this frame's display cut.
     picks: Vec<u32>,
+    /// Near leaves among them (sorted).
+    covered_near: Vec<u32>,
     /// Leaves that changed hand-over side (or were registered or unregistered) since the
     /// landmarks last looked (`landmarks.rs` drains it).
     pub flipped: Vec<u32>,
@@ -280,6 +282,12 @@ impl FarField {
                 out.push([lo[0], lo[2], hi[0], hi[2]]);
             }
         }
+    }
+
+    /// Near leaves covered by their own proxy this frame (handing over).
+    #[cfg(test)]
+    pub fn covered_near_count(&self) -> usize {
+        self.covered_near.len()
     }
 
     /// Whether a leaf is covered by a proxy this frame (after `far_select`).
@@ -570,12 +578,27 @@ impl<B: AsBackend> AsManager<B> {
         // Every leaf under a pick is covered this frame.
         let e = self.far.epoch;
         let mut covered_leaves = 0;
+        let mut covered_near = std::mem::take(&mut self.far.covered_near);
+        covered_near.clear();
         for &g in &self.far.picks {
             let n = self.far.nodes[g as usize].as_mut().expect("live");
             n.shown = e;
             self.far.shown_at[g as usize] = e;
             covered_leaves += n.leaves;
+            // A near leaf is covered only by its own proxy (a parent is picked only when all
+            // its leaves are far): handing over.
+            if self.far.near_bits.get(g as usize).copied().unwrap_or(false) {
+                covered_near.push(g);
+            }
         }
+        covered_near.sort_unstable();
+        // The detail the landmark set keeps leaves the TLAS with them.
+        let grid = &self.grid;
+        self.landmarks
+            .hide_covered(&covered_near, &mut self.records, |slot| {
+                grid.get(slot).map(|g| g.data.template)
+            });
+        self.far.covered_near = covered_near;
         // Take the covered leaves' detail out of the TLAS list.
         if !self.far.picks.is_empty() {
             // In place; neighbours in the list mostly share their leaf, so its answer is kept.

@@ -78,6 +78,7 @@ impl<B: AsBackend> AsManager<B> {
         self.backend.abort_frame();
         // The landmarks are a cache of decisions the retry makes again: all are looked at.
         self.records.clear();
+        self.landmarks.write_back_detail(&mut self.grid, frame);
         self.landmarks.invalidate();
         let mut j = std::mem::take(&mut self.journal);
         for c in j.compacted.drain(..).rev() {

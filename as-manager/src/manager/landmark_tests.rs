@@ -258,7 +258,7 @@ fn incremental(m: &AsManager<ModelBackend>) -> HashMap<u32, u8> {
         .instances
         .iter()
         .enumerate()
-        .filter(|(slot, i)| i.is_some() && m.landmarks.is_member(*slot as u32))
+        .filter(|(slot, i)| i.is_some() && m.landmarks.is_landmark(*slot as u32))
         .map(|(slot, _)| {
             let slot = slot as u32;
             (slot, m.grid.get(slot).unwrap().data.lod_target)
@@ -327,9 +327,16 @@ fn run_and_compare(mut s: Scene, frames: u64, fail_at: Option<u64>) -> u32 {
                 .filter_map(|(slot, i)| {
                     i.as_ref()?;
                     let hot = s.m.grid.get(slot as u32)?.data;
+                    // Near-leaf detail the set keeps: the residency pass's view (visited
+                    // every frame).
+                    let detail = s.m.landmarks.is_member(slot as u32)
+                        && !s.m.landmarks.is_landmark(slot as u32);
                     Some((
                         slot as u32,
-                        (hot.lod_target, hot.last_visit == frame.wrapping_sub(1)),
+                        (
+                            hot.lod_target,
+                            detail || hot.last_visit == frame.wrapping_sub(1),
+                        ),
                     ))
                 })
                 .collect();

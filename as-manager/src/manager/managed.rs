@@ -84,8 +84,12 @@ impl<B: AsBackend> AsManager<B> {
         };
         grid.query_with_boxes(pass.cams, r2, &boxes, |loc, grid_entry| {
             let (d2, beyond_r2) = pass.distance(grid_entry);
-            // Beyond r2 only for a near group (no square root for the rejected).
-            if beyond_r2 && !far.is_near_leaf(grid_entry.data.group) {
+            // Beyond r2 only for a near group (no square root for the rejected), and only
+            // what the landmark set does not keep.
+            if beyond_r2
+                && (!far.is_near_leaf(grid_entry.data.group)
+                    || landmarks.keeps_detail_of(grid_entry.slot))
+            {
                 return;
             }
             debug_assert!(

@@ -129,6 +129,9 @@ pub struct FrameStats {
     pub proxy_instances: u32,
     /// Far-field landmark records in the TLAS (see `FarFieldConfig::keep_angle`).
     pub landmark_instances: u32,
+    /// Records of near leaves' detail beyond r2 that the landmark set keeps
+    /// (`FarFieldConfig::incremental_detail`).
+    pub far_detail_instances: u32,
     /// Landmark candidates looked at this frame (the landmarks are kept incrementally: a
     /// candidate is looked at only when the cameras may have crossed one of its thresholds).
     pub landmarks_examined: u32,
@@ -186,6 +189,13 @@ pub(crate) struct Visit {
     pub center_dist: f32,
     /// Beyond r2, visited because its far-field group is near (angle culling only).
     pub beyond_r2: bool,
+}
+
+/// Whether the landmark set also keeps the near leaves' detail beyond r2
+/// (`FarFieldConfig::incremental_detail`).
+fn detail_kept(c: &Config) -> bool {
+    let f = &c.far_field;
+    c.policy == PolicyKind::Managed && f.enabled && f.incremental_detail
 }
 
 /// Radius from which an instance may be a far-field landmark (infinite: none).
@@ -271,6 +281,7 @@ impl<B: AsBackend> AsManager<B> {
         config.validate()?;
         let mut landmarks = landmarks::Landmarks::default();
         landmarks.set_min_radius(landmark_radius(&config));
+        landmarks.set_detail(detail_kept(&config));
         Ok(Self {
             grid: GridIndex::new(config.residency.cell_size),
             landmarks,
@@ -443,11 +454,14 @@ impl<B: AsBackend> AsManager<B> {
                 c.far_field.far_radius,
                 c.far_field.keep_range,
                 c.lod.clone(),
+                c.cull.clone(),
             )
         };
-        let retrack = landmark_radius(&config) != self.landmarks.min_radius();
+        let retrack = landmark_radius(&config) != self.landmarks.min_radius()
+            || detail_kept(&config) != self.landmarks.detail();
         if retrack || landmarks_read(&config) != landmarks_read(&self.config) {
             self.records.clear();
+            self.landmarks.write_back_detail(&mut self.grid, self.frame);
             self.landmarks.invalidate();
         }
         self.lod = LodSelector::new(&config.lod);
@@ -719,7 +733,8 @@ impl<B: AsBackend> AsManager<B> {
     fn track_landmark_candidates(&mut self) {
         self.landmarks.clear();
         self.landmarks.set_min_radius(landmark_radius(&self.config));
-        if !self.landmarks.min_radius().is_finite() {
+        self.landmarks.set_detail(detail_kept(&self.config));
+        if !self.landmarks.is_active() {
             return;
         }
         for (slot, inst) in self.tables.instances.iter().enumerate() {
@@ -763,6 +778,8 @@ impl<B: AsBackend> AsManager<B> {
     }
 }
 
+#[cfg(test)]
+mod detail_tests;
 #[cfg(test)]
 mod far_tests;
 #[cfg(test)]

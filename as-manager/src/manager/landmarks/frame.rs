@@ -10,12 +10,18 @@ use crate::manager::AsManager;
 impl<B: AsBackend> AsManager<B> {
     fn landmark_params(&self) -> Option<LandmarkParams> {
         let f = &self.config.far_field;
-        if !self.landmarks.min_radius().is_finite() {
+        if !self.landmarks.is_active() {
             return None;
         }
+        // Landmarks off (the set keeps detail only): nothing subtends enough.
+        let keep_tan = if self.landmarks.min_radius().is_finite() {
+            f.keep_angle.tan()
+        } else {
+            f32::INFINITY
+        };
         Some(LandmarkParams {
             r2: self.config.residency.r2,
-            keep_tan: f.keep_angle.tan(),
+            keep_tan,
             range: f.far_radius.min(f.keep_range),
             frame: self.frame,
             need_data: self.backend.needs_geometry(),
@@ -39,6 +45,7 @@ impl<B: AsBackend> AsManager<B> {
             grid,
             tables,
             lod,
+            culler,
             far,
             cam_pos,
             cam_fwd,
@@ -57,6 +64,7 @@ impl<B: AsBackend> AsManager<B> {
             grid,
             tables,
             lod,
+            culler,
             far,
             cams: cam_pos,
             fwds: cam_fwd,
@@ -143,6 +151,7 @@ impl<B: AsBackend> AsManager<B> {
             tables,
             backend,
             records,
+            far,
             ..
         } = self;
         let address_of = |tables: &Tables, key: Option<EntryKey>| -> u64 {
@@ -221,27 +230,21 @@ impl<B: AsBackend> AsManager<B> {
                     landmarks.members[mi].shown_pos = pos;
                 }
             }
-            match chosen {
-                Some(k) => {
-                    let record = TlasInstance {
-                        blas_address: address_of(tables, Some(k)),
-                        ..hot.template
-                    };
-                    let r = landmarks.members[mi].record;
-                    if r == NONE {
-                        let at = landmarks.record_slots.len();
-                        debug_assert_eq!(records.len(), at, "landmark records come first");
-                        records.push(record);
-                        landmarks.record_slots.push(slot);
-                        landmarks.members[mi].record = at as u32;
-                        landmarks.changed.push(at as u32);
-                    } else if records[r as usize] != record {
-                        records[r as usize] = record;
-                        landmarks.changed.push(r);
-                    }
-                }
-                None => landmarks.drop_record(mi, records),
+            // Detail: out of the TLAS while culled or covered by its leaf's proxy; waiting for
+            // its first BLAS, unculled, it holds its leaf's proxy (the hand-over).
+            let (culled, group) = landmarks
+                .cand(slot)
+                .map_or((false, NO_GROUP), |c| (mb.detail && c.culled, c.group));
+            landmarks.set_counted(mi, chosen.is_some() && !culled);
+            if mb.detail && chosen.is_none() && !culled && group != NO_GROUP {
+                far.add_unready(group);
             }
+            let hidden = culled || (mb.detail && landmarks.hidden.contains(&group));
+            let record = chosen.filter(|_| !hidden).map(|k| TlasInstance {
+                blas_address: address_of(tables, Some(k)),
+                ..hot.template
+            });
+            landmarks.put_record(mi, record, records);
         }
         rechoose.clear();
         landmarks.rechoose = rechoose;
@@ -251,10 +254,14 @@ impl<B: AsBackend> AsManager<B> {
             }
             let key = entry_of(tables, pair.mesh, pair.lod);
             if let Some(e) = key.and_then(|k| tables.entries.get_mut(k)) {
-                e.last_in_tlas = Some(frame);
+                if pair.visible > 0 {
+                    e.last_in_tlas = Some(frame);
+                }
                 e.last_keep = frame;
             }
         }
-        self.stats.landmark_instances = self.landmarks.len() as u32;
+        let detail = self.landmarks.detail_records;
+        self.stats.landmark_instances = self.landmarks.len() as u32 - detail;
+        self.stats.far_detail_instances = detail;
     }
 }

@@ -149,6 +149,7 @@ pub(super) struct Look<'a> {
     pub(super) grid: &'a mut GridIndex<InstanceHot>,
     pub(super) tables: &'a mut Tables,
     pub(super) lod: &'a LodSelector,
+    pub(super) culler: &'a crate::cull::InstanceCuller,
     pub(super) far: &'a crate::manager::far::FarField,
     pub(super) cams: &'a [Vec3],
     pub(super) fwds: &'a [Vec3],
@@ -157,33 +158,41 @@ pub(super) struct Look<'a> {
 }
 
 impl Landmarks {
+    /// Whether `cand` is still a candidate (`track`'s rule, after a move).
+    fn wanted(&self, cand: &Cand) -> bool {
+        cand.radius >= self.min_radius || (self.detail && cand.group != NO_GROUP)
+    }
+
     /// Looks at candidate `slot`: joins, updates or leaves the set, and says when to look next.
     pub(super) fn evaluate(&mut self, ci: u32, x: &mut Look<'_>) {
         let frame = x.p.frame;
         let cand = self.cands[ci as usize];
         let slot = cand.slot;
-        if cand.radius < self.min_radius {
+        if !self.wanted(&cand) {
             // Moved and shrank (`track`).
             self.remove(slot, x.records);
             return;
         }
         self.examined += 1;
         let is_member = cand.member != NONE;
+        let was_detail = is_member && self.members[cand.member as usize].detail;
         let (c, radius) = (cand.center, cand.radius);
         let d2 = nearest2(x.cams, c);
         let d = d2.sqrt();
         let reach = x.p.r2 + radius;
         let within_r2 = d2 <= reach * reach;
-        // A landmark whose leaf turned near is checked first (the residency pass continues
-        // from its state); any other candidate's leaf only once it is not out by distance.
+        // A landmark whose leaf turned near is checked first; any other candidate's leaf only
+        // once it is not out by distance (unless the set keeps the detail too).
         let near_leaf = |x: &Look<'_>| x.far.is_near_leaf(cand.group);
-        if within_r2 || (is_member && near_leaf(x)) {
-            // Near field now (within r2, or its leaf is on the detail side): shown by the
-            // residency pass, which continues from the landmark's LOD and cull state.
+        let detail = self.detail && !within_r2 && near_leaf(x);
+        if within_r2 || (!self.detail && is_member && near_leaf(x)) {
+            // Near field now (within r2, or its leaf is on the detail side and the residency
+            // pass keeps that): shown by the residency pass, which continues from the
+            // member's LOD and cull state.
             if is_member {
                 if let Some(ge) = x.grid.get_mut(slot) {
                     ge.data.last_visit = frame.wrapping_sub(1);
-                    ge.data.culled = false;
+                    ge.data.culled = was_detail && cand.culled;
                 }
                 self.leave(slot, x.records);
             }
@@ -191,6 +200,21 @@ impl Landmarks {
             let hi = if within_r2 { reach } else { f32::INFINITY };
             self.due_between(ci, f32::NEG_INFINITY, hi, d);
             return;
+        }
+        if is_member && was_detail != detail {
+            // Its leaf flipped: it continues as the other kind from the state a visit last
+            // frame would have left (the residency pass's view of it).
+            if let Some(ge) = x.grid.get_mut(slot) {
+                ge.data.last_visit = frame.wrapping_sub(1);
+                ge.data.lod_target = cand.lod;
+                ge.data.culled = was_detail && cand.culled;
+            }
+            self.leave(slot, x.records);
+            self.cands[ci as usize].unsettled = false;
+            return self.evaluate_again(ci, x);
+        }
+        if detail {
+            return self.look_detail(ci, x, d);
         }
         let (kt, range) = (x.p.keep_tan, x.p.range);
         if d - radius > range || radius <= kt * 0.9 * d {
@@ -208,28 +232,8 @@ impl Landmarks {
             self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
             return;
         }
-        let mesh_ix = cand.mesh;
-        let Some(Some(mesh)) = x.tables.meshes.get(mesh_ix as usize) else {
-            self.remove(slot, x.records);
+        let Some((was, last_lod, _)) = self.continued(ci, x) else {
             return;
-        };
-        if mesh.kind != MeshKind::Static {
-            self.remove(slot, x.records);
-            return;
-        }
-        // A landmark continues from its LOD (kept here, not in the grid: a look at a landmark
-        // touches no instance state); any other candidate from the instance's last visit.
-        let (was, last_lod) = if is_member {
-            (true, cand.lod)
-        } else {
-            let Some(ge) = x.grid.get(slot) else {
-                self.remove(slot, x.records);
-                return;
-            };
-            (
-                ge.data.last_visit == frame.wrapping_sub(1),
-                ge.data.lod_target,
-            )
         };
         let tan = if was { kt * 0.9 } else { kt };
         if radius <= tan * d {
@@ -241,6 +245,84 @@ impl Landmarks {
             self.due_between(ci, join, f32::INFINITY, d);
             return;
         }
+        let leave_at = (radius / (kt * 0.9)).min(range + radius);
+        let kind = Kind {
+            detail: false,
+            culled: false,
+            lo: reach,
+            hi: leave_at,
+        };
+        self.settle(ci, x, d, was, last_lod, kind);
+    }
+
+    /// `evaluate` once more in the same look (after a change of kind): not counted twice.
+    fn evaluate_again(&mut self, ci: u32, x: &mut Look<'_>) {
+        self.examined -= 1;
+        self.evaluate(ci, x);
+    }
+
+    /// Whether the candidate continues from a visit or a look of last frame, its LOD then and
+    /// its cull state then (`None`: removed, its mesh or instance is gone or not static).
+    fn continued(&mut self, ci: u32, x: &mut Look<'_>) -> Option<(bool, u8, bool)> {
+        let cand = self.cands[ci as usize];
+        let slot = cand.slot;
+        let is_static = matches!(
+            x.tables.meshes.get(cand.mesh as usize),
+            Some(Some(m)) if m.kind == MeshKind::Static
+        );
+        if !is_static {
+            self.remove(slot, x.records);
+            return None;
+        }
+        // A member continues from its LOD (kept here, not in the grid: a look at a member
+        // touches no instance state); any other candidate from the instance's last visit.
+        if cand.member != NONE {
+            return Some((true, cand.lod, cand.culled));
+        }
+        let Some(ge) = x.grid.get(slot) else {
+            self.remove(slot, x.records);
+            return None;
+        };
+        let was = ge.data.last_visit == x.p.frame.wrapping_sub(1);
+        // A visit that finds an instance new (not visited last frame) starts it culled.
+        Some((was, ge.data.lod_target, !was || ge.data.culled))
+    }
+
+    /// Detail of a near leaf beyond r2: its LOD as the residency pass picks it, culled by
+    /// angle as the near field's detail beyond r2 is (`InstanceCuller::cull_small`).
+    fn look_detail(&mut self, ci: u32, x: &mut Look<'_>, d: f32) {
+        let Some((was, last_lod, was_culled)) = self.continued(ci, x) else {
+            return;
+        };
+        let radius = self.cands[ci as usize].radius;
+        let culled = x.culler.cull_small(radius, d, was_culled);
+        // Culled, it stays so while beyond the hysteresis distance; shown, while within the
+        // culling distance.
+        let (cull_lo, cull_hi) = if culled {
+            (x.culler.small_beyond(radius, true), f32::INFINITY)
+        } else {
+            (f32::NEG_INFINITY, x.culler.small_beyond(radius, false))
+        };
+        let kind = Kind {
+            detail: true,
+            culled,
+            lo: (x.p.r2 + radius).max(cull_lo),
+            hi: cull_hi,
+        };
+        self.settle(ci, x, d, was, last_lod, kind);
+    }
+
+    /// The rest of a look at a member-to-be: its LOD, its pairs and the next look.
+    fn settle(&mut self, ci: u32, x: &mut Look<'_>, d: f32, was: bool, last_lod: u8, kind: Kind) {
+        let frame = x.p.frame;
+        let cand = self.cands[ci as usize];
+        let slot = cand.slot;
+        let is_member = cand.member != NONE;
+        let (c, radius) = (cand.center, cand.radius);
+        let mesh_ix = cand.mesh;
+        let mesh = x.tables.meshes[mesh_ix as usize]
+            .as_ref()
+            .expect("checked by `continued`");
         let surface = (d - radius).max(0.0);
         let n = mesh.nlods as usize;
         let current = if was { last_lod as usize } else { n - 1 };
@@ -268,27 +350,26 @@ impl Landmarks {
             self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
             return;
         };
-        // Next time `current` is this LOD: the selection holds while the surface distance
-        // stays within `lod_slack`.
+        // Next time `current` is this LOD: the selection holds between its switch points.
         let (lod_lo, lod_hi) = x.lod.stable_band(mesh.errors(), cand.scale, lodi, surface);
         let tris = mesh.lod_tris[lodi];
-        let leave_at = (radius / (kt * 0.9)).min(range + radius);
-        // The band in centre distance: from r2 (or the LOD's switch below) to where it
-        // leaves (or the LOD's switch above). A surface distance clamped at 0 is the same
-        // for every centre distance below the radius.
+        // The band in centre distance: the kind's limits and the LOD's switch points. A
+        // surface distance clamped at 0 is the same for every centre distance below the
+        // radius.
         let lod_lo = if lod_lo <= 0.0 {
             f32::NEG_INFINITY
         } else {
             lod_lo + radius
         };
-        let (lo, hi) = (reach.max(lod_lo), leave_at.min(lod_hi + radius));
+        let (lo, hi) = (kind.lo.max(lod_lo), kind.hi.min(lod_hi + radius));
         if is_member
             && !cand.unsettled
             && cand.lod as usize == lodi
             && cand.sel as usize == selected
+            && cand.culled == kind.culled
             && mesh.lod_entry[lodi].is_some()
         {
-            // A landmark that stays as it is: its pairs and BLAS are unchanged (its target is
+            // A member that stays as it is: its pairs and BLAS are unchanged (its target is
             // built, so its pair's distances only bound the eviction order: the ones from its
             // last change still do).
             self.due_between(ci, lo, hi, d);
@@ -296,12 +377,12 @@ impl Landmarks {
         }
         let in_view = x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
         if !is_member {
-            // Joins: the instance's LOD and cull state as a visit leaves them (a landmark's
+            // Joins: the instance's LOD and cull state as a visit leaves them (a member's
             // LOD is written back when it changes, in `landmarks_cull`).
             if let Some(ge) = x.grid.get_mut(slot) {
                 ge.data.lod_target = lodi as u8;
                 ge.data.last_visit = frame;
-                ge.data.culled = false;
+                ge.data.culled = kind.culled;
             }
         }
         // Its target entry exists from now on (as the residency pass creates it).
@@ -324,6 +405,8 @@ impl Landmarks {
                 shown_pos: NONE,
                 record: NONE,
                 chosen: u64::MAX,
+                detail: kind.detail,
+                counted: false,
             });
             let m = self.members.len() - 1;
             self.cands[ci as usize].member = m as u32;
@@ -343,6 +426,10 @@ impl Landmarks {
                 self.pair(target).targets += 1;
                 self.members[m].target = target;
                 self.untarget(old.target);
+                self.rechoose.push(slot);
+            }
+            if cand.culled != kind.culled {
+                // Its record comes or goes.
                 self.rechoose.push(slot);
             }
         }
@@ -367,7 +454,18 @@ impl Landmarks {
         );
         let c = &mut self.cands[ci as usize];
         (c.lod, c.sel) = (lodi as u8, selected as u8);
+        c.culled = kind.culled;
         // Next look: the nearest threshold (shown next frame: the hysteresis one).
         self.due_between(ci, lo, hi, d);
     }
+}
+
+/// What kind of member a look makes of a candidate, and the distances its kind holds between.
+#[derive(Debug, Clone, Copy)]
+struct Kind {
+    /// Detail of a near leaf (else a landmark).
+    detail: bool,
+    culled: bool,
+    lo: f32,
+    hi: f32,
 }

@@ -50,7 +50,7 @@ use std::hash::BuildHasherDefault;
 
 use glam::Vec3;
 
-use super::state::NO_GROUP;
+use super::state::{InstanceHot, NO_GROUP};
 use crate::record::TlasInstance;
 use crate::spatial::CellHasher;
 use queue::DueQueue;
@@ -89,6 +89,8 @@ struct Cand {
     /// look's distance, less and plus its slack): a queued look that finds the distance still
     /// inside only waits again (`Landmarks::wait_if_inside`).
     band: (f32, f32),
+    /// Detail of a near leaf: culled by its projected angle (`InstanceCuller::cull_small`).
+    culled: bool,
 }
 
 /// A shown landmark (a member of the set).
@@ -108,6 +110,11 @@ struct Member {
     record: u32,
     /// Last frame its shown BLAS was chosen.
     chosen: u64,
+    /// Detail of a near leaf beyond r2 (not a landmark): culled by angle like the near field,
+    /// and out of the TLAS while its leaf's proxy covers it.
+    detail: bool,
+    /// Counted in its shown pair's `visible` (shown and not culled).
+    counted: bool,
 }
 
 /// What the landmarks do with one static (mesh, LOD) pair.
@@ -126,6 +133,8 @@ struct PairUse {
     /// Landmarks showing its BLAS (slots), and the BLAS address their records hold.
     showing: Vec<u32>,
     address: u64,
+    /// Of `showing`, those not culled (what marks the entry as in the TLAS).
+    visible: u32,
     /// Lower bound of the nearest target's surface distance: min over targets, at their last
     /// look, of (surface distance + odometer); and whether one was in view then.
     min_key: f64,
@@ -147,6 +156,7 @@ impl PairUse {
             unusable: Vec::new(),
             showing: Vec::new(),
             address: 0,
+            visible: 0,
             min_key: 0.0,
             in_view: false,
             frame: u64::MAX,
@@ -168,6 +178,14 @@ impl PairUse {
 pub(crate) struct Landmarks {
     /// Radius from which a static instance is a candidate (infinite: landmarks off).
     min_radius: f32,
+    /// Also the near leaves' detail beyond r2 (`FarFieldConfig::incremental_detail`): every
+    /// static instance of a leaf group is a candidate.
+    detail: bool,
+    /// Leaf groups whose detail records are out of the TLAS: near, but covered by their proxy
+    /// (handing over), as of the last `hide_covered`.
+    hidden: Vec<u32>,
+    /// Of the records, the near-leaf detail ones.
+    pub detail_records: u32,
     /// Camera travel so far, metres.
     odo: f64,
     cams: Vec<Vec3>,
@@ -215,6 +233,9 @@ impl Default for Landmarks {
     fn default() -> Self {
         Self {
             min_radius: f32::INFINITY,
+            detail: false,
+            hidden: Vec::new(),
+            detail_records: 0,
             odo: 0.0,
             cams: Vec::new(),
             all_due: true,
@@ -295,6 +316,49 @@ impl Landmarks {
         self.min_radius = r;
     }
 
+    /// Whether the set keeps the near leaves' detail beyond r2.
+    pub fn detail(&self) -> bool {
+        self.detail
+    }
+
+    /// Sets whether the set keeps the near leaves' detail; the caller re-adds every instance
+    /// when it changed.
+    pub fn set_detail(&mut self, on: bool) {
+        self.detail = on;
+    }
+
+    /// Whether the set has anything to keep (landmarks or detail).
+    pub fn is_active(&self) -> bool {
+        self.min_radius.is_finite() || self.detail
+    }
+
+    /// Whether the residency pass leaves `slot` to the set when it lies beyond r2 in a near
+    /// leaf (the set keeps that detail).
+    pub fn keeps_detail_of(&self, slot: u32) -> bool {
+        self.detail && self.index.get(slot as usize).is_some_and(|&i| i != NONE)
+    }
+
+    /// Whether `slot` is a landmark now (a member, not near-leaf detail).
+    #[cfg(test)]
+    pub fn is_landmark(&self, slot: u32) -> bool {
+        self.cand(slot)
+            .is_some_and(|c| c.member != NONE && !self.members[c.member as usize].detail)
+    }
+
+    /// Before `invalidate`: the detail members' state goes to their instances as a visit at
+    /// `frame` leaves it (the residency pass would have visited them), so the looks after
+    /// continue from it.
+    pub fn write_back_detail(&self, grid: &mut crate::spatial::GridIndex<InstanceHot>, frame: u64) {
+        for m in self.members.iter().filter(|m| m.detail) {
+            let (Some(c), Some(ge)) = (self.cand(m.slot), grid.get_mut(m.slot)) else {
+                continue;
+            };
+            ge.data.last_visit = frame;
+            ge.data.lod_target = c.lod;
+            ge.data.culled = c.culled;
+        }
+    }
+
     /// Everything is looked at again next frame (a failed frame, a configuration change):
     /// no landmark is shown until then. The caller drops the landmark records.
     pub fn invalidate(&mut self) {
@@ -306,12 +370,15 @@ impl Landmarks {
         self.rechoose.clear();
         self.unsettled.clear();
         self.queue.clear();
+        self.hidden.clear();
+        self.detail_records = 0;
         // Every record is pushed again (and listed) when the landmarks come back.
         self.changed.clear();
         for c in &mut self.cands {
             c.member = NONE;
             c.waiting = false;
             c.unsettled = false;
+            c.culled = false;
         }
         self.all_due = true;
     }
@@ -336,7 +403,7 @@ impl Landmarks {
             mesh,
             scale,
         } = sphere;
-        let wanted = is_static && radius >= self.min_radius;
+        let wanted = is_static && (radius >= self.min_radius || (self.detail && group != NO_GROUP));
         if let Some(c) = self.cand_mut(slot) {
             // Removed when looked at if it no longer qualifies (`evaluate`).
             (c.center, c.radius, c.scale) = (center, radius, scale);
@@ -375,6 +442,7 @@ impl Landmarks {
             sel: NONE_LOD,
             unsettled: false,
             band: (0.0, 0.0),
+            culled: false,
         };
         let ci = slab_insert(&mut self.cands, &mut self.free_cands, cand);
         self.index[slot as usize] = ci;
@@ -383,7 +451,7 @@ impl Landmarks {
 
     /// Every candidate of `mesh` is due now (its LOD errors or memory floor changed).
     pub fn mesh_changed(&mut self, mesh: u32) {
-        if self.min_radius.is_finite() {
+        if self.is_active() {
             self.meshes_changed.push(mesh);
         }
     }
@@ -420,7 +488,7 @@ impl Landmarks {
         if records.len() < self.record_slots.len() {
             return Err("fewer records than landmark records".into());
         }
-        let mut counts: HashMap<u32, (u32, u32, u32)> = HashMap::new();
+        let mut counts: HashMap<u32, (u32, u32, u32, u32)> = HashMap::new();
         for (i, m) in self.members.iter().enumerate() {
             let c = self.cand(m.slot).ok_or("member is no candidate")?;
             if c.member != i as u32 {
@@ -444,14 +512,26 @@ impl Landmarks {
             if m.record != NONE && self.record_slots.get(m.record as usize) != Some(&m.slot) {
                 return Err(format!("slot {} not at its record", m.slot));
             }
-            if (m.record != NONE) != (m.shown != NONE) {
+            let wants_record =
+                m.shown != NONE && !(m.detail && (c.culled || self.hidden.contains(&c.group)));
+            if (m.record != NONE) != wants_record {
                 return Err(format!("slot {}: a record without a BLAS or back", m.slot));
+            }
+            if m.counted != (m.shown != NONE && !(m.detail && c.culled)) {
+                return Err(format!("slot {}: counted wrongly as visible", m.slot));
+            }
+            if m.counted {
+                counts.entry(m.shown).or_default().3 += 1;
             }
         }
         for (i, p) in self.pairs.iter().enumerate() {
             let Some(p) = p else { continue };
-            let (t, s, w) = counts.get(&(i as u32)).copied().unwrap_or_default();
-            if p.targets != t || p.selecting.len() as u32 != s || p.showing.len() as u32 != w {
+            let (t, s, w, v) = counts.get(&(i as u32)).copied().unwrap_or_default();
+            if p.targets != t
+                || p.selecting.len() as u32 != s
+                || p.showing.len() as u32 != w
+                || p.visible != v
+            {
                 return Err(format!("pair ({}, {}) counts are off", p.mesh, p.lod));
             }
             if self.pair_index.get(&pair_key(p.mesh, p.lod)) != Some(&(i as u32)) {

@@ -45,6 +45,9 @@ impl Landmarks {
         if r == NONE {
             return;
         }
+        if self.members[m].detail {
+            self.detail_records -= 1;
+        }
         let last = self.record_slots.len() - 1;
         records.swap(r as usize, last);
         records.truncate(last);
@@ -80,8 +83,53 @@ impl Landmarks {
         self.members[m].selected_pos = pos;
     }
 
+    /// Gives a member `record` (`None`: none), at the end of the landmark records when it
+    /// had none; lists what changed for the TLAS delta.
+    pub(super) fn put_record(
+        &mut self,
+        m: usize,
+        record: Option<TlasInstance>,
+        records: &mut Vec<TlasInstance>,
+    ) {
+        let Some(record) = record else {
+            self.drop_record(m, records);
+            return;
+        };
+        let r = self.members[m].record;
+        if r == NONE {
+            let at = self.record_slots.len();
+            debug_assert_eq!(records.len(), at, "landmark records come first");
+            records.push(record);
+            self.record_slots.push(self.members[m].slot);
+            self.members[m].record = at as u32;
+            self.changed.push(at as u32);
+            if self.members[m].detail {
+                self.detail_records += 1;
+            }
+        } else if records[r as usize] != record {
+            records[r as usize] = record;
+            self.changed.push(r);
+        }
+    }
+
+    /// Makes a member count in its shown pair's `visible` (or not).
+    pub(super) fn set_counted(&mut self, m: usize, counted: bool) {
+        let mb = self.members[m];
+        if mb.shown == NONE || mb.counted == counted {
+            return;
+        }
+        let p = self.pair(mb.shown);
+        if counted {
+            p.visible += 1;
+        } else {
+            p.visible -= 1;
+        }
+        self.members[m].counted = counted;
+    }
+
     /// Takes a member out of its shown pair's list.
     pub(super) fn unshow(&mut self, m: usize) {
+        self.set_counted(m, false);
         let mb = self.members[m];
         if mb.shown == NONE {
             return;
@@ -97,6 +145,60 @@ impl Landmarks {
     pub(super) fn untarget(&mut self, pair: u32) {
         self.pair(pair).targets -= 1;
         self.release_pair(pair);
+    }
+
+    /// Takes the detail of the near leaves in `covered` (sorted; covered by their own proxy
+    /// this frame, handing over) out of the records, and puts back that of leaves no longer
+    /// covered.
+    /// `template` is an instance's record without its BLAS address.
+    pub fn hide_covered(
+        &mut self,
+        covered: &[u32],
+        records: &mut Vec<TlasInstance>,
+        template: impl Fn(u32) -> Option<TlasInstance>,
+    ) {
+        if covered == self.hidden.as_slice() {
+            return;
+        }
+        let old = std::mem::replace(&mut self.hidden, covered.to_vec());
+        let flipped: Vec<u32> = old
+            .iter()
+            .filter(|g| !covered.contains(g))
+            .chain(covered.iter().filter(|g| !old.contains(g)))
+            .copied()
+            .collect();
+        for g in flipped {
+            let Some(slots) = self.groups.get(&g) else {
+                continue;
+            };
+            let members: Vec<usize> = slots
+                .iter()
+                .filter_map(|&s| self.cand(s))
+                .filter(|c| c.member != NONE)
+                .map(|c| c.member as usize)
+                .filter(|&m| self.members[m].detail)
+                .collect();
+            let hide = covered.contains(&g);
+            for m in members {
+                if hide {
+                    self.drop_record(m, records);
+                } else {
+                    let mb = self.members[m];
+                    let c = self.cand(mb.slot).expect("a member is a candidate");
+                    if mb.shown != NONE && !c.culled {
+                        let address = self.pairs[mb.shown as usize]
+                            .as_ref()
+                            .expect("a live pair")
+                            .address;
+                        let r = template(mb.slot).map(|t| TlasInstance {
+                            blas_address: address,
+                            ..t
+                        });
+                        self.put_record(m, r, records);
+                    }
+                }
+            }
+        }
     }
 
     /// A member leaves the set (its record goes, its pairs forget it).
