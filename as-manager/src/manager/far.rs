@@ -271,14 +271,8 @@ impl FarField {
             if !n.children.is_empty() || !n.near {
                 continue;
             }
-            let (lo, hi) = (n.desc.bounds_min, n.desc.bounds_max);
-            // Farthest corner (XZ) from the nearest camera: inside r2 means nothing beyond.
-            let reaches = cameras.iter().all(|c| {
-                let dx = (c.x - lo[0]).abs().max((c.x - hi[0]).abs());
-                let dz = (c.z - lo[2]).abs().max((c.z - hi[2]).abs());
-                dx * dx + dz * dz > r2 * r2
-            });
-            if reaches {
+            if reaches_beyond(n, cameras, r2) {
+                let (lo, hi) = (n.desc.bounds_min, n.desc.bounds_max);
                 out.push([lo[0], lo[2], hi[0], hi[2]]);
             }
         }
@@ -290,10 +284,34 @@ impl FarField {
         self.covered_near.len()
     }
 
+    /// The near leaves that reach beyond `r2` of every camera (`near_leaf_boxes`'s), into `out`.
+    pub fn near_leaves_beyond(&self, cameras: &[Vec3], r2: f32, out: &mut Vec<u32>) {
+        out.clear();
+        for &i in &self.near_leaves {
+            let Some(n) = self.nodes[i as usize].as_ref() else {
+                continue;
+            };
+            if n.children.is_empty() && n.near && reaches_beyond(n, cameras, r2) {
+                out.push(i);
+            }
+        }
+    }
+
     /// Whether a leaf is covered by a proxy this frame (after `far_select`).
     pub fn is_covered(&self, group: u32) -> bool {
         self.epoch >= 1 && self.shown_in(group, self.epoch)
     }
+}
+
+/// Whether a leaf's bounds reach beyond `r2` of every camera: its farthest corner (XZ) from
+/// each camera is beyond (inside r2 means nothing of it is beyond).
+fn reaches_beyond(n: &GroupNode, cameras: &[Vec3], r2: f32) -> bool {
+    let (lo, hi) = (n.desc.bounds_min, n.desc.bounds_max);
+    cameras.iter().all(|c| {
+        let dx = (c.x - lo[0]).abs().max((c.x - hi[0]).abs());
+        let dz = (c.z - lo[2]).abs().max((c.z - hi[2]).abs());
+        dx * dx + dz * dz > r2 * r2
+    })
 }
 
 /// `FarField::parent_of` of a root.

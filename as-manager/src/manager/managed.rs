@@ -49,12 +49,19 @@ impl<B: AsBackend> AsManager<B> {
         let r2 = self.config.residency.r2;
         let far_on = self.config.far_field.enabled;
         // A far-field group within r2 is near as a whole: its instances beyond r2 are near
-        // field too (its proxy is not shown), so the query also covers those groups' boxes.
+        // field too (its proxy is not shown). The landmark set keeps that detail
+        // (`FarFieldConfig::incremental_detail`) but for the instances it does not track,
+        // visited below from their leaves' lists; otherwise the query also covers those
+        // groups' boxes.
+        let kept = self.landmarks.detail();
         let mut boxes = std::mem::take(&mut self.near_boxes);
-        if far_on {
+        let mut leaves = std::mem::take(&mut self.near_leaves_beyond);
+        boxes.clear();
+        leaves.clear();
+        if far_on && kept {
+            self.far.near_leaves_beyond(&self.cam_pos, r2, &mut leaves);
+        } else if far_on {
             self.far.near_leaf_boxes(&self.cam_pos, r2, &mut boxes);
-        } else {
-            boxes.clear();
         }
         let Self {
             grid,
@@ -84,12 +91,9 @@ impl<B: AsBackend> AsManager<B> {
         };
         grid.query_with_boxes(pass.cams, r2, &boxes, |loc, grid_entry| {
             let (d2, beyond_r2) = pass.distance(grid_entry);
-            // Beyond r2 only for a near group (no square root for the rejected), and only
-            // what the landmark set does not keep.
-            if beyond_r2
-                && (!far.is_near_leaf(grid_entry.data.group)
-                    || landmarks.keeps_detail_of(grid_entry.slot))
-            {
+            // Beyond r2 only for a near group (no square root for the rejected), and not
+            // when the landmark set keeps that detail.
+            if beyond_r2 && (kept || !far.is_near_leaf(grid_entry.data.group)) {
                 return;
             }
             debug_assert!(
@@ -98,7 +102,19 @@ impl<B: AsBackend> AsManager<B> {
             );
             pass.visit(loc, grid_entry, d2.sqrt(), beyond_r2);
         });
+        // The near leaves' instances beyond r2 that the set does not track (skinned ones).
+        for &g in &leaves {
+            for &slot in landmarks.others_of(g) {
+                let Some(loc) = grid.loc(slot) else { continue };
+                let grid_entry = grid.at_mut(loc);
+                let (d2, beyond_r2) = pass.distance(grid_entry);
+                if beyond_r2 {
+                    pass.visit(loc, grid_entry, d2.sqrt(), true);
+                }
+            }
+        }
         self.near_boxes = boxes;
+        self.near_leaves_beyond = leaves;
         self.stats.instances_visited = self.visits.len() as u32 + self.landmarks.examined;
         self.stats.landmarks_examined = self.landmarks.examined;
         self.stats.landmarks_waited = self.landmarks.waited;

@@ -245,6 +245,8 @@ pub struct AsManager<B: AsBackend> {
     tlas_groups: Vec<Option<u32>>,
     /// Near far-field leaves reaching beyond r2 (XZ boxes), for the residency query.
     near_boxes: Vec<[f32; 4]>,
+    /// The same leaves' slots, when the landmark set keeps their detail.
+    near_leaves_beyond: Vec<u32>,
     /// GPU ms set aside this frame for the TLAS and refits (see `schedule_builds`).
     gpu_reserved_ms: f64,
     /// Last frame's TLAS instances and refitted triangles.
@@ -291,6 +293,7 @@ impl<B: AsBackend> AsManager<B> {
             far: far::FarField::default(),
             tlas_groups: Vec::new(),
             near_boxes: Vec::new(),
+            near_leaves_beyond: Vec::new(),
             gpu_reserved_ms: 0.0,
             prev_tlas_instances: 0,
             prev_refit_prims: 0,

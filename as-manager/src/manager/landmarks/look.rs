@@ -271,7 +271,7 @@ impl Landmarks {
             Some(Some(m)) if m.kind == MeshKind::Static
         );
         if !is_static {
-            self.remove(slot, x.records);
+            self.disqualify(slot, x.records);
             return None;
         }
         // A member continues from its LOD (kept here, not in the grid: a look at a member

@@ -186,6 +186,12 @@ pub(crate) struct Landmarks {
     hidden: Vec<u32>,
     /// Of the records, the near-leaf detail ones.
     pub detail_records: u32,
+    /// With `detail`: per leaf group, its instances that are not candidates (skinned ones),
+    /// which the residency pass visits beyond r2 when the leaf is near; and each slot's place
+    /// in its list (NONE: listed nowhere).
+    others: HashMap<u32, Vec<u32>>,
+    other_pos: Vec<u32>,
+    other_group: Vec<u32>,
     /// Camera travel so far, metres.
     odo: f64,
     cams: Vec<Vec3>,
@@ -236,6 +242,9 @@ impl Default for Landmarks {
             detail: false,
             hidden: Vec::new(),
             detail_records: 0,
+            others: HashMap::new(),
+            other_pos: Vec::new(),
+            other_group: Vec::new(),
             odo: 0.0,
             cams: Vec::new(),
             all_due: true,
@@ -332,12 +341,6 @@ impl Landmarks {
         self.min_radius.is_finite() || self.detail
     }
 
-    /// Whether the residency pass leaves `slot` to the set when it lies beyond r2 in a near
-    /// leaf (the set keeps that detail).
-    pub fn keeps_detail_of(&self, slot: u32) -> bool {
-        self.detail && self.index.get(slot as usize).is_some_and(|&i| i != NONE)
-    }
-
     /// Whether `slot` is a landmark now (a member, not near-leaf detail).
     #[cfg(test)]
     pub fn is_landmark(&self, slot: u32) -> bool {
@@ -390,8 +393,68 @@ impl Landmarks {
         self.cands.clear();
         self.free_cands.clear();
         self.groups.clear();
+        self.others.clear();
+        self.other_pos.clear();
+        self.other_group.clear();
         self.now.clear();
         self.meshes_changed.clear();
+    }
+
+    /// The instances of leaf `group` that the set does not keep (see `others`).
+    pub fn others_of(&self, group: u32) -> &[u32] {
+        self.others.get(&group).map_or(&[], Vec::as_slice)
+    }
+
+    /// Lists `slot` among its leaf's others (once).
+    fn list_other(&mut self, slot: u32, group: u32) {
+        if !self.detail || group == NO_GROUP {
+            return;
+        }
+        if self.other_pos.len() <= slot as usize {
+            self.other_pos.resize(slot as usize + 1, NONE);
+        }
+        if self.other_pos[slot as usize] != NONE {
+            return;
+        }
+        let v = self.others.entry(group).or_default();
+        v.push(slot);
+        self.other_pos[slot as usize] = (v.len() - 1) as u32;
+        self.other_group_of(slot, group);
+    }
+
+    /// Takes `slot` out of its leaf's others.
+    fn unlist_other(&mut self, slot: u32) {
+        let Some(&pos) = self.other_pos.get(slot as usize) else {
+            return;
+        };
+        if pos == NONE {
+            return;
+        }
+        let group = self.other_group[slot as usize];
+        if let Some(v) = self.others.get_mut(&group) {
+            if let Some(moved) = Self::list_remove(v, pos) {
+                self.other_pos[moved as usize] = pos;
+            }
+            if v.is_empty() {
+                self.others.remove(&group);
+            }
+        }
+        self.other_pos[slot as usize] = NONE;
+    }
+
+    fn other_group_of(&mut self, slot: u32, group: u32) {
+        if self.other_group.len() <= slot as usize {
+            self.other_group.resize(slot as usize + 1, NO_GROUP);
+        }
+        self.other_group[slot as usize] = group;
+    }
+
+    /// A candidate the set cannot keep after all (its mesh is not static): out of the set,
+    /// and the residency pass's like any other instance of its leaf.
+    pub(super) fn disqualify(&mut self, slot: u32, records: &mut Vec<TlasInstance>) {
+        let group = self.cand(slot).map_or(NO_GROUP, |c| c.group);
+        self.remove(slot, records);
+        self.list_other(slot, group);
     }
 
     /// An instance was added or moved: a candidate when static and at least `min_radius`
@@ -414,6 +477,7 @@ impl Landmarks {
             return;
         }
         if !wanted {
+            self.list_other(slot, group);
             return;
         }
         if self.index.len() <= slot as usize {
@@ -458,6 +522,7 @@ impl Landmarks {
 
     /// An instance was removed: it leaves the set and stops being a candidate.
     pub fn remove(&mut self, slot: u32, records: &mut Vec<TlasInstance>) {
+        self.unlist_other(slot);
         if self.cand(slot).is_none() {
             return;
         }
