@@ -53,6 +53,7 @@ impl<B: AsBackend> AsManager<B> {
             ..
         } = self;
         landmarks.advance(cam_pos);
+        let collect = tracing::trace_span!("collect_due").entered();
         let mut due = std::mem::take(&mut landmarks.scratch);
         let mut queued = std::mem::take(&mut landmarks.queued_scratch);
         landmarks.collect_due(tables, p.need_data, &mut far.flipped, &mut due, &mut queued);
@@ -71,30 +72,25 @@ impl<B: AsBackend> AsManager<B> {
             records,
             p,
         };
-        // Events name instances (slots), the queue names candidates (indices).
-        for x in due.iter_mut() {
-            *x = landmarks.index.get(*x as usize).copied().unwrap_or(NONE);
+        drop(collect);
+        let looks = tracing::trace_span!("looks").entered();
+        // Events name instances (slots) and come first; then the queue's live entries, due by
+        // travel alone: a look only if the distance left the last look's band (a look at an
+        // event makes the candidate's queued entry stale).
+        for &slot in &due {
+            if let Some(&ci) = landmarks.index.get(slot as usize) {
+                landmarks.look_at(ci, &mut look);
+            }
         }
-        let events = due.len();
-        due.extend_from_slice(&queued);
-        for (k, &ci) in due.iter().enumerate() {
-            let Some(c) = landmarks.cands.get(ci as usize) else {
-                continue;
-            };
-            if c.slot == NONE || c.seen == p.frame {
-                continue;
+        for e in &queued {
+            if landmarks.is_live(e) && !landmarks.wait_if_inside(*e, look.cams) {
+                landmarks.look_at(e.ci, &mut look);
             }
-            // Due by travel alone: a look only if the distance left the last look's band.
-            if k >= events && landmarks.wait_if_inside(ci, look.cams) {
-                continue;
-            }
-            let c = &mut landmarks.cands[ci as usize];
-            c.seen = p.frame;
-            c.waiting = false;
-            landmarks.evaluate(ci, &mut look);
         }
         landmarks.scratch = due;
         landmarks.queued_scratch = queued;
+        drop(looks);
+        let _marks = tracing::trace_span!("pair_marks").entered();
         // The marks every landmark would set on its target and shown entries.
         let frame = p.frame;
         let odo = landmarks.odo;

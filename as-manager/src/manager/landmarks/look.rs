@@ -37,7 +37,7 @@ impl Landmarks {
         need_data: bool,
         groups_flipped: &mut Vec<u32>,
         out: &mut Vec<u32>,
-        queued: &mut Vec<u32>,
+        queued: &mut Vec<Due>,
     ) {
         out.clear();
         queued.clear();
@@ -84,16 +84,20 @@ impl Landmarks {
                 out.append(&mut p.unusable);
             }
         }
-        let mut due = std::mem::take(&mut self.due_scratch);
-        due.clear();
-        self.queue.pop_due(self.odo, &mut due);
-        let cands = &self.cands;
-        queued.extend(
-            due.iter()
-                .filter(|&&(ci, stamp)| cands[ci as usize].stamp == stamp)
-                .map(|&(ci, _)| ci),
-        );
-        self.due_scratch = due;
+        // Stale entries are skipped by the caller (the events looked at first may make more).
+        self.queue.pop_due(self.odo, queued);
+    }
+
+    /// A fresh stamp for a candidate's queue entry (never 0, which a new candidate holds).
+    pub(super) fn bump_stamp(&mut self) -> u32 {
+        self.next_stamp = self.next_stamp.wrapping_add(1).max(1);
+        self.next_stamp
+    }
+
+    /// Whether `e` is the candidate's live entry (not stale: the candidate was not looked at,
+    /// removed or queued again since).
+    pub(super) fn is_live(&self, e: &Due) -> bool {
+        self.stamps[e.ci as usize] == e.stamp
     }
 
     /// Looks at the candidate again once its distance may have left `lo..hi` (the distances
@@ -101,36 +105,39 @@ impl Landmarks {
     /// makes it due). Queued for the travel to the nearer end; `wait_if_inside` waits again
     /// while it is still inside.
     pub(super) fn due_between(&mut self, ci: u32, lo: f32, hi: f32, d: f32) {
-        self.next_stamp = self.next_stamp.wrapping_add(1);
-        let stamp = self.next_stamp;
-        self.cands[ci as usize].stamp = stamp;
+        let stamp = self.bump_stamp();
+        self.stamps[ci as usize] = stamp;
         if lo <= 0.0 && hi == f32::INFINITY {
             return;
         }
         // A margin for rounding in the distances (f32) and the odometer.
         let m = 0.01 + 1e-4 * d;
         let band = (lo + m, hi - m);
-        self.cands[ci as usize].band = band;
         let slack = (d - band.0).min(band.1 - d).max(0.0);
-        self.queue.push(self.odo + f64::from(slack), ci, stamp);
+        let center = self.cands[ci as usize].center;
+        let entry = Due {
+            ci,
+            stamp,
+            center,
+            band,
+        };
+        self.queue.push(self.odo + f64::from(slack), entry);
     }
 
-    /// A queued candidate whose distance is still inside the band of its last look: the look
-    /// would decide the same (every other input changes by an event, which looks at it in
-    /// full), so it waits again, for the travel to the band's nearer end. Touches the
-    /// candidate and the queue only.
-    pub(super) fn wait_if_inside(&mut self, ci: u32, cams: &[Vec3]) -> bool {
-        let c = &self.cands[ci as usize];
-        if c.unsettled || (c.member == NONE && c.waiting) {
-            return false;
-        }
-        let d = nearest2(cams, c.center).sqrt();
-        let (lo, hi) = c.band;
+    /// A live queue entry whose candidate's distance is still inside the band of its last
+    /// look: the look would decide the same (every other input changes by an event, which
+    /// looks at it in full), so it waits again, for the travel to the band's nearer end.
+    /// Touches the queue only. (A landmark choosing its BLAS every frame, or a candidate
+    /// waiting for LOD data, has no live entry: it is an event each frame, or its look queued
+    /// nothing.)
+    pub(super) fn wait_if_inside(&mut self, e: Due, cams: &[Vec3]) -> bool {
+        let d = nearest2(cams, e.center).sqrt();
+        let (lo, hi) = e.band;
         if !(d > lo && d < hi) {
             return false;
         }
         let slack = ((d - lo).min(hi - d) - 0.01).max(0.0);
-        self.queue.push(self.odo + f64::from(slack), ci, c.stamp);
+        self.queue.push(self.odo + f64::from(slack), e);
         self.waited += 1;
         true
     }
@@ -161,6 +168,19 @@ impl Landmarks {
     /// Whether `cand` is still a candidate (`track`'s rule, after a move).
     fn wanted(&self, cand: &Cand) -> bool {
         cand.radius >= self.min_radius || (self.detail && cand.group != NO_GROUP)
+    }
+
+    /// Looks at candidate `ci` unless vacant or looked at this frame.
+    pub(super) fn look_at(&mut self, ci: u32, x: &mut Look<'_>) {
+        let Some(c) = self.cands.get_mut(ci as usize) else {
+            return;
+        };
+        if c.slot == NONE || c.seen == x.p.frame {
+            return;
+        }
+        c.seen = x.p.frame;
+        c.waiting = false;
+        self.evaluate(ci, x);
     }
 
     /// Looks at candidate `slot`: joins, updates or leaves the set, and says when to look next.

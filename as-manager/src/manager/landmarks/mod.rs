@@ -1,5 +1,9 @@
 //! Far landmarks, kept incrementally.
 //!
+//! Why one file over 600 lines: the set's state (`Cand`, `Member`, `PairUse`, `Landmarks`) and
+//! its membership bookkeeping (`track`, `remove`, the invariant check) share private fields;
+//! the frame steps, the looks, the pairs and the queue are the submodules.
+//!
 //! A landmark is a static instance beyond r2 (and outside a near far-field leaf) whose
 //! bounding sphere subtends more than `FarFieldConfig::keep_angle` from the nearest camera
 //! (10 % less once shown) and lies within `keep_range`: it stays in the TLAS beside the proxies,
@@ -53,7 +57,7 @@ use glam::Vec3;
 use super::state::{InstanceHot, NO_GROUP};
 use crate::record::TlasInstance;
 use crate::spatial::CellHasher;
-use queue::DueQueue;
+use queue::{Due, DueQueue};
 
 const NONE: u32 = u32::MAX;
 const NONE_LOD: u8 = u8::MAX;
@@ -68,8 +72,6 @@ struct Cand {
     mesh: u32,
     scale: f32,
     slot: u32,
-    /// Queue entries with another stamp are stale.
-    stamp: u32,
     /// Index in `members` (NONE: not a landmark now).
     member: u32,
     /// Its far-field leaf (NO_GROUP: none) and its place in that group's list.
@@ -85,10 +87,6 @@ struct Cand {
     sel: u8,
     /// A landmark that chooses its BLAS every frame (`Landmarks::unsettled`).
     unsettled: bool,
-    /// Distances from the nearest camera between which its last look's outcome holds (that
-    /// look's distance, less and plus its slack): a queued look that finds the distance still
-    /// inside only waits again (`Landmarks::wait_if_inside`).
-    band: (f32, f32),
     /// Detail of a near leaf: culled by its projected angle (`InstanceCuller::cull_small`).
     culled: bool,
 }
@@ -203,6 +201,9 @@ pub(crate) struct Landmarks {
     /// names candidates by index; a vacant entry has slot NONE), vacant ones in `free_cands`.
     cands: Vec<Cand>,
     free_cands: Vec<u32>,
+    /// Per candidate index, the stamp of its one live queue entry (entries with another are
+    /// stale): apart from `cands`, so that settling a due entry reads four bytes of it.
+    stamps: Vec<u32>,
     queue: DueQueue,
     next_stamp: u32,
     /// Slots due now by an event.
@@ -225,8 +226,7 @@ pub(crate) struct Landmarks {
     /// Members choosing again next frame (their target is not built).
     unsettled: Vec<u32>,
     scratch: Vec<u32>,
-    queued_scratch: Vec<u32>,
-    due_scratch: Vec<(u32, u32)>,
+    queued_scratch: Vec<Due>,
     /// Candidates looked at this frame.
     pub examined: u32,
     /// Queued candidates found still inside their band this frame (they only waited again).
@@ -251,6 +251,7 @@ impl Default for Landmarks {
             index: Vec::new(),
             cands: Vec::new(),
             free_cands: Vec::new(),
+            stamps: Vec::new(),
             queue: DueQueue::default(),
             next_stamp: 0,
             now: Vec::new(),
@@ -265,7 +266,6 @@ impl Default for Landmarks {
             unsettled: Vec::new(),
             scratch: Vec::new(),
             queued_scratch: Vec::new(),
-            due_scratch: Vec::new(),
             examined: 0,
             waited: 0,
             changed: Vec::new(),
@@ -392,6 +392,7 @@ impl Landmarks {
         self.index.clear();
         self.cands.clear();
         self.free_cands.clear();
+        self.stamps.clear();
         self.groups.clear();
         self.others.clear();
         self.other_pos.clear();
@@ -496,7 +497,6 @@ impl Landmarks {
             mesh,
             scale,
             slot,
-            stamp: 0,
             member: NONE,
             group,
             group_pos,
@@ -505,10 +505,12 @@ impl Landmarks {
             lod: NONE_LOD,
             sel: NONE_LOD,
             unsettled: false,
-            band: (0.0, 0.0),
             culled: false,
         };
         let ci = slab_insert(&mut self.cands, &mut self.free_cands, cand);
+        // Stamp 0 is never issued: a reused index's old entries stay stale.
+        self.stamps.resize(self.cands.len(), 0);
+        self.stamps[ci as usize] = 0;
         self.index[slot as usize] = ci;
         self.now.push(slot);
     }
@@ -541,9 +543,8 @@ impl Landmarks {
             }
         }
         // Vacant: its queue entries go stale with the new stamp.
-        self.next_stamp = self.next_stamp.wrapping_add(1);
         self.cands[ci].slot = NONE;
-        self.cands[ci].stamp = self.next_stamp;
+        self.stamps[ci] = self.bump_stamp();
         self.free_cands.push(ci as u32);
         self.index[slot as usize] = NONE;
     }
