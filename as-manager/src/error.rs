@@ -42,6 +42,15 @@ pub enum AsError {
     /// The operation needs a skinned instance.
     #[error("instance {0:?} is not skinned")]
     NotSkinned(crate::InstanceId),
+    /// `update` was given a frame number not after the last one's: frame numbers must
+    /// increase (they order retirement and hysteresis). Nothing changed.
+    #[error("frame {frame} does not follow frame {last}: frame numbers must increase")]
+    FrameNotIncreasing {
+        /// The refused frame number.
+        frame: u64,
+        /// The last frame `update` ran.
+        last: u64,
+    },
     /// The backend reported an error the manager cannot absorb (device lost).
     #[error("backend: {0}")]
     Backend(#[from] BackendError),

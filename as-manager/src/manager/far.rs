@@ -1,5 +1,9 @@
 //! The far field: beyond r2, group proxies stand for their instances.
 //!
+//! Why one file over 600 lines: the group tree (`FarField`) and the manager's far-field steps
+//! (prepare, select, the display cut) read and write the same private node fields; apart, those
+//! fields would be crate-wide.
+//!
 //! Groups form a tree (leaves are what instances name; a parent's proxy covers all its leaves).
 //! Each frame (`Managed` only):
 //! 1. `far_prepare` (before the BLAS upkeep): distances of every node to the nearest camera;

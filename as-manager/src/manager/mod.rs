@@ -590,10 +590,8 @@ impl<B: AsBackend> AsManager<B> {
     /// culling and assembly, then records the backend work and the TLAS build.
     pub fn update(&mut self, input: FrameInput<'_>) -> Result<FrameOutput<'_>> {
         let frame = input.frame;
-        if self.last_frame.is_some_and(|l| frame <= l) {
-            return Err(AsError::InvalidConfig(format!(
-                "frame {frame} does not increase"
-            )));
+        if let Some(last) = self.last_frame.filter(|&l| frame <= l) {
+            return Err(AsError::FrameNotIncreasing { frame, last });
         }
         if input
             .cameras

@@ -517,7 +517,16 @@ impl<B: Probe> Harness<B> {
                     frame: self.frame - 1,
                     cameras: &cams,
                 });
-                prop_assert!(matches!(r, Err(AsError::InvalidConfig(_))));
+                let refused = self.frame - 1;
+                let refused_as_such = matches!(
+                    r,
+                    Err(AsError::FrameNotIncreasing { frame, last }) if frame == refused && last >= refused
+                );
+                prop_assert!(
+                    refused_as_such,
+                    "frame {} not refused as not increasing",
+                    refused
+                );
                 prop_assert_eq!(self.m.stats(), &before, "a refused frame changes nothing");
             }
             Op::SkipFrames { n } => {
