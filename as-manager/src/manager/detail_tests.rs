@@ -11,6 +11,7 @@ use glam::{Affine3A, Vec3};
 use rtstream_stats::Rng;
 
 use super::state::EntryState;
+use super::tests::{mesh, proxied_group};
 use crate::backend::model::ModelBackend;
 use crate::backend::{BackendError, FaultPoint};
 use crate::synth::counts_chain;
@@ -68,72 +69,45 @@ fn side(incremental: bool) -> Side {
             } else {
                 MeshKind::Static
             };
-            m.register_mesh(MeshDesc::new(
-                format!("m{i}"),
-                kind,
-                radius,
-                counts_chain(3000, 1 + i % 5, 0.02 * radius),
-            ))
-            .unwrap()
+            let lods = counts_chain(3000, 1 + i % 5, 0.02 * radius);
+            mesh(&m, format!("m{i}"), kind, radius, lods)
         })
         .collect();
-    let proxy = |m: &AsManager<ModelBackend>, n: usize| {
-        m.register_mesh(MeshDesc::new(
+    let proxy = |m: &AsManager<ModelBackend>, n: u32| {
+        mesh(
+            m,
             format!("proxy{n}"),
             MeshKind::Static,
             80.0,
             counts_chain(500, 1, 0.0),
-        ))
-        .unwrap()
+        )
     };
     let mut leaves = Vec::new();
     let mut n = 0;
     for px in 0..LEAVES / 2 {
         for pz in 0..LEAVES / 2 {
             let lo = [px as f32 * 2.0 * LEAF_M, -10.0, pz as f32 * 2.0 * LEAF_M];
-            let parent = m
-                .register_group(GroupDesc {
-                    parent: None,
-                    bounds_min: lo,
-                    bounds_max: [lo[0] + 2.0 * LEAF_M, 60.0, lo[2] + 2.0 * LEAF_M],
-                    custom_index: PROXY_CI + n,
-                    mask: 0xff,
-                })
-                .unwrap();
+            let hi = [lo[0] + 2.0 * LEAF_M, 60.0, lo[2] + 2.0 * LEAF_M];
+            let parent = proxied_group(&m, None, (lo, hi), PROXY_CI + n, (proxy(&m, n), 6.0));
             n += 1;
-            m.set_group_proxy(parent, Some((proxy(&m, n as usize), 6.0)))
-                .unwrap();
             for (dx, dz) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
                 let lo = [
                     (px * 2 + dx) as f32 * LEAF_M,
                     -10.0,
                     (pz * 2 + dz) as f32 * LEAF_M,
                 ];
-                let leaf = m
-                    .register_group(GroupDesc {
-                        parent: Some(parent),
-                        bounds_min: lo,
-                        bounds_max: [lo[0] + LEAF_M, 60.0, lo[2] + LEAF_M],
-                        custom_index: PROXY_CI + n,
-                        mask: 0xff,
-                    })
-                    .unwrap();
+                let hi = [lo[0] + LEAF_M, 60.0, lo[2] + LEAF_M];
+                let own = (proxy(&m, n), 1.5);
+                let leaf = proxied_group(&m, Some(parent), (lo, hi), PROXY_CI + n, own);
                 n += 1;
-                m.set_group_proxy(leaf, Some((proxy(&m, n as usize), 1.5)))
-                    .unwrap();
                 leaves.push(leaf);
             }
         }
     }
     let houses = (0..leaves.len())
         .map(|i| {
-            m.register_mesh(MeshDesc::new(
-                format!("house{i}"),
-                MeshKind::Static,
-                4.0,
-                counts_chain(2000, 3, 0.05),
-            ))
-            .unwrap()
+            let lods = counts_chain(2000, 3, 0.05);
+            mesh(&m, format!("house{i}"), MeshKind::Static, 4.0, lods)
         })
         .collect();
     Side {

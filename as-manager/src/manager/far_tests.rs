@@ -5,7 +5,7 @@ use std::collections::{HashMap, HashSet};
 
 use glam::{Affine3A, Vec3};
 
-use super::tests::{mesh, run_frame};
+use super::tests::{mesh, proxied_group, run_frame};
 use crate::backend::model::ModelBackend;
 use crate::synth::counts_chain;
 use crate::*;
@@ -36,19 +36,10 @@ fn world(config: Config) -> World {
                      lo: [f32; 3],
                      side: f32,
                      error: f32| {
-        let g = m
-            .register_group(GroupDesc {
-                parent,
-                bounds_min: lo,
-                bounds_max: [lo[0] + side, 10.0, lo[2] + side],
-                custom_index: PROXY_CI + n,
-                mask: 0xff,
-            })
-            .unwrap();
+        let hi = [lo[0] + side, 10.0, lo[2] + side];
+        let ci = PROXY_CI + n;
         n += 1;
-        m.set_group_proxy(g, Some((proxy_mesh(m, n), error)))
-            .unwrap();
-        g
+        proxied_group(m, parent, (lo, hi), ci, (proxy_mesh(m, n), error))
     };
     let mut leaves_of = HashMap::new();
     let mut leaf_ids = HashMap::new();

@@ -40,6 +40,28 @@ fn static_mesh(m: &AsManager<ModelBackend>, tris: u32, radius: f32) -> MeshId {
     mesh(m, "m", MeshKind::Static, radius, lods)
 }
 
+/// Registers a far-field group over the box `lo..hi` under `parent`, with custom index
+/// `custom_index` and `proxy` as its proxy of geometric error `error` (the far-field test
+/// modules' group trees).
+pub(super) fn proxied_group(
+    m: &AsManager<ModelBackend>,
+    parent: Option<GroupId>,
+    (lo, hi): ([f32; 3], [f32; 3]),
+    custom_index: u32,
+    (proxy, error): (MeshId, f32),
+) -> GroupId {
+    let desc = GroupDesc {
+        parent,
+        bounds_min: lo,
+        bounds_max: hi,
+        custom_index,
+        mask: 0xff,
+    };
+    let g = m.register_group(desc).unwrap();
+    m.set_group_proxy(g, Some((proxy, error))).unwrap();
+    g
+}
+
 /// Frame `frame` of `m` seen from `cameras` (also used by the sibling test modules).
 pub(super) fn run_frame<'m>(
     m: &'m mut AsManager<ModelBackend>,

@@ -16,7 +16,7 @@
 //! - it is a landmark while `r2 + R < d <= min(keep range + R, R / tan)`, `tan` the keep
 //!   angle's (10 % less once it is one);
 //! - its LOD is the selection's (`LodSelector::select`, which holds within
-//!   `LodSelector::stable_distance`), resolved to one with data or a BLAS
+//!   `LodSelector::stable_band`), resolved to one with data or a BLAS
 //!   (`MeshState::with_data`).
 //!
 //! Cameras that move by `m` metres change `d` by at most `m`. So a candidate looked at with `d`

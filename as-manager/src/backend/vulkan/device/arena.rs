@@ -54,12 +54,10 @@ pub struct ArenaRange {
 
 impl std::fmt::Debug for ArenaRange {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ArenaRange")
-            .field("block", &self.block)
-            .field("offset", &self.offset)
-            .field("size", &self.size)
-            .field("address", &self.address)
-            .finish()
+        // By hand: offset-allocator's `Allocation` is not `Debug` (and says nothing the
+        // offset does not).
+        let (block, offset, size, address) = (self.block, self.offset, self.size, self.address);
+        write!(f, "ArenaRange {{ block: {block}, offset: {offset}, size: {size}, address: {address:#x} }}")
     }
 }
 
