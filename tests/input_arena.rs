@@ -1,11 +1,14 @@
 //! The device layer's `BufferArena` (lavapipe, validation on): ranges are disjoint, aligned and
 //! addressable, hold what is written into them, reuse freed space, and give their blocks back.
-//! Static BLAS inputs live in one; the backend tests build and free through it.
+//! Static BLAS inputs and every BLAS's storage live in one each; the backend tests build and
+//! free through them.
 
 mod common;
 
 use rtstream::as_manager::backend::vulkan::ash::vk;
-use rtstream::as_manager::backend::vulkan::{BufferArena, MemoryKind, ARENA_UNIT};
+use rtstream::as_manager::backend::vulkan::{
+    AccelStorage, BufferArena, MemoryKind, ACCEL_STORAGE_USAGE, ARENA_UNIT,
+};
 
 const BLOCK: u64 = 64 * 1024;
 
@@ -90,4 +93,74 @@ fn blocks_come_and_go_with_their_ranges() {
     assert_eq!(a.allocated_bytes(), BLOCK);
     a.destroy(&ctx);
     assert_eq!(ctx.live_buffers(), before);
+}
+
+#[test]
+fn an_emptied_block_waits_for_the_next_range() {
+    let ctx = common::context();
+    let before = ctx.live_buffers();
+    let mut a = arena();
+    // Two blocks: the first full of quarters, the second with one quarter.
+    let quarters: Vec<_> = (0..4).map(|_| a.alloc(&ctx, BLOCK / 4).unwrap()).collect();
+    let mut last = a.alloc(&ctx, BLOCK / 2).unwrap();
+    let blocks = ctx.live_buffers() - before;
+    assert!(blocks >= 2, "{blocks} blocks");
+    // The range of a block comes and goes, frame after frame: the block stays (no other block
+    // is empty), and no buffer is made or destroyed.
+    for _ in 0..8 {
+        a.free(&ctx, last);
+        assert_eq!(
+            ctx.live_buffers() - before,
+            blocks,
+            "the emptied block stays"
+        );
+        last = a.alloc(&ctx, BLOCK / 2).unwrap();
+        assert_eq!(
+            ctx.live_buffers() - before,
+            blocks,
+            "and takes the next range"
+        );
+    }
+    // With one block empty, a second emptied block goes.
+    a.free(&ctx, last);
+    for r in quarters {
+        a.free(&ctx, r);
+    }
+    assert_eq!(ctx.live_buffers(), before + 1, "one empty block stays");
+    a.destroy(&ctx);
+    assert_eq!(ctx.live_buffers(), before);
+}
+
+#[test]
+fn acceleration_structures_share_an_arena_block() {
+    let ctx = common::context();
+    let before = ctx.live_buffers();
+    let mut a = BufferArena::new(
+        "test accels",
+        ACCEL_STORAGE_USAGE,
+        MemoryKind::DeviceLocal,
+        BLOCK,
+    );
+    let ty = vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL;
+    let sizes = [256u64, 1000, 4096, 300, 8192, 256];
+    let accels: Vec<_> = sizes
+        .iter()
+        .map(|&s| ctx.create_accel_in(ty, &mut a, s, "test BLAS").unwrap())
+        .collect();
+    assert_eq!(ctx.live_buffers(), before + 1, "one block, no buffer each");
+    let mut addresses: Vec<u64> = accels.iter().map(|x| x.address).collect();
+    assert!(addresses.iter().all(|&x| x != 0));
+    addresses.sort_unstable();
+    addresses.dedup();
+    assert_eq!(addresses.len(), sizes.len(), "distinct structures");
+    for x in &accels {
+        assert!(matches!(x.storage, AccelStorage::Arena(_)));
+    }
+    for x in accels {
+        ctx.destroy_accel_in(x, &mut a);
+    }
+    assert_eq!(ctx.live_buffers(), before + 1, "the empty block stays");
+    a.destroy(&ctx);
+    assert_eq!(ctx.live_buffers(), before);
+    common::assert_no_validation_messages(&ctx);
 }

@@ -20,7 +20,8 @@ pub use as_backend::measure::{
 };
 pub use as_backend::{class_flags, Recording, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use device::accel::{
-    align_up, AccelStruct, AsSizes, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
+    align_up, AccelStorage, AccelStruct, AsSizes, BlasBuildInput, TriangleGeometry,
+    ACCEL_STORAGE_USAGE, BUILD_INPUT_USAGE,
 };
 pub use device::arena::{ArenaRange, BufferArena, UNIT as ARENA_UNIT};
 pub use device::buffer::{BufferDesc, GpuBuffer, MemoryKind};

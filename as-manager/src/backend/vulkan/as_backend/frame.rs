@@ -121,8 +121,9 @@ impl VulkanBackend {
 
     pub(super) fn create_accel(&mut self, size: u64, name: &str) -> BackendResult<AccelStruct> {
         self.reserve(size, true)?;
+        let ty = vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL;
         self.ctx
-            .create_accel(vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL, size, name)
+            .create_accel_in(ty, &mut self.accels, size, name)
             .map_err(|e| {
                 self.unreserve(size, true);
                 backend_err(e)
@@ -149,7 +150,7 @@ impl VulkanBackend {
         match r {
             Retired::Accel(a) | Retired::BlasAccel(a) => {
                 self.unreserve(a.size, limited);
-                self.ctx.destroy_accel(a);
+                self.ctx.destroy_accel_in(a, &mut self.accels);
             }
             Retired::Buffer(b) | Retired::BlasBuffer(b) => {
                 self.unreserve(b.size, limited);

@@ -56,7 +56,8 @@ use std::sync::Arc;
 use ash::vk;
 
 use crate::backend::vulkan::device::accel::{
-    align_up, AccelStruct, BlasBuildInput, ScratchLayout, TriangleGeometry, BUILD_INPUT_USAGE,
+    align_up, AccelStruct, BlasBuildInput, ScratchLayout, TriangleGeometry, ACCEL_STORAGE_USAGE,
+    BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::arena::{ArenaRange, BufferArena};
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
@@ -155,6 +156,9 @@ impl Default for VulkanBackendDesc {
 const QUERIES_PER_SLOT: u32 = 16;
 /// Bytes per block of the static input arena (the default world keeps about 20 MB of inputs).
 const INPUT_BLOCK_BYTES: u64 = 8 << 20;
+/// Bytes per block of the BLAS storage arena (the default world keeps 30 to 40 MB of BLASes,
+/// most of them tens of kilobytes).
+const ACCEL_BLOCK_BYTES: u64 = 16 << 20;
 const COMPACT_QUERIES_PER_SLOT: u32 = 4096;
 
 slotmap::new_key_type! {
@@ -383,6 +387,9 @@ pub struct VulkanBackend {
     /// Static BLASes' uploaded positions and indices, as ranges of a few large host-visible
     /// buffers (`device/arena.rs`).
     inputs: BufferArena,
+    /// Every BLAS's storage (built, compacted, refit targets), as ranges of a few large
+    /// device-local buffers: creating a BLAS allocates no buffer or memory of its own.
+    accels: BufferArena,
     /// Engine-recorded: the slot ended last and not yet handed to the engine's command buffer.
     to_record: Option<usize>,
     /// The GPU refit-quality pass, created at its first use.
@@ -569,6 +576,12 @@ impl VulkanBackend {
                 BUILD_INPUT_USAGE,
                 MemoryKind::Upload,
                 INPUT_BLOCK_BYTES,
+            ),
+            accels: BufferArena::new(
+                "BLAS storage",
+                ACCEL_STORAGE_USAGE,
+                MemoryKind::DeviceLocal,
+                ACCEL_BLOCK_BYTES,
             ),
             quality_pipeline: None,
             quality_reports: Vec::new(),
@@ -796,6 +809,7 @@ impl Drop for VulkanBackend {
             self.destroy(o);
         }
         self.inputs.destroy(&self.ctx);
+        self.accels.destroy(&self.ctx);
         if let Some(p) = self.quality_pipeline.take() {
             p.destroy(&self.ctx);
         }

@@ -9,7 +9,9 @@
 //!
 //! Ranges start at multiples of [`UNIT`] bytes. A request larger than half a block gets a block
 //! of its own, destroyed when its range is freed; an ordinary block is destroyed when it
-//! empties, unless it is the last one.
+//! empties, unless no other ordinary block is empty: one empty block stays, so that a working
+//! set hovering at a block boundary does not allocate and free a block of device memory every
+//! few frames (a `vkAllocateMemory` of a block is far slower than a range).
 
 use offset_allocator::{Allocation, Allocator};
 
@@ -143,10 +145,14 @@ impl BufferArena {
     }
 
     /// Gives a range back; destroys its block once empty (an ordinary block only while
-    /// another one remains).
+    /// another ordinary block is empty too).
     pub fn free(&mut self, ctx: &VulkanContext, r: ArenaRange) {
         let i = r.block as usize;
-        let others = self.blocks.iter().flatten().count() > 1;
+        let other_empty = self.blocks.iter().enumerate().any(|(j, b)| {
+            j != i
+                && b.as_ref()
+                    .is_some_and(|b| b.live == 0 && b.ranges.is_some())
+        });
         let b = self.blocks[i]
             .as_mut()
             .expect("a range's block lives until its last range is freed");
@@ -154,7 +160,7 @@ impl BufferArena {
             ranges.free(a);
         }
         b.live -= 1;
-        if b.live == 0 && (b.ranges.is_none() || others) {
+        if b.live == 0 && (b.ranges.is_none() || other_empty) {
             let b = self.blocks[i].take().expect("checked above");
             ctx.destroy_buffer(b.buffer);
         }
@@ -174,6 +180,13 @@ impl BufferArena {
         b.buffer
             .mapped_mut()
             .map(|m| &mut m[at..at + r.size as usize])
+    }
+
+    /// The buffer holding a range and the range's byte offset in it (where an acceleration
+    /// structure is created in the range).
+    pub fn placement(&self, r: &ArenaRange) -> Option<(vk::Buffer, u64)> {
+        let b = self.blocks.get(r.block as usize)?.as_ref()?;
+        Some((b.buffer.raw, r.offset))
     }
 
     /// Bytes of the blocks (what the arena holds on the device, free space included).
