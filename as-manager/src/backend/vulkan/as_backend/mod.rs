@@ -11,8 +11,11 @@
 //!   its slot.
 //! - **Batched builds.** A frame's BLAS builds go into one vkCmdBuildAccelerationStructuresKHR;
 //!   scratch is sub-allocated from the slot's scratch buffer at multiples of
-//!   `minAccelerationStructureScratchOffsetAlignment`; AS storage and buffers are sub-allocated
-//!   by gpu-allocator.
+//!   `minAccelerationStructureScratchOffsetAlignment`. Every BLAS's storage is a range of one
+//!   device-local `BufferArena` (16 MB blocks) and every static BLAS's uploaded inputs a range
+//!   of a host-visible one, so creating or freeing a BLAS makes or destroys no buffer and no
+//!   allocation (those were most of `build_blases`'s host time); the rest (TLAS, slots' buffers,
+//!   skinned inputs) are gpu-allocator allocations.
 //! - **Build inputs.** A static BLAS keeps the vertex and index buffers it was built from (the
 //!   engine-side geometry a shader reads through [`VulkanBackend::shading_geometry`]). A skinned
 //!   BLAS keeps its index buffer, which updates reuse, and a ring of `frames_in_flight + 1`
