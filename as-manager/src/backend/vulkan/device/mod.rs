@@ -3,6 +3,7 @@
 //! creates device-level Vulkan objects except through it.
 
 pub(crate) mod accel;
+pub(crate) mod accel_object;
 pub(crate) mod arena;
 pub(crate) mod buffer;
 pub(crate) mod context;
