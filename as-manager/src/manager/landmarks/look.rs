@@ -243,8 +243,7 @@ impl Landmarks {
                 self.leave(slot, x.records);
             }
             // Farther it stays out.
-            let join = (radius / kt).min(range + radius);
-            self.due_between(ci, join, f32::INFINITY, d);
+            self.stay_out(ci, radius, kt, range, reach, d);
             return;
         }
         if near_leaf(x) {
@@ -261,8 +260,7 @@ impl Landmarks {
                 self.leave(slot, x.records);
             }
             // Not shown next frame either: it joins once within both limits (no hysteresis).
-            let join = (radius / kt).min(range + radius);
-            self.due_between(ci, join, f32::INFINITY, d);
+            self.stay_out(ci, radius, kt, range, reach, d);
             return;
         }
         let leave_at = (radius / (kt * 0.9)).min(range + radius);
@@ -273,6 +271,22 @@ impl Landmarks {
             hi: leave_at,
         };
         self.settle(ci, x, d, was, last_lod, kind);
+    }
+
+    /// An out candidate (neither shown nor detail) looks again once within both limits
+    /// (`join`: the keep angle's distance, the keep range). A candidate whose `join` is not
+    /// beyond r2 (`reach`) can never be a landmark: closer than `join` it is within r2, where
+    /// the residency pass has it. Travel alone then changes nothing, and it waits for an event
+    /// only (its leaf turning near, its mesh or the configuration changing). Most small
+    /// instances are such candidates when the set also keeps the near leaves' detail.
+    fn stay_out(&mut self, ci: u32, radius: f32, kt: f32, range: f32, reach: f32, d: f32) {
+        let join = (radius / kt).min(range + radius);
+        let lo = if join <= reach {
+            f32::NEG_INFINITY
+        } else {
+            join
+        };
+        self.due_between(ci, lo, f32::INFINITY, d);
     }
 
     /// `evaluate` once more in the same look (after a change of kind): not counted twice.
