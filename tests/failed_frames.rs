@@ -9,7 +9,7 @@ mod common;
 use std::sync::Arc;
 
 use glam::Vec3;
-use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackendDesc};
+use rtstream::as_manager::backend::vulkan::{FaultPoint, VulkanBackendDesc, VulkanError};
 use rtstream::as_manager::backend::BackendError;
 use rtstream::as_manager::{AsError, FrameInput, Viewpoint};
 
@@ -94,6 +94,50 @@ fn a_failed_frame_rolls_back_and_its_number_is_retried() {
     );
     let c = s.m.backend().counters();
     assert!(c.compactions > 0 && c.refits + c.rebuilds > 0, "{c:?}");
+}
+
+#[test]
+fn a_vulkan_error_reaches_the_caller_typed() {
+    let ctx = common::context();
+    let mut s = scene(&ctx);
+    // The device layer fails the next BLAS creation (as a driver error would, not a fault the
+    // backend stages): `update` returns the `VulkanError` itself, not its text.
+    ctx.inject_failure("create_accel_in");
+    let mut frame = 0u64;
+    let e = loop {
+        assert!(frame < 100, "no BLAS was created");
+        match update(&mut s, frame) {
+            Ok(_) => frame += 1,
+            Err(e) => break e,
+        }
+    };
+    match &e {
+        AsError::Backend(BackendError::Vulkan(f)) => assert!(
+            matches!(f.error(), VulkanError::Injected { at } if *at == "create_accel_in"),
+            "{e}"
+        ),
+        other => panic!("expected the typed Vulkan error, got {other:?}"),
+    }
+    assert_eq!(
+        e.to_string(),
+        vulkan_text(&e),
+        "the text is the Vulkan error's own"
+    );
+    // The frame rolled back; its number runs again.
+    s.m.check_invariants().unwrap();
+    update(&mut s, frame).unwrap();
+    for f in frame + 1..frame + 10 {
+        update(&mut s, f).unwrap();
+    }
+    s.m.check_invariants().unwrap();
+}
+
+/// The text of the Vulkan error inside `e`, as the backend layer prints it.
+fn vulkan_text(e: &AsError) -> String {
+    match e {
+        AsError::Backend(BackendError::Vulkan(f)) => format!("backend: {}", f.error()),
+        _ => String::new(),
+    }
 }
 
 #[test]

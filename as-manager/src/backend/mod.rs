@@ -184,9 +184,53 @@ pub enum BackendError {
     /// buffer (`VulkanBackend::record`); a later frame would depend on builds that never ran.
     #[error("frame {frame} was not recorded into the engine's command buffer (call record)")]
     FrameNotRecorded { frame: u64 },
+    /// The Vulkan backend's own error, kept typed (any `VulkanError` other than out of memory
+    /// or device lost, which have their variants above): match on `.0.error()`.
+    #[cfg(feature = "vulkan")]
+    #[error(transparent)]
+    Vulkan(VulkanFailure),
     /// Anything else, with the backend's words.
     #[error("{0}")]
     Other(String),
+}
+
+/// A [`vulkan::VulkanError`] inside a [`BackendError`], shared so that the error stays `Clone`.
+/// Two are equal when they are the same failure (the same allocation), not merely alike.
+#[cfg(feature = "vulkan")]
+#[derive(Debug, Clone)]
+pub struct VulkanFailure(pub std::sync::Arc<vulkan::VulkanError>);
+
+#[cfg(feature = "vulkan")]
+impl VulkanFailure {
+    /// The Vulkan error.
+    pub fn error(&self) -> &vulkan::VulkanError {
+        &self.0
+    }
+}
+
+#[cfg(feature = "vulkan")]
+impl PartialEq for VulkanFailure {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+#[cfg(feature = "vulkan")]
+impl Eq for VulkanFailure {}
+
+#[cfg(feature = "vulkan")]
+impl std::fmt::Display for VulkanFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
+#[cfg(feature = "vulkan")]
+impl std::error::Error for VulkanFailure {
+    // Transparent: the Vulkan error's own text and source.
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        std::error::Error::source(&*self.0)
+    }
 }
 
 /// Where a fault injected into a backend (tests of the error paths:

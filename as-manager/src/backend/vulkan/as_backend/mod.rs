@@ -421,7 +421,7 @@ fn backend_err(e: VulkanError) -> BackendError {
     match e {
         VulkanError::OutOfDeviceMemory { .. } => BackendError::OutOfDeviceMemory,
         VulkanError::DeviceLost { .. } => BackendError::DeviceLost,
-        other => BackendError::Other(other.to_string()),
+        other => BackendError::Vulkan(crate::backend::VulkanFailure(Arc::new(other))),
     }
 }
 

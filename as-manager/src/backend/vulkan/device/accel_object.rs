@@ -77,6 +77,7 @@ impl VulkanContext {
         name: &str,
     ) -> VkResult<AccelStruct> {
         let _s = tracing::trace_span!("create_accel").entered();
+        self.failpoint("create_accel_in")?;
         let range = arena.alloc(self, size)?;
         let (buffer, offset) = arena.placement(&range).expect("a range's block is live");
         match self.accel_at(ty, buffer, offset, size, name) {

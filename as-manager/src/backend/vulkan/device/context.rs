@@ -427,7 +427,8 @@ impl VulkanContext {
 
     /// Test-only: the next [`VulkanContext::failpoint`] check at `at` fails with
     /// [`VulkanError::Injected`] (steps: `"backend.pool"`, `"backend.semaphore"`,
-    /// `"backend.command_buffers"`, `"query_pool"`, `"build_blas_now.scratch"`).
+    /// `"backend.command_buffers"`, `"query_pool"`, `"build_blas_now.scratch"`,
+    /// `"create_accel_in"`).
     #[doc(hidden)]
     pub fn inject_failure(&self, at: &'static str) {
         *self.failpoint.lock() = Some(at);
