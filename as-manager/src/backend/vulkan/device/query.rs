@@ -1,5 +1,7 @@
 //! Query pools: GPU timestamps (measured costs) and compacted AS sizes (compaction).
 
+use std::sync::atomic::{AtomicU32, Ordering};
+
 use ash::vk;
 
 use crate::backend::vulkan::device::context::VulkanContext;
@@ -23,6 +25,9 @@ pub struct QueryPool {
     pub count: u32,
     kind: QueryKind,
     period_ns: f64,
+    /// One past the highest query recorded since the last reset: a reset covers only those
+    /// (a slot's pool of 4,096 compaction queries sees a handful a frame).
+    written: AtomicU32,
 }
 
 impl QueryPool {
@@ -45,16 +50,27 @@ impl QueryPool {
             count: count.max(1),
             kind,
             period_ns: f64::from(ctx.info().timestamp_period_ns),
+            written: AtomicU32::new(0),
         };
-        pool.reset(ctx);
+        // SAFETY: the pool is new: no GPU work uses it.
+        unsafe { ctx.device.reset_query_pool(pool.raw, 0, pool.count) };
         Ok(pool)
     }
 
-    /// Resets every query from the host (hostQueryReset is enabled by the context).
-    /// The caller guarantees no pending GPU work uses the pool.
+    /// Resets from the host every query recorded since the last reset (hostQueryReset is
+    /// enabled by the context); the others were not written since theirs. The caller
+    /// guarantees no pending GPU work uses the pool.
     pub fn reset(&self, ctx: &VulkanContext) {
-        // SAFETY: by contract the pool is not in use by pending work.
-        unsafe { ctx.device.reset_query_pool(self.raw, 0, self.count) };
+        let n = self.written.swap(0, Ordering::Relaxed).min(self.count);
+        if n > 0 {
+            // SAFETY: by contract the pool is not in use by pending work.
+            unsafe { ctx.device.reset_query_pool(self.raw, 0, n) };
+        }
+    }
+
+    /// Notes that queries below `end` are recorded (for [`QueryPool::reset`]).
+    fn mark_written(&self, end: u32) {
+        self.written.fetch_max(end, Ordering::Relaxed);
     }
 
     /// Records a timestamp after all previous commands complete.
@@ -63,6 +79,7 @@ impl QueryPool {
     /// `cmd` is recording; query `index` is reset and not written since.
     pub unsafe fn cmd_timestamp(&self, ctx: &VulkanContext, cmd: vk::CommandBuffer, index: u32) {
         debug_assert_eq!(self.kind, QueryKind::Timestamp);
+        self.mark_written(index + 1);
         // SAFETY: guaranteed by the caller.
         unsafe {
             ctx.device.cmd_write_timestamp2(
@@ -87,6 +104,7 @@ impl QueryPool {
         first: u32,
     ) {
         debug_assert_eq!(self.kind, QueryKind::CompactedSize);
+        self.mark_written(first + accels.len() as u32);
         // SAFETY: guaranteed by the caller.
         unsafe {
             ctx.accel.cmd_write_acceleration_structures_properties(
