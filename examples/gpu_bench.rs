@@ -23,8 +23,8 @@ use serde::Serialize;
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
-    ContextDesc, GpuGeometry, SceneMesh, StaticInstance, StaticScene, TriangleGeometry, Validation,
-    VulkanBackend, VulkanBackendDesc, VulkanContext,
+    time_tlas_update, ContextDesc, GpuGeometry, SceneMesh, StaticInstance, StaticScene,
+    TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
 };
 use rtstream::as_manager::backend::CostOp;
 use rtstream::as_manager::{
@@ -174,6 +174,12 @@ enum Record<'a> {
         flags: &'a str,
         gpu_ms: f64,
         bytes: u64,
+    },
+    TlasUpdate {
+        instances: usize,
+        build_ms: f64,
+        update_ms: f64,
+        build_over_update: f64,
     },
     Sizes {
         triangles: u32,
@@ -422,6 +428,37 @@ fn main() -> anyhow::Result<()> {
                 bytes as f64 / n as f64
             ));
         }
+    }
+    // 4b. TLAS update in place against a rebuild (PREFER_FAST_TRACE | ALLOW_UPDATE, every
+    // instance moved between updates).
+    md.push(format!("\n### TLAS update vs rebuild (FAST_TRACE + ALLOW_UPDATE, every instance moved) — {}\n\n| instances | build GPU ms | update GPU ms | build / update |\n|---:|---:|---:|---:|", info.name));
+    for n in [1_000usize, 10_000, 100_000]
+        .into_iter()
+        .filter(|&n| n <= args.max_instances)
+    {
+        let side = (n as f64).sqrt().ceil() as usize;
+        let transforms: Vec<[f32; 16]> = (0..n)
+            .map(|i| {
+                glam::Mat4::from_translation(glam::Vec3::new(
+                    (i % side) as f32 * 120.0,
+                    0.0,
+                    (i / side) as f32 * 120.0,
+                ))
+                .to_cols_array()
+            })
+            .collect();
+        let (build_ms, update_ms) = time_tlas_update(ctx, &blas, &transforms, reps)?;
+        let ratio = build_ms / update_ms.max(1e-6);
+        Record::TlasUpdate {
+            instances: n,
+            build_ms: round_to(build_ms, 4),
+            update_ms: round_to(update_ms, 4),
+            build_over_update: round_to(ratio, 2),
+        }
+        .print()?;
+        md.push(format!(
+            "| {n} | {build_ms:.3} | {update_ms:.3} | {ratio:.2} |"
+        ));
     }
     ctx.destroy_accel(blas);
     small.destroy(ctx);

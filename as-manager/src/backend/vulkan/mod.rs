@@ -16,7 +16,7 @@ mod render;
 pub use super::FaultPoint;
 pub use as_backend::measure::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
-    CompactionResult,
+    time_tlas_update, CompactionResult,
 };
 pub use as_backend::{class_flags, Recording, VulkanBackend, VulkanBackendDesc, VulkanCounters};
 pub use device::accel::{

@@ -326,3 +326,93 @@ pub fn time_tlas_build(
     ts.destroy(ctx);
     result
 }
+
+/// Median GPU ms of a TLAS build and of an update in place over `transforms` (instances of
+/// `blas`), both with `PREFER_FAST_TRACE | ALLOW_UPDATE`: the build from the given transforms,
+/// the updates alternating between them and the same moved by half a metre (every instance
+/// changes, as in a frame where everything moved). `reps` timed repetitions each, after one
+/// warm-up. Returns (build ms, update ms).
+pub fn time_tlas_update(
+    ctx: &VulkanContext,
+    blas: &AccelStruct,
+    transforms: &[[f32; 16]],
+    reps: usize,
+) -> VkResult<(f64, f64)> {
+    let flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
+        | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE;
+    let n = transforms.len() as u32;
+    let records = |dx: f32| -> Vec<TlasInstance> {
+        let moved = glam::Affine3A::from_translation(glam::Vec3::new(dx, 0.0, 0.0));
+        transforms
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let at = moved * glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(t));
+                let ci = (i as u32) & 0xff_ffff;
+                TlasInstance::new(&at, ci, 0xff, 0, INSTANCE_FORCE_OPAQUE, blas.address)
+            })
+            .collect()
+    };
+    let s = ctx.tlas_sizes(n, flags);
+    let mut owned: Vec<crate::backend::vulkan::device::buffer::GpuBuffer> = Vec::new();
+    let mut tlas = None;
+    let ts = QueryPool::new(ctx, QueryKind::Timestamp, 2, "tlas update timestamps")?;
+    let result = (|| {
+        for dx in [0.0, 0.5] {
+            let name = "tlas update bench instances";
+            let data = records(dx);
+            owned.push(ctx.create_buffer_with_data(
+                name,
+                BUILD_INPUT_USAGE,
+                bytemuck::cast_slice(&data),
+            )?);
+        }
+        let (a, b) = (owned[0].address, owned[1].address);
+        let t = ctx.create_accel(
+            vk::AccelerationStructureTypeKHR::TOP_LEVEL,
+            s.storage,
+            "tlas update bench",
+        )?;
+        let raw = t.raw;
+        tlas = Some(t);
+        let (buf, base) =
+            ctx.create_scratch("tlas update scratch", s.build_scratch.max(s.update_scratch))?;
+        owned.push(buf);
+        let mut builds = Vec::new();
+        for rep in 0..=reps {
+            // SAFETY: the BLAS is built (the caller's contract); the instance buffers, the TLAS
+            // and the scratch live until the wait inside `timed`.
+            let ms = timed(ctx, &ts, "tlas update bench build", |cmd| unsafe {
+                ctx.cmd_build_tlas(cmd, raw, None, flags, a, n, base)
+            })?;
+            if rep > 0 {
+                builds.push(ms);
+            }
+        }
+        // The last build was from `a`: updates go to `b`, back to `a`, ...
+        let mut updates = Vec::new();
+        for rep in 0..=reps {
+            let from = if rep % 2 == 0 { b } else { a };
+            // SAFETY: as above; `raw` was built with ALLOW_UPDATE from as many instances, and
+            // the previous submit (a build or an update of it) completed.
+            let ms = timed(ctx, &ts, "tlas update bench update", |cmd| unsafe {
+                ctx.cmd_build_tlas(cmd, raw, Some(raw), flags, from, n, base)
+            })?;
+            if rep > 0 {
+                updates.push(ms);
+            }
+        }
+        Ok((
+            Samples::new(builds).median(),
+            Samples::new(updates).median(),
+        ))
+    })();
+    if let Some(t) = tlas {
+        ctx.destroy_accel(t);
+    }
+    for b in owned {
+        ctx.destroy_buffer(b);
+    }
+    ts.destroy(ctx);
+    result
+}
