@@ -394,17 +394,7 @@ fn main() -> anyhow::Result<()> {
         .into_iter()
         .filter(|&n| n <= args.max_instances)
     {
-        let side = (n as f64).sqrt().ceil() as usize;
-        let transforms: Vec<[f32; 16]> = (0..n)
-            .map(|i| {
-                glam::Mat4::from_translation(glam::Vec3::new(
-                    (i % side) as f32 * 120.0,
-                    0.0,
-                    (i / side) as f32 * 120.0,
-                ))
-                .to_cols_array()
-            })
-            .collect();
+        let transforms = grid_transforms(n);
         for (fname, flags) in [
             (
                 "FAST_TRACE",
@@ -436,17 +426,7 @@ fn main() -> anyhow::Result<()> {
         .into_iter()
         .filter(|&n| n <= args.max_instances)
     {
-        let side = (n as f64).sqrt().ceil() as usize;
-        let transforms: Vec<[f32; 16]> = (0..n)
-            .map(|i| {
-                glam::Mat4::from_translation(glam::Vec3::new(
-                    (i % side) as f32 * 120.0,
-                    0.0,
-                    (i / side) as f32 * 120.0,
-                ))
-                .to_cols_array()
-            })
-            .collect();
+        let transforms = grid_transforms(n);
         let (build_ms, update_ms) = time_tlas_update(ctx, &blas, &transforms, reps)?;
         let ratio = build_ms / update_ms.max(1e-6);
         Record::TlasUpdate {
@@ -706,4 +686,15 @@ fn manager_build_ms(
         "the manager admitted {built} of {meshes_n} builds in one frame"
     );
     Ok((ms, wall))
+}
+
+/// `n` instance transforms on a square grid 120 m apart (the TLAS measurements' instances).
+fn grid_transforms(n: usize) -> Vec<[f32; 16]> {
+    let side = (n as f64).sqrt().ceil() as usize;
+    (0..n)
+        .map(|i| {
+            let at = glam::Vec3::new((i % side) as f32 * 120.0, 0.0, (i / side) as f32 * 120.0);
+            glam::Mat4::from_translation(at).to_cols_array()
+        })
+        .collect()
 }

@@ -7,7 +7,8 @@ mod common;
 
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
-    AccelStorage, BufferArena, MemoryKind, ACCEL_STORAGE_USAGE, ARENA_UNIT,
+    AccelStorage, ArenaRange, BufferArena, MemoryKind, VulkanContext, ACCEL_STORAGE_USAGE,
+    ARENA_UNIT,
 };
 
 const BLOCK: u64 = 64 * 1024;
@@ -21,11 +22,32 @@ fn arena() -> BufferArena {
     )
 }
 
-#[test]
-fn ranges_are_disjoint_hold_their_bytes_and_reuse_space() {
+/// A validated context, its live buffer count and an empty test arena.
+fn fresh() -> (common::TestContext, i64, BufferArena) {
     let ctx = common::context();
     let before = ctx.live_buffers();
-    let mut a = arena();
+    (ctx, before, arena())
+}
+
+/// Frees `ranges`: one empty block of `BLOCK` bytes stays, and goes with the arena.
+fn free_all(
+    ctx: &VulkanContext,
+    mut a: BufferArena,
+    ranges: impl IntoIterator<Item = ArenaRange>,
+    before: i64,
+) {
+    for r in ranges {
+        a.free(ctx, r);
+    }
+    assert_eq!(ctx.live_buffers(), before + 1, "one empty block stays");
+    assert_eq!(a.allocated_bytes(), BLOCK);
+    a.destroy(ctx);
+    assert_eq!(ctx.live_buffers(), before);
+}
+
+#[test]
+fn ranges_are_disjoint_hold_their_bytes_and_reuse_space() {
+    let (ctx, before, mut a) = fresh();
     let sizes = [1u64, 255, 256, 257, 1000, 4096, 12, 20_000];
     let mut ranges: Vec<_> = sizes.iter().map(|&s| a.alloc(&ctx, s).unwrap()).collect();
     assert_eq!(ctx.live_buffers(), before + 1, "all of them fit one block");
@@ -61,19 +83,12 @@ fn ranges_are_disjoint_hold_their_bytes_and_reuse_space() {
         ranges.push(a.alloc(&ctx, s).unwrap());
     }
     assert_eq!(a.allocated_bytes(), held, "no new block for freed space");
-    for r in ranges {
-        a.free(&ctx, r);
-    }
-    assert_eq!(ctx.live_buffers(), before + 1, "the last block stays");
-    a.destroy(&ctx);
-    assert_eq!(ctx.live_buffers(), before);
+    free_all(&ctx, a, ranges, before);
 }
 
 #[test]
 fn blocks_come_and_go_with_their_ranges() {
-    let ctx = common::context();
-    let before = ctx.live_buffers();
-    let mut a = arena();
+    let (ctx, before, mut a) = fresh();
     // Quarter blocks: at least three blocks for twelve, each a buffer.
     let quarters: Vec<_> = (0..12).map(|_| a.alloc(&ctx, BLOCK / 4).unwrap()).collect();
     let blocks = a.allocated_bytes() / BLOCK;
@@ -86,20 +101,12 @@ fn blocks_come_and_go_with_their_ranges() {
     a.free(&ctx, big);
     assert_eq!(ctx.live_buffers(), before + blocks as i64);
     // Emptied blocks go while another remains.
-    for r in quarters {
-        a.free(&ctx, r);
-    }
-    assert_eq!(ctx.live_buffers(), before + 1);
-    assert_eq!(a.allocated_bytes(), BLOCK);
-    a.destroy(&ctx);
-    assert_eq!(ctx.live_buffers(), before);
+    free_all(&ctx, a, quarters, before);
 }
 
 #[test]
 fn an_emptied_block_waits_for_the_next_range() {
-    let ctx = common::context();
-    let before = ctx.live_buffers();
-    let mut a = arena();
+    let (ctx, before, mut a) = fresh();
     // Two blocks: the first full of quarters, the second with one quarter.
     let quarters: Vec<_> = (0..4).map(|_| a.alloc(&ctx, BLOCK / 4).unwrap()).collect();
     let mut last = a.alloc(&ctx, BLOCK / 2).unwrap();
@@ -123,12 +130,7 @@ fn an_emptied_block_waits_for_the_next_range() {
     }
     // With one block empty, a second emptied block goes.
     a.free(&ctx, last);
-    for r in quarters {
-        a.free(&ctx, r);
-    }
-    assert_eq!(ctx.live_buffers(), before + 1, "one empty block stays");
-    a.destroy(&ctx);
-    assert_eq!(ctx.live_buffers(), before);
+    free_all(&ctx, a, quarters, before);
 }
 
 #[test]

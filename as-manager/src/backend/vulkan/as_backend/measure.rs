@@ -294,11 +294,7 @@ pub fn time_tlas_build(
     let mut tlas = None;
     let mut scratch = None;
     let result = (|| {
-        let t = ctx.create_accel(
-            vk::AccelerationStructureTypeKHR::TOP_LEVEL,
-            s.storage,
-            "bench tlas",
-        )?;
+        let t = create_tlas(ctx, s.storage, "bench tlas")?;
         let raw = t.raw;
         tlas = Some(t);
         let (buf, base) = ctx.create_scratch("bench tlas scratch", s.build_scratch)?;
@@ -368,11 +364,7 @@ pub fn time_tlas_update(
             )?);
         }
         let (a, b) = (owned[0].address, owned[1].address);
-        let t = ctx.create_accel(
-            vk::AccelerationStructureTypeKHR::TOP_LEVEL,
-            s.storage,
-            "tlas update bench",
-        )?;
+        let t = create_tlas(ctx, s.storage, "tlas update bench")?;
         let raw = t.raw;
         tlas = Some(t);
         let (buf, base) =
@@ -415,4 +407,9 @@ pub fn time_tlas_update(
     }
     ts.destroy(ctx);
     result
+}
+
+/// A TLAS of `storage` bytes in a buffer of its own.
+fn create_tlas(ctx: &VulkanContext, storage: u64, name: &str) -> VkResult<AccelStruct> {
+    ctx.create_accel(vk::AccelerationStructureTypeKHR::TOP_LEVEL, storage, name)
 }
