@@ -31,12 +31,14 @@ fn a_tlas_updates_in_place_and_both_are_timed() {
         })
         .collect();
     let (build_ms, update_ms) = time_tlas_update(&ctx, &blas, &transforms, 2).unwrap();
+    // Timestamps of work this small may tick zero apart: only their validity is asserted, never
+    // a duration (no test depends on timing).
     assert!(
-        build_ms > 0.0 && build_ms.is_finite(),
+        build_ms >= 0.0 && build_ms.is_finite(),
         "build {build_ms} ms"
     );
     assert!(
-        update_ms > 0.0 && update_ms.is_finite(),
+        update_ms >= 0.0 && update_ms.is_finite(),
         "update {update_ms} ms"
     );
     assert_eq!(
