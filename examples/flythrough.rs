@@ -215,6 +215,23 @@ fn print_table(r: &RunReport) {
         "per frame, new geometry copied by update and TLAS records written of those built: {}",
         copied.join("; ")
     );
+    let tlas: Vec<String> = s
+        .policies
+        .iter()
+        .map(|p| {
+            format!(
+                "{} {:.3} / {:.3} ms, {:.0} % updated",
+                p.policy,
+                p.gpu_tlas_ms_p50,
+                p.gpu_tlas_ms_p99,
+                p.tlas_update_share * 100.0
+            )
+        })
+        .collect();
+    println!(
+        "TLAS GPU ms p50 / p99 and frames updating the last frame's TLAS: {}",
+        tlas.join("; ")
+    );
     println!("validation messages: {}", s.validation_messages);
     for f in &r.files {
         println!("wrote {}", f.display());

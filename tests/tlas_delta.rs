@@ -3,33 +3,26 @@
 //! slot's last use (`TlasDelta`: the far field's landmarks lead the records and persist). Three
 //! frames in flight, a walk that keeps landmarks joining, leaving and changing LOD, instances
 //! added, moved and removed, and a failed frame.
+//!
+//! And the TLAS updated in place from the last frame's (`TlasUpdates`, opt-in) traces
+//! what a TLAS built every frame traces, hit for hit, while records join, leave and move.
 
 mod common;
 
 use glam::{Affine3A, Quat, Vec3};
-use rtstream::as_manager::backend::vulkan::{VulkanBackend, VulkanBackendDesc};
+use rtstream::as_manager::backend::vulkan::{TlasUpdates, VulkanBackend, VulkanBackendDesc};
 use rtstream::as_manager::backend::{BackendError, FaultPoint};
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
     AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshDesc,
-    MeshKind, Viewpoint,
+    MeshId, MeshKind, Viewpoint,
 };
+use rtstream::renderer::{Camera, InstanceShading, RenderDesc, Renderer};
 use rtstream_stats::Rng;
 
-#[test]
-fn instance_buffers_hold_the_records_while_only_changes_are_written() {
-    let ctx = common::context();
-    let desc = VulkanBackendDesc {
-        frames_in_flight: 3,
-        ..VulkanBackendDesc::default()
-    };
-    let config = Config {
-        freeze_cost_model: true,
-        ..Config::default()
-    };
-    let mut m = common::manager(&ctx, desc, config);
-    // Four meshes of 3 LODs with data, 4 to 40 m across.
-    let meshes: Vec<_> = (0..4u32)
+/// Four meshes of 3 LODs with data, 4 to 40 m across.
+fn tiles(m: &AsManager<VulkanBackend>) -> Vec<MeshId> {
+    (0..4u32)
         .map(|i| {
             let size = 8.0 + 24.0 * i as f32;
             let lods = (0..3u32)
@@ -46,7 +39,23 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
             ))
             .unwrap()
         })
-        .collect();
+        .collect()
+}
+
+#[test]
+fn instance_buffers_hold_the_records_while_only_changes_are_written() {
+    let ctx = common::context();
+    let desc = VulkanBackendDesc {
+        frames_in_flight: 3,
+        tlas_updates: TlasUpdates::ON,
+        ..VulkanBackendDesc::default()
+    };
+    let config = Config {
+        freeze_cost_model: true,
+        ..Config::default()
+    };
+    let mut m = common::manager(&ctx, desc, config);
+    let meshes = tiles(&m);
     let mut rng = Rng::new(0x7d17a);
     let place = |m: &AsManager<VulkanBackend>, rng: &mut Rng, k: u32| -> InstanceId {
         let t = Affine3A::from_scale_rotation_translation(
@@ -112,6 +121,13 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
         frames_compared >= 150 && max_landmarks >= 100,
         "{frames_compared} {max_landmarks}"
     );
+    // Most frames updated their TLAS from the last frame's.
+    assert!(
+        c.tlas_updates > c.tlas_builds && c.tlas_builds >= 2,
+        "{} updates, {} builds",
+        c.tlas_updates,
+        c.tlas_builds
+    );
     // The landmarks stayed: far fewer records were written than built from.
     assert!(
         c.tlas_records_written * 2 < c.tlas_records_built,
@@ -120,4 +136,153 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
         c.tlas_records_built
     );
     m.backend_mut().wait_idle().unwrap();
+}
+
+/// Two managers see the same world and walk: one updates its TLAS in place between builds,
+/// the other builds it every frame. Every frame's trace agrees pixel for pixel (instance,
+/// triangle, distance), and the shown records agree but for their BLAS addresses.
+#[test]
+fn tlas_updates_trace_what_builds_trace() {
+    let ctx = common::context();
+    let config = Config {
+        freeze_cost_model: true,
+        ..Config::default()
+    };
+    let manager = |tlas_updates| {
+        let desc = VulkanBackendDesc {
+            frames_in_flight: 2,
+            tlas_updates,
+            ..VulkanBackendDesc::default()
+        };
+        common::manager(&ctx, desc, config.clone())
+    };
+    // Long update runs (no early build in light frames), and every frame built.
+    let updating = TlasUpdates {
+        max_updates: 24,
+        light_frame_triangles: 0,
+        ..TlasUpdates::ON
+    };
+    let mut ms = [manager(updating), manager(TlasUpdates::OFF)];
+    let meshes: Vec<Vec<MeshId>> = ms.iter().map(tiles).collect();
+    let mut rng = Rng::new(0x0b5e55);
+    let mut live: Vec<[InstanceId; 2]> = Vec::new();
+    let place = |ms: &[AsManager<VulkanBackend>; 2], rng: &mut Rng, k: u32| {
+        let t = Affine3A::from_scale_rotation_translation(
+            Vec3::splat(rng.range(0.5, 1.5)),
+            Quat::IDENTITY,
+            Vec3::new(
+                rng.range(-600.0, 600.0),
+                rng.range(0.0, 30.0),
+                rng.range(-600.0, 600.0),
+            ),
+        );
+        let mesh = rng.below(4);
+        [0, 1].map(|i| {
+            let mut d = InstanceDesc::new(meshes[i][mesh], t);
+            d.custom_index = k;
+            ms[i].add_instance(d).unwrap()
+        })
+    };
+    for k in 0..400 {
+        live.push(place(&ms, &mut rng, k));
+    }
+    let mut renderer = Renderer::new(ctx.clone()).expect("renderer");
+    let (mut hits, mut differing, mut next_index) = (0usize, 0usize, 400u32);
+    for frame in 0..72u64 {
+        if frame % 6 == 3 {
+            // Churn: adds, moves and removes, the same in both.
+            for _ in 0..6 {
+                live.push(place(&ms, &mut rng, next_index));
+                next_index += 1;
+                let i = rng.below(live.len());
+                let t = Affine3A::from_translation(Vec3::new(
+                    rng.range(-600.0, 600.0),
+                    rng.range(0.0, 30.0),
+                    rng.range(-600.0, 600.0),
+                ));
+                for (m, id) in ms.iter().zip(live[i]) {
+                    m.set_transform(id, t).unwrap();
+                }
+                let j = rng.below(live.len());
+                for (m, id) in ms.iter().zip(live.swap_remove(j)) {
+                    m.remove_instance(id).unwrap();
+                }
+            }
+        }
+        // A walk at 9 m a frame, turning.
+        let t = frame as f32 * 0.02;
+        let eye = Vec3::new(500.0 * t.sin(), 2.0, 500.0 * (t * 0.7).cos() - 250.0);
+        let cams = [Viewpoint::new(eye, Vec3::X)];
+        let cam = Camera::look_at(
+            eye + Vec3::new(0.0, 40.0, -60.0),
+            eye + Vec3::new(0.0, 0.0, 60.0),
+            70f32.to_radians(),
+        );
+        let mut seen = Vec::new();
+        for m in &mut ms {
+            let out = m
+                .update(FrameInput {
+                    frame,
+                    cameras: &cams,
+                })
+                .unwrap();
+            let (tlas, records) = (out.tlas, out.instances.to_vec());
+            let shown: Vec<_> = records
+                .iter()
+                .map(|r| (r.custom_index(), r.transform))
+                .collect();
+            let backend = m.backend_mut();
+            backend.wait_idle().unwrap();
+            let mut table = vec![InstanceShading::colour_only([0.5; 4]); next_index as usize];
+            for r in &records {
+                let (v, i) = backend
+                    .shading_geometry(r.blas_address)
+                    .expect("every record's BLAS is live");
+                table[r.custom_index() as usize] = InstanceShading {
+                    vertices: v,
+                    indices: i,
+                    base_color: [0.8, 0.6, 0.4, 1.0],
+                };
+            }
+            let raw = backend.tlas(tlas).expect("this frame's TLAS");
+            let image = renderer
+                .render(raw, &table, &RenderDesc::new(48, 32, cam))
+                .expect("trace");
+            seen.push((shown, image.hits));
+        }
+        assert!(
+            seen[0].0 == seen[1].0,
+            "frame {frame}: the shown records differ"
+        );
+        // The two trees differ, and so do their instance transforms in the last bits: only
+        // ties (a triangle edge, surfaces within float noise) may trace otherwise.
+        let (a, b) = (&seen[0].1, &seen[1].1);
+        for (p, (x, y)) in a.iter().zip(b).enumerate() {
+            if (x.instance, x.primitive) == (y.instance, y.primitive) {
+                continue;
+            }
+            differing += 1;
+            assert!(
+                x.is_hit() && y.is_hit() && (x.t() - y.t()).abs() <= 1e-3 * x.t().max(1.0),
+                "frame {frame}, pixel {p}: the updated TLAS traces otherwise: {x:?} vs {y:?}"
+            );
+        }
+        hits += a.iter().filter(|h| h.is_hit()).count();
+    }
+    let (u, b) = (ms[0].backend().counters(), ms[1].backend().counters());
+    assert!(
+        u.tlas_updates >= 50 && u.tlas_builds >= 3,
+        "{} updates, {} builds",
+        u.tlas_updates,
+        u.tlas_builds
+    );
+    assert_eq!((b.tlas_updates, b.tlas_builds), (0, 72));
+    assert!(
+        hits > 72 * 200,
+        "the traces should see geometry: {hits} hits"
+    );
+    assert!(differing * 1000 < hits, "{differing} ties of {hits} hits");
+    for m in &mut ms {
+        m.backend_mut().wait_idle().unwrap();
+    }
 }

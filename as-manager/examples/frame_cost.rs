@@ -1,7 +1,7 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N]`
 
 use std::time::Instant;
 
@@ -31,6 +31,9 @@ struct Args {
     /// The far field's keep angle, degrees (0: no landmarks; default: the configuration's).
     #[arg(long)]
     keep_angle: Option<f32>,
+    /// Frames measured after the 300 warm-up frames.
+    #[arg(long, default_value_t = 3000)]
+    frames: u64,
 }
 
 fn main() {
@@ -77,7 +80,8 @@ fn main() {
         .unwrap();
     }
     let mut times = Vec::new();
-    for f in 300..3300 {
+    let (mut looks, mut waits) = (Vec::new(), Vec::new());
+    for f in 300..300 + args.frames {
         let c = cameras(f);
         let t = Instant::now();
         m.update(FrameInput {
@@ -86,6 +90,13 @@ fn main() {
         })
         .unwrap();
         times.push(t.elapsed().as_secs_f64() * 1e6);
+        let st = m.stats();
+        looks.push(st.landmarks_examined as f64);
+        waits.push(st.landmarks_waited as f64);
+    }
+    if let Ok(path) = std::env::var("FRAME_COST_DUMP") {
+        let text: String = times.iter().map(|t| format!("{t:.1}\n")).collect();
+        std::fs::write(path, text).unwrap();
     }
     let t = Samples::new(times);
     println!(
@@ -98,4 +109,12 @@ fn main() {
         t.max()
     );
     println!("{:?}", m.stats());
+    let (l, w) = (Samples::new(looks), Samples::new(waits));
+    println!(
+        "landmark looks per frame: mean {:.1}, median {:.1}; waits: mean {:.1}, median {:.1}",
+        l.mean(),
+        l.median(),
+        w.mean(),
+        w.median()
+    );
 }

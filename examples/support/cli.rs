@@ -8,6 +8,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use clap::{Args, CommandFactory, FromArgMatches, Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
+use rtstream::as_manager::backend::vulkan::TlasUpdates;
 use rtstream::as_manager::PolicyKind;
 use rtstream::driver::{self, FrameRow, PolicySummary, Progress, RunConfig, RunReport};
 use rtstream::streaming::WorldPreset;
@@ -129,6 +130,14 @@ pub struct RunArgs {
     /// Also run the managed policy with its far field off (`managed-near`) in the same run.
     #[arg(long)]
     pub compare_far_field: bool,
+    /// Also run the managed policy with its TLAS updated in place between builds
+    /// (`managed-tlas-update`) beside the policies' TLAS built every frame, in the same run.
+    #[arg(long)]
+    pub compare_tlas_updates: bool,
+    /// Every policy updates its TLAS in place, at most this many times after a build (0, the
+    /// default: a build every frame; see `TlasUpdates`).
+    #[arg(long, default_value_t = 0)]
+    pub tlas_max_updates: u32,
     /// Far-field cut: a proxy is shown once its error projects under this many pixels.
     #[arg(long)]
     pub far_px: Option<f32>,
@@ -297,10 +306,17 @@ impl RunArgs {
             deterministic: self.deterministic,
             all_geometry_reference: !self.opaque_only,
             near_only_too: self.compare_far_field,
+            tlas_updates_too: self.compare_tlas_updates,
             out_dir: Some(self.out.clone()),
             maps: self.maps,
             ..RunConfig::default()
         };
+        if self.tlas_max_updates > 0 {
+            c.tlas_updates = TlasUpdates {
+                max_updates: self.tlas_max_updates,
+                ..TlasUpdates::ON
+            };
+        }
         c.stream.load_radius = self.stream_radius;
         c.stream.unload_radius = self.stream_radius + 100.0;
         let m = &mut c.managed;

@@ -35,8 +35,8 @@ use std::time::Instant;
 
 use glam::Vec3;
 use rtstream_as_manager::backend::vulkan::{
-    ContextDesc, FrameLoop, Recording, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
-    RECORDED_SETS,
+    ContextDesc, FrameLoop, Recording, TlasUpdates, Validation, VulkanBackend, VulkanBackendDesc,
+    VulkanContext, RECORDED_SETS,
 };
 use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
@@ -89,6 +89,12 @@ pub struct RunConfig {
     /// Also run the managed policy with its far field off (`managed-near`), to compare in
     /// the same run.
     pub near_only_too: bool,
+    /// How every policy's backend makes its TLAS (default: built every frame).
+    pub tlas_updates: TlasUpdates,
+    /// Also run the managed policy with its TLAS updated in place between builds
+    /// (`managed-tlas-update`: `tlas_updates` if enabled, else `TlasUpdates::ON`), to compare
+    /// in the same run.
+    pub tlas_updates_too: bool,
     /// Output directory for the CSV, summary, pictures and maps (None: write nothing).
     pub out_dir: Option<PathBuf>,
     /// Top-down maps at this many evenly spaced frames.
@@ -132,6 +138,8 @@ impl Default for RunConfig {
             gpu_equivalent_costs: true,
             all_geometry_reference: true,
             near_only_too: false,
+            tlas_updates: TlasUpdates::default(),
+            tlas_updates_too: false,
             out_dir: None,
             maps: 3,
             frames_in_flight: 2,
@@ -170,6 +178,9 @@ pub fn policy_name(p: PolicyKind) -> &'static str {
 
 /// The name of the managed policy run with its far field off.
 pub const MANAGED_NEAR: &str = "managed-near";
+
+/// The name of the managed policy run with its TLAS updated in place between builds.
+pub const MANAGED_TLAS_UPDATE: &str = "managed-tlas-update";
 
 /// Live figures handed to the progress callback after every frame.
 #[derive(Debug, Clone)]
@@ -404,16 +415,32 @@ pub fn run_cached(
         .cloned()
         .ok_or_else(|| Error::InvalidRun("the baked world has no manifest".into()))?;
     let mut path = CameraPath::new(&manifest, config.preset.seed);
-    let mut specs: Vec<(PolicyKind, &'static str, bool)> = config
+    let mut specs: Vec<(PolicyKind, &'static str, bool, TlasUpdates)> = config
         .policies
         .iter()
-        .map(|&k| (k, policy_name(k), k == PolicyKind::Managed))
+        .map(|&k| {
+            let far = k == PolicyKind::Managed;
+            (k, policy_name(k), far, config.tlas_updates)
+        })
         .collect();
     if config.near_only_too {
-        specs.push((PolicyKind::Managed, MANAGED_NEAR, false));
+        specs.push((
+            PolicyKind::Managed,
+            MANAGED_NEAR,
+            false,
+            config.tlas_updates,
+        ));
+    }
+    if config.tlas_updates_too {
+        let on = if config.tlas_updates.enabled {
+            config.tlas_updates
+        } else {
+            TlasUpdates::ON
+        };
+        specs.push((PolicyKind::Managed, MANAGED_TLAS_UPDATE, true, on));
     }
     let mut policies = Vec::new();
-    for (kind, name, far) in specs {
+    for (kind, name, far, tlas_updates) in specs {
         let mut c = config.managed.clone();
         c.policy = kind;
         c.far_field.enabled &= far;
@@ -431,6 +458,7 @@ pub fn run_cached(
                 recording: Recording::Engine,
                 frames_in_flight: config.frames_in_flight,
                 deterministic: config.deterministic,
+                tlas_updates,
                 ..VulkanBackendDesc::default()
             },
         )?;
@@ -548,6 +576,7 @@ pub fn run_cached(
                 (
                     c.input_upload_bytes + c.pose_upload_bytes,
                     c.tlas_records_written,
+                    c.tlas_updates,
                 )
             };
             let uploaded_before = uploaded(&p.manager);
@@ -566,10 +595,12 @@ pub fn run_cached(
             p.records.clear();
             p.records.extend_from_slice(out.instances);
             let uploaded_after = uploaded(&p.manager);
-            rows.push(row.with_writes(
+            let mut row = row.with_writes(
                 uploaded_after.0 - uploaded_before.0,
                 uploaded_after.1 - uploaded_before.1,
-            ));
+            );
+            row.tlas_updated = uploaded_after.2 > uploaded_before.2;
+            rows.push(row);
             p.manager.backend_mut().record(&cmd)?;
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;

@@ -81,6 +81,10 @@ pub struct FrameRow {
     pub update_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
     pub gpu_as_ms: f64,
+    /// Of `gpu_as_ms`, the TLAS's build or update.
+    pub gpu_tlas_ms: f64,
+    /// The backend updated this frame's TLAS from the last frame's instead of building it.
+    pub tlas_updated: bool,
     /// Error against the opaque ground truth, on scored frames.
     pub score: Option<FrameScore>,
     /// Error against the all-geometry ground truth, on scored frames.
@@ -123,6 +127,8 @@ impl FrameRow {
             over_build_budget: false,
             update_ms,
             gpu_as_ms: s.measured_gpu_ms,
+            gpu_tlas_ms: s.measured_tlas_ms,
+            tlas_updated: false,
             score: None,
             score_all_geometry: None,
         }
@@ -181,6 +187,8 @@ struct CsvRow {
     tlas_records_written: u64,
     update_ms: f64,
     gpu_as_ms: f64,
+    gpu_tlas_ms: f64,
+    tlas_updated: bool,
     hit_mismatch: Option<f64>,
     identity_mismatch: Option<f64>,
     shadow_mismatch: Option<f64>,
@@ -285,6 +293,12 @@ pub struct PolicySummary {
     pub gpu_as_ms_p50: f64,
     /// GPU acceleration-structure ms per frame, 99th percentile.
     pub gpu_as_ms_p99: f64,
+    /// Of it, the TLAS's build or update, median and 99th percentile.
+    pub gpu_tlas_ms_p50: f64,
+    /// (See `gpu_tlas_ms_p50`.)
+    pub gpu_tlas_ms_p99: f64,
+    /// Share of the frames whose TLAS was updated from the last frame's (`TlasUpdates`).
+    pub tlas_update_share: f64,
     /// Render time of the scored frames, median ms.
     pub render_ms_p50: f64,
     /// BLAS builds per frame, mean.
@@ -443,6 +457,7 @@ impl RunReport {
             let tlas = Summary::of(mine.iter().map(|r| f64::from(r.tlas_instances)));
             let update = Summary::of(mine.iter().map(|r| r.update_ms));
             let gpu = Summary::of(mine.iter().map(|r| r.gpu_as_ms));
+            let gpu_tlas = Summary::of(mine.iter().map(|r| r.gpu_tlas_ms));
             let examined = Summary::of(mine.iter().map(|r| f64::from(r.landmarks_examined)));
             let scored: Vec<(u64, &FrameScore)> = mine
                 .iter()
@@ -491,6 +506,10 @@ impl RunReport {
                         .max(1.0),
                 gpu_as_ms_p50: gpu.p50,
                 gpu_as_ms_p99: gpu.p99,
+                gpu_tlas_ms_p50: gpu_tlas.p50,
+                gpu_tlas_ms_p99: gpu_tlas.p99,
+                tlas_update_share: mine.iter().filter(|r| r.tlas_updated).count() as f64
+                    / mine.len().max(1) as f64,
                 render_ms_p50: Summary::of(
                     render_ms
                         .iter()
@@ -587,6 +606,8 @@ impl RunReport {
                 tlas_records_written: r.tlas_records_written,
                 update_ms: r.update_ms,
                 gpu_as_ms: r.gpu_as_ms,
+                gpu_tlas_ms: r.gpu_tlas_ms,
+                tlas_updated: r.tlas_updated,
                 hit_mismatch: s.map(|s| s.hit_mismatch),
                 identity_mismatch: s.map(|s| s.identity_mismatch),
                 shadow_mismatch: s.map(|s| s.shadow_mismatch),

@@ -44,6 +44,8 @@ pub struct CostModel {
     pub compact_ms_per_mib: f64,
     /// TLAS build, per thousand instances.
     pub tlas_ms_per_kinst: f64,
+    /// TLAS update in place, per thousand instances.
+    pub tlas_update_ms_per_kinst: f64,
 }
 
 impl SizeModel {
@@ -236,6 +238,8 @@ impl CostModel {
             refit_ms_per_mtri: 150.0,
             compact_ms_per_mib: 0.5,
             tlas_ms_per_kinst: 0.2,
+            // An update costs about a build on lavapipe (docs/GPU.md).
+            tlas_update_ms_per_kinst: 0.2,
         }
     }
 
@@ -250,6 +254,8 @@ impl CostModel {
             refit_ms_per_mtri: 0.28,
             compact_ms_per_mib: 0.0015,
             tlas_ms_per_kinst: 0.0012,
+            // 0.022 ms at 10k instances, 0.046 at 100k (docs/GPU.md).
+            tlas_update_ms_per_kinst: 0.0015,
         }
     }
 
@@ -262,6 +268,7 @@ impl CostModel {
             CostOp::Refit => self.refit_ms_per_mtri * u / 1e6,
             CostOp::Compact => self.compact_ms_per_mib * u / (1u64 << 20) as f64,
             CostOp::Tlas => self.tlas_ms_per_kinst * u / 1e3,
+            CostOp::TlasUpdate => self.tlas_update_ms_per_kinst * u / 1e3,
         }
     }
 
@@ -273,6 +280,7 @@ impl CostModel {
             CostOp::Refit => &mut self.refit_ms_per_mtri,
             CostOp::Compact => &mut self.compact_ms_per_mib,
             CostOp::Tlas => &mut self.tlas_ms_per_kinst,
+            CostOp::TlasUpdate => &mut self.tlas_update_ms_per_kinst,
         }
     }
 
@@ -285,6 +293,7 @@ impl CostModel {
             self.refit_ms_per_mtri,
             self.compact_ms_per_mib,
             self.tlas_ms_per_kinst,
+            self.tlas_update_ms_per_kinst,
         ];
         if all.iter().all(|v| v.is_finite() && *v >= 0.0) {
             Ok(())

@@ -147,6 +147,8 @@ pub enum CostOp {
     Compact,
     /// TLAS build (`units` = instances).
     Tlas,
+    /// TLAS update in place from the previous frame's (`units` = instances).
+    TlasUpdate,
 }
 
 /// A GPU timing the backend measured (timestamps), for a batch of `units` (triangles, bytes or

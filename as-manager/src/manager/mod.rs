@@ -146,6 +146,8 @@ pub struct FrameStats {
     pub far_groups_covered: u32,
     /// GPU ms measured by the backend and received this frame.
     pub measured_gpu_ms: f64,
+    /// Of `measured_gpu_ms`, the TLAS builds and updates.
+    pub measured_tlas_ms: f64,
     /// Image error of this frame against a reference frame, when the caller evaluated it (see
     /// [`AsManager::record_evaluation`]; the renderer's `FrameMetrics` converts into it).
     pub evaluation: Option<ImageError>,
@@ -713,8 +715,11 @@ impl<B: AsBackend> AsManager<B> {
     fn refine_costs(&mut self) {
         for m in self.backend.take_measurements() {
             self.stats.measured_gpu_ms += m.gpu_ms;
+            if matches!(m.op, CostOp::Tlas | CostOp::TlasUpdate) {
+                self.stats.measured_tlas_ms += m.gpu_ms;
+            }
             let min_units = match m.op {
-                CostOp::Tlas => 1_000,
+                CostOp::Tlas | CostOp::TlasUpdate => 1_000,
                 CostOp::Compact => 1 << 20,
                 _ => 10_000,
             };

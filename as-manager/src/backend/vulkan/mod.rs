@@ -18,7 +18,9 @@ pub use as_backend::measure::{
     build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
     time_tlas_update, CompactionResult,
 };
-pub use as_backend::{class_flags, Recording, VulkanBackend, VulkanBackendDesc, VulkanCounters};
+pub use as_backend::{
+    class_flags, Recording, TlasUpdates, VulkanBackend, VulkanBackendDesc, VulkanCounters,
+};
 pub use device::accel::{
     align_up, AccelStorage, AccelStruct, AsSizes, BlasBuildInput, TriangleGeometry,
     ACCEL_STORAGE_USAGE, BUILD_INPUT_USAGE,

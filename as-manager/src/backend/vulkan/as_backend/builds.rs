@@ -225,6 +225,7 @@ impl VulkanBackend {
         } else {
             CostOp::BuildStatic
         };
+        self.frame_build_triangles += tris;
         let t = self.timestamp_begin(op, tris);
         let recording = tracing::trace_span!("cmd_build").entered();
         // SAFETY: cmd is recording; inputs are the BLASes' own buffers, retired with them after

@@ -224,7 +224,12 @@ impl VulkanBackend {
         let timestamps = self.ctx.info().timestamps;
         let s = &mut self.slots[self.current];
         let first = s.timed.len() as u32 * 2;
-        if !timestamps || first + 2 > QUERIES_PER_SLOT {
+        let room = if matches!(op, CostOp::Tlas | CostOp::TlasUpdate) {
+            QUERIES_PER_SLOT
+        } else {
+            QUERIES_PER_SLOT - 2
+        };
+        if !timestamps || first + 2 > room {
             return None;
         }
         s.timed.push((op, units, first));
@@ -327,6 +332,7 @@ impl VulkanBackend {
         }
         drop(retire);
         let _s = tracing::trace_span!("begin_cmd").entered();
+        self.frame_build_triangles = 0;
         let s = &mut self.slots[slot];
         s.frame = frame;
         s.scratch_used.clear();

@@ -102,7 +102,10 @@ pub struct VulkanBackendDesc {
     /// manager's budget counts it. The TLAS is already one per frame in flight. Off by default.
     pub separate_refit_targets: bool,
     /// TLAS build flags (default PREFER_FAST_TRACE; see docs/GPU.md for the measurement).
+    /// With [`TlasUpdates::enabled`], ALLOW_UPDATE is added.
     pub tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
+    /// When the per-frame TLAS is updated in place from the last frame's instead of rebuilt.
+    pub tlas_updates: TlasUpdates,
     /// Split a mesh whose BLAS storage or scratch would exceed this many bytes (default 256 MiB).
     pub max_part_bytes: u64,
     /// Refuse allocations past this many bytes with OutOfDeviceMemory (None: only the driver's
@@ -113,6 +116,70 @@ pub struct VulkanBackendDesc {
     /// freed when, and the bytes counted as retiring, do not depend on GPU speed. Off by
     /// default (frees as soon as the GPU is done).
     pub deterministic: bool,
+}
+
+/// When the per-frame TLAS is an update of the last frame's (`VK_BUILD_ACCELERATION_STRUCTURE_MODE_UPDATE_KHR`)
+/// instead of a build.
+///
+/// An update costs a fraction of a build (on the H200, 0.035 against 0.261 ms for the default
+/// run's 14,181 records, `docs/GPU.md`) but keeps the last build's tree: it stays correct
+/// whatever the records hold, and traces slower as they drift from what was built. So a build
+/// is followed by at most [`TlasUpdates::max_updates`] updates, and from half of that on the
+/// next build is taken early in a frame that builds few BLAS triangles.
+///
+/// **Off by default**: the manager does not keep a record in the same slot from frame to
+/// frame (a landmark that leaves is replaced by the last one, the near field's records are
+/// listed anew each frame), so an updated tree soon has boxes that span the map. On the H200
+/// at 1080p the default run's render passes took 75 ms p50 with up to 64 updates between
+/// builds, against 7.9 ms with a build every frame (`docs/GPU.md`). An engine whose records
+/// keep their slots can turn it on.
+///
+/// An update needs the same instance count as its build. A build therefore reserves
+/// [`TlasUpdates::headroom`] more records than the frame has; the records a frame does not
+/// fill are *parked*: mask 0 (no ray ever hits them), a zero transform, and a reference to a
+/// one-triangle BLAS the backend keeps (an instance must stay active across updates). A frame
+/// with more records than its source's count is built.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TlasUpdates {
+    /// Update in place between builds (default off). Off: every frame builds its TLAS.
+    pub enabled: bool,
+    /// Updates after a build before the next build is forced (default 16).
+    pub max_updates: u32,
+    /// From `max_updates / 2` updates on, a frame whose BLAS builds total at most this many
+    /// triangles builds its TLAS (default 16,384).
+    pub light_frame_triangles: u64,
+    /// Records a build reserves beyond the frame's, as a fraction of them (default 1/8, at
+    /// least 64): how many more records the updates that follow may hold.
+    pub headroom: f32,
+}
+
+impl Default for TlasUpdates {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            max_updates: Self::ON.max_updates,
+            light_frame_triangles: Self::ON.light_frame_triangles,
+            headroom: Self::ON.headroom,
+        }
+    }
+}
+
+impl TlasUpdates {
+    /// Updates in place with the default limits.
+    pub const ON: TlasUpdates = TlasUpdates {
+        enabled: true,
+        max_updates: 16,
+        light_frame_triangles: 16_384,
+        headroom: 0.125,
+    };
+
+    /// Every frame builds its TLAS (no updates).
+    pub const OFF: TlasUpdates = TlasUpdates {
+        enabled: false,
+        max_updates: 0,
+        light_frame_triangles: 0,
+        headroom: 0.0,
+    };
 }
 
 /// Who records and submits a frame's work.
@@ -149,6 +216,7 @@ impl Default for VulkanBackendDesc {
             frames_in_flight: 2,
             separate_refit_targets: false,
             tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
+            tlas_updates: TlasUpdates::default(),
             max_part_bytes: 256 << 20,
             memory_limit: None,
             deterministic: false,
@@ -156,7 +224,9 @@ impl Default for VulkanBackendDesc {
     }
 }
 
-const QUERIES_PER_SLOT: u32 = 16;
+/// Timestamp queries per frame slot: a pair per timed batch, the last pair kept for the TLAS
+/// (so that the frame's GPU time always includes it).
+const QUERIES_PER_SLOT: u32 = 64;
 /// Bytes per block of the static input arena (the default world keeps about 20 MB of inputs).
 const INPUT_BLOCK_BYTES: u64 = 8 << 20;
 /// Bytes per block of the BLAS storage arena (the default world keeps 30 to 40 MB of BLASes,
@@ -286,6 +356,11 @@ struct Slot {
     frame: u64,
     tlas: Option<AccelStruct>,
     tlas_capacity: u32,
+    /// Instances this slot's TLAS was last built or updated with (its records and the parked
+    /// ones after them).
+    tlas_count: u32,
+    /// The range of `instances` that holds parked records (see `TlasUpdates`).
+    parked: (u32, u32),
     instances: Option<GpuBuffer>,
     /// The `build_tlas` call (`VulkanBackend::tlas_calls`) whose records `instances` holds
     /// record for record (0: unknown, or expanded with split parts).
@@ -346,6 +421,10 @@ pub struct VulkanCounters {
     pub tlas_records_written: u64,
     /// TLAS instance records built from (split parts included).
     pub tlas_records_built: u64,
+    /// TLASes built (`VK_BUILD_ACCELERATION_STRUCTURE_MODE_BUILD_KHR`).
+    pub tlas_builds: u64,
+    /// TLASes updated from the previous frame's (see [`TlasUpdates`]).
+    pub tlas_updates: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.
@@ -380,6 +459,14 @@ pub struct VulkanBackend {
     tlas_history: VecDeque<(u64, usize, Vec<u32>)>,
     /// Records of the last TLAS built (split parts included).
     tlas_len: usize,
+    /// The TLAS the next frame may update from (see `TlasUpdates`): none after an aborted
+    /// frame or before the first build.
+    tlas_source: Option<TlasSource>,
+    /// The one-triangle BLAS that parked TLAS records reference (created at the first build
+    /// that parks records).
+    parking: Option<Parking>,
+    /// Triangles of the BLAS builds recorded in the current frame.
+    frame_build_triangles: u64,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
@@ -403,6 +490,27 @@ pub struct VulkanBackend {
 
 /// What a BLAS's sizes depend on: triangles, vertices, opaque, class, position format, index
 /// type.
+/// The TLAS a frame may update from: the slot whose TLAS was built or updated last, with how
+/// many instances, and how many updates since its build.
+#[derive(Debug, Clone, Copy)]
+struct TlasSource {
+    slot: usize,
+    count: u32,
+    updates: u32,
+}
+
+/// The BLAS of parked TLAS records (`TlasUpdates`): one tiny triangle, never hit (mask 0).
+#[derive(Debug)]
+struct Parking {
+    accel: AccelStruct,
+    input: GpuBuffer,
+    /// (slot, frame) whose commands build it; None: no frame that ran built it yet (the one
+    /// that recorded its build was aborted, or never executed by the engine).
+    built: Option<(usize, u64)>,
+    /// A frame that built it ran (so every later frame may reference it).
+    confirmed: bool,
+}
+
 type SizeKey = (u32, u32, bool, BlasClass, vk::Format, vk::IndexType);
 
 /// The position format and index type a geometry is built with (CPU slices: f32x3, u32).
@@ -528,6 +636,8 @@ impl VulkanBackend {
                 frame: 0,
                 tlas: None,
                 tlas_capacity: 0,
+                tlas_count: 0,
+                parked: (0, 0),
                 instances_call: 0,
                 records: 0,
                 instances: None,
@@ -569,6 +679,9 @@ impl VulkanBackend {
             tlas_calls: 0,
             tlas_history: VecDeque::new(),
             tlas_len: 0,
+            tlas_source: None,
+            parking: None,
+            frame_build_triangles: 0,
             bases: Vec::new(),
             faults: Vec::new(),
             engine_done: None,
@@ -763,8 +876,16 @@ impl AsBackend for VulkanBackend {
     }
 
     fn abort_frame(&mut self) {
-        // The next TLAS writes every record (the aborted call's deltas are forgotten).
+        // The next TLAS writes every record (the aborted call's deltas are forgotten), and is
+        // a build: the aborted frame's TLAS never ran.
         self.tlas_history.clear();
+        self.tlas_source = None;
+        let (current, frame) = (self.current, self.slots[self.current].frame);
+        if let Some(p) = self.parking.as_mut() {
+            if !p.confirmed && p.built == Some((current, frame)) {
+                p.built = None;
+            }
+        }
         self.slots.iter_mut().for_each(|s| s.instances_call = 0);
         let s = &mut self.slots[self.current];
         // The command buffer is reset by the next begin_frame of this slot; the queries
@@ -807,6 +928,10 @@ impl Drop for VulkanBackend {
             s.timestamps.destroy(&self.ctx);
             s.compact_pool.destroy(&self.ctx);
             self.ctx.destroy_buffer(s.results);
+        }
+        if let Some(p) = self.parking.take() {
+            objects.push(Retired::Accel(p.accel));
+            objects.push(Retired::Buffer(p.input));
         }
         for o in objects {
             self.destroy(o);

@@ -3,6 +3,10 @@
 
 use super::*;
 
+/// Build flags of the parking BLAS.
+const PARKING_FLAGS: vk::BuildAccelerationStructureFlagsKHR =
+    vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
+
 impl VulkanBackend {
     /// Device address of the primitive-base table of `tlas` (one `u32` per TLAS record, in
     /// record order: 0, or for the extra records of a split mesh's parts the part's first
@@ -91,6 +95,134 @@ impl VulkanBackend {
         Some((from, listed))
     }
 
+    /// The flags every TLAS of this backend is built with.
+    fn tlas_build_flags(&self) -> vk::BuildAccelerationStructureFlagsKHR {
+        if self.desc.tlas_updates.enabled {
+            self.desc.tlas_flags | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
+        } else {
+            self.desc.tlas_flags
+        }
+    }
+
+    /// Whether frame `frame`'s commands in `slot` ran or will run: submitted (own-submit; an
+    /// aborted frame is forgotten by `abort_frame`) or executed by the engine.
+    fn slot_ran(&self, slot: usize, frame: u64) -> bool {
+        let s = &self.slots[slot];
+        s.frame == frame
+            && (self.desc.recording == Recording::OwnSubmit && s.submitted_value > 0 || s.executed)
+    }
+
+    /// How this frame's TLAS is made, for `real` records: (instances, the TLAS to update
+    /// from). `None`: a build, with the headroom of `TlasUpdates` parked after the records.
+    fn plan_tlas(&self, real: u32) -> (u32, Option<TlasSource>) {
+        let u = self.desc.tlas_updates;
+        if !u.enabled {
+            return (real, None);
+        }
+        if let Some(src) = self.tlas_source {
+            let forced = src.updates >= u.max_updates;
+            let due = src.updates >= u.max_updates.div_ceil(2)
+                && self.frame_build_triangles <= u.light_frame_triangles;
+            let prev = &self.slots[src.slot];
+            // The source is the last frame's TLAS (built or updated by a frame that ran),
+            // untouched since.
+            let ran = src.slot == self.current || self.slot_ran(src.slot, prev.frame);
+            let intact = prev.tlas.is_some() && prev.tlas_count == src.count;
+            if real <= src.count && !forced && !due && ran && intact {
+                return (src.count, Some(src));
+            }
+        }
+        let spare = ((real as f32 * u.headroom.max(0.0)).ceil() as u32).max(64);
+        (real.saturating_add(spare), None)
+    }
+
+    /// The parking BLAS's address, built first if no frame that ran built it.
+    fn ensure_parking(&mut self, cmd: vk::CommandBuffer) -> BackendResult<u64> {
+        let here = (self.current, self.slots[self.current].frame);
+        if let Some(p) = &self.parking {
+            let ok = p.confirmed
+                || p.built == Some(here)
+                || p.built
+                    .is_some_and(|(slot, frame)| self.slot_ran(slot, frame));
+            if ok {
+                let address = p.accel.address;
+                self.parking.as_mut().expect("checked").confirmed = true;
+                return Ok(address);
+            }
+        }
+        if self.parking.is_none() {
+            // One small triangle at the origin; u32 indices after the f32x3 positions.
+            let mut data = Vec::with_capacity(48);
+            for v in [[0.0f32, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 1e-3, 0.0]] {
+                data.extend_from_slice(bytemuck::bytes_of(&v));
+            }
+            data.extend_from_slice(bytemuck::cast_slice(&[0u32, 1, 2]));
+            let mut input = self.create_buffer(
+                BufferDesc {
+                    name: "parking BLAS input",
+                    size: 256,
+                    usage: BUILD_INPUT_USAGE,
+                    memory: MemoryKind::Upload,
+                },
+                false,
+            )?;
+            input.write(0, &data);
+            let geom = self.parking_geometry(&input);
+            let sizes = self.ctx.blas_sizes(&[geom], PARKING_FLAGS);
+            let accel = match self.ctx.create_accel(
+                vk::AccelerationStructureTypeKHR::BOTTOM_LEVEL,
+                sizes.storage,
+                "parking BLAS",
+            ) {
+                Ok(a) => a,
+                Err(e) => {
+                    self.destroy(Retired::Buffer(input));
+                    return Err(backend_err(e));
+                }
+            };
+            self.allocated += sizes.storage;
+            self.parking = Some(Parking {
+                accel,
+                input,
+                built: None,
+                confirmed: false,
+            });
+        }
+        let p = self.parking.as_ref().expect("created above");
+        let geom = [self.parking_geometry(&p.input)];
+        let (dst, address) = (p.accel.raw, p.accel.address);
+        let sizes = self.ctx.blas_sizes(&geom, PARKING_FLAGS);
+        let align = self.ctx.info().min_scratch_alignment;
+        self.ensure_scratch(align_up(sizes.build_scratch, align))?;
+        let scratch = self.scratch_alloc(sizes.build_scratch);
+        let build = BlasBuildInput {
+            geometries: &geom,
+            flags: PARKING_FLAGS,
+            dst,
+            update_from: None,
+            scratch_address: scratch,
+        };
+        // SAFETY: recording; the input buffer is host-written before submission and lives
+        // with the BLAS; no frame that ran references this BLAS yet (it was never built by
+        // one), so rebuilding it races with nothing; the TLAS barrier orders it before use.
+        unsafe { self.ctx.cmd_build_blases(cmd, &[build]) };
+        self.parking.as_mut().expect("created above").built = Some(here);
+        Ok(address)
+    }
+
+    fn parking_geometry(&self, input: &GpuBuffer) -> TriangleGeometry {
+        TriangleGeometry {
+            vertex_address: input.address,
+            vertex_format: vk::Format::R32G32B32_SFLOAT,
+            vertex_stride: 12,
+            max_vertex: 2,
+            index_address: input.address + 36,
+            index_type: vk::IndexType::UINT32,
+            triangle_count: 1,
+            opaque: true,
+        }
+    }
+
     pub(super) fn record_tlas(
         &mut self,
         instances: &[TlasInstance],
@@ -154,7 +286,10 @@ impl VulkanBackend {
             self.slots[s].bases_address = b.address;
         }
         self.bases = bases;
-        let n = records_now.len().max(1) as u32;
+        let real = records_now.len() as u32;
+        let (count, source) = self.plan_tlas(real);
+        let flags = self.tlas_build_flags();
+        let n = count.max(1);
         let bytes = u64::from(n) * 64;
         if self.slots[s]
             .instances
@@ -175,10 +310,11 @@ impl VulkanBackend {
                 self.retire_now(Retired::Buffer(old));
             }
             self.slots[s].instances_call = 0;
+            self.slots[s].parked = (0, 0);
         }
         if self.slots[s].tlas_capacity < n {
             let cap = n.next_power_of_two().max(1024);
-            let sizes = self.ctx.tlas_sizes(cap, self.desc.tlas_flags);
+            let sizes = self.ctx.tlas_sizes(cap, flags);
             self.reserve(sizes.storage, false)?;
             let tlas = self
                 .ctx
@@ -196,12 +332,22 @@ impl VulkanBackend {
             }
             self.slots[s].tlas_capacity = cap;
         }
-        let sizes = self.ctx.tlas_sizes(n, self.desc.tlas_flags);
+        let parking = if count > real {
+            self.ensure_parking(cmd)?
+        } else {
+            0
+        };
+        let sizes = self.ctx.tlas_sizes(count, flags);
+        let scratch_bytes = if source.is_some() {
+            sizes.update_scratch
+        } else {
+            sizes.build_scratch
+        };
         self.ensure_scratch(align_up(
-            sizes.build_scratch,
+            scratch_bytes,
             self.ctx.info().min_scratch_alignment,
         ))?;
-        let scratch = self.scratch_alloc(sizes.build_scratch);
+        let scratch = self.scratch_alloc(scratch_bytes);
         // The slot's buffer holds the records of the call it was last written at (its frame
         // completed: `begin_frame` waited for it): write what changed since, or everything.
         let stale = if split {
@@ -212,7 +358,7 @@ impl VulkanBackend {
         let slot = &mut self.slots[s];
         let ibuf = slot.instances.as_mut().expect("allocated above");
         const RECORD: usize = std::mem::size_of::<TlasInstance>();
-        let written = match stale {
+        let mut written = match stale {
             None => {
                 ibuf.write(0, bytemuck::cast_slice(records_now));
                 records_now.len()
@@ -227,6 +373,35 @@ impl VulkanBackend {
                 records_now.len() - from + listed.len()
             }
         };
+        // Parked records after the frame's: only where the buffer does not hold them already.
+        // Each stands where a record of the frame stands, scaled to a point: a cluster of
+        // parked instances in one place makes a degenerate subtree that builds and updates
+        // slowly (3x the build time on the H200 with them all at the origin).
+        let park_at = |i: u32| {
+            let mut t = [0.0f32; 12];
+            if let Some(r) = records_now.get(i as usize % records_now.len().max(1)) {
+                (t[3], t[7], t[11]) = (r.transform[3], r.transform[7], r.transform[11]);
+            }
+            TlasInstance {
+                transform: t,
+                blas_address: parking,
+                ..bytemuck::Zeroable::zeroed()
+            }
+        };
+        let (had_from, had_to) = slot.parked;
+        let mut park = |from: u32, to: u32| {
+            for i in from..to {
+                ibuf.write(i as usize * RECORD, bytemuck::bytes_of(&park_at(i)));
+            }
+            written += (to - from) as usize;
+        };
+        if had_from >= had_to || had_to < real || had_from > count {
+            park(real, count);
+        } else {
+            park(real, had_from.clamp(real, count));
+            park(had_to.clamp(real, count), count);
+        }
+        slot.parked = (real, count);
         self.counters.tlas_records_written += written as u64;
         self.counters.tlas_records_built += records_now.len() as u64;
         let slot = &mut self.slots[s];
@@ -236,17 +411,41 @@ impl VulkanBackend {
             ibuf.address,
             slot.tlas.as_ref().expect("allocated above").raw,
         );
-        let count = records_now.len() as u32;
-        slot.records = count;
-        self.tlas_len = count as usize;
+        slot.records = real;
+        slot.tlas_count = count;
+        self.tlas_len = real as usize;
         self.expanded = records;
-        let t = self.timestamp_begin(CostOp::Tlas, u64::from(count));
+        let from = source.map(|src| {
+            self.slots[src.slot]
+                .tlas
+                .as_ref()
+                .expect("checked by plan_tlas")
+                .raw
+        });
+        let (op, updates) = match source {
+            Some(src) => {
+                self.counters.tlas_updates += 1;
+                (CostOp::TlasUpdate, src.updates + 1)
+            }
+            None => {
+                self.counters.tlas_builds += 1;
+                (CostOp::Tlas, 0)
+            }
+        };
+        self.tlas_source = Some(TlasSource {
+            slot: s,
+            count,
+            updates,
+        });
+        let t = self.timestamp_begin(op, u64::from(count));
         // SAFETY: recording; the barrier orders this frame's BLAS builds/refits/compactions
-        // before the TLAS build; every referenced BLAS is live until its retirement frame.
+        // (and an earlier frame's TLAS build or update, `from`, in submission order) before
+        // the TLAS build; every referenced BLAS is live until its retirement frame, the
+        // parking BLAS until the backend is dropped; `from` is only read.
         unsafe {
             self.ctx.cmd_accel_barrier(cmd);
             self.ctx
-                .cmd_build_tlas(cmd, tlas, None, self.desc.tlas_flags, iaddr, count, scratch);
+                .cmd_build_tlas(cmd, tlas, from, flags, iaddr, count, scratch);
         }
         self.timestamp_end(t);
         Ok(TlasHandle::new(s as u32, self.slots[s].frame))
