@@ -26,6 +26,7 @@ fn untimed(r: &FrameRow) -> FrameRow {
     FrameRow {
         update_ms: 0.0,
         gpu_as_ms: 0.0,
+        gpu_tlas_ms: 0.0,
         ..r.clone()
     }
 }
@@ -90,6 +91,8 @@ fn a_deterministic_run_repeats_exactly_and_scores_against_the_whole_world() {
             "update_ms_p99",
             "gpu_as_ms_p50",
             "gpu_as_ms_p99",
+            "gpu_tlas_ms_p99",
+            "tlas_update_share",
             "over_budget_frames",
             "hit_mismatch_mean",
             "hit_mismatch_p95",
