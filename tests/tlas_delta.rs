@@ -17,7 +17,7 @@ use rtstream::as_manager::{
     AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshDesc,
     MeshId, MeshKind, Viewpoint,
 };
-use rtstream::renderer::{Camera, InstanceShading, RenderDesc, Renderer};
+use rtstream::renderer::{Camera, RenderDesc, Renderer};
 use rtstream_stats::Rng;
 
 /// Four meshes of 3 LODs with data, 4 to 40 m across.
@@ -233,17 +233,7 @@ fn tlas_updates_trace_what_builds_trace() {
                 .collect();
             let backend = m.backend_mut();
             backend.wait_idle().unwrap();
-            let mut table = vec![InstanceShading::colour_only([0.5; 4]); next_index as usize];
-            for r in &records {
-                let (v, i) = backend
-                    .shading_geometry(r.blas_address)
-                    .expect("every record's BLAS is live");
-                table[r.custom_index() as usize] = InstanceShading {
-                    vertices: v,
-                    indices: i,
-                    base_color: [0.8, 0.6, 0.4, 1.0],
-                };
-            }
+            let table = common::shading_table(backend, &records, next_index as usize);
             let raw = backend.tlas(tlas).expect("this frame's TLAS");
             let image = renderer
                 .render(raw, &table, &RenderDesc::new(48, 32, cam))

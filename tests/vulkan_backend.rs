@@ -17,7 +17,7 @@ use rtstream::as_manager::{
     AsManager, Config, FrameInput, GeometryData, InstanceDesc, InstanceId, LodDesc, LodGeometry,
     MeshDesc, MeshKind, Viewpoint,
 };
-use rtstream::renderer::{Camera, InstanceShading, RenderDesc, Renderer};
+use rtstream::renderer::{Camera, RenderDesc, Renderer};
 
 /// A 4-LOD chain of displaced grids (finest `n` x `n` quads).
 fn chain(n: u32, size: f32) -> Vec<LodDesc> {
@@ -124,17 +124,7 @@ fn render(
 ) -> Vec<u32> {
     let backend = scene.manager.backend_mut();
     backend.wait_idle().expect("frame completes");
-    let mut table = vec![InstanceShading::colour_only([0.7, 0.7, 0.7, 1.0]); 64];
-    for r in records {
-        let (v, i) = backend
-            .shading_geometry(r.blas_address)
-            .expect("every record's BLAS is live");
-        table[r.custom_index() as usize] = InstanceShading {
-            vertices: v,
-            indices: i,
-            base_color: [0.8, 0.6, 0.4, 1.0],
-        };
-    }
+    let table = common::shading_table(backend, records, 64);
     let raw = backend.tlas(tlas).expect("TLAS of this frame");
     let cam = Camera::look_at(
         eye + Vec3::new(0.0, 12.0, -30.0),

@@ -205,3 +205,25 @@ impl GridWalk {
         self.m.set_skinned_pose(self.cloth, Arc::new(pose)).unwrap();
     }
 }
+
+/// The shading table of `records` (indexed by custom index, `len` entries; the rest grey):
+/// each record's BLAS's shading buffers on `backend`, which must hold every record's BLAS.
+pub fn shading_table(
+    backend: &VulkanBackend,
+    records: &[rtstream::as_manager::record::TlasInstance],
+    len: usize,
+) -> Vec<rtstream::renderer::InstanceShading> {
+    use rtstream::renderer::InstanceShading;
+    let mut table = vec![InstanceShading::colour_only([0.7, 0.7, 0.7, 1.0]); len];
+    for r in records {
+        let (vertices, indices) = backend
+            .shading_geometry(r.blas_address)
+            .expect("every record's BLAS is live");
+        table[r.custom_index() as usize] = InstanceShading {
+            vertices,
+            indices,
+            base_color: [0.8, 0.6, 0.4, 1.0],
+        };
+    }
+    table
+}

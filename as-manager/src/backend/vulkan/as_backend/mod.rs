@@ -51,6 +51,9 @@ pub(crate) mod measure;
 mod registry;
 mod tlas;
 
+pub use tlas::TlasUpdates;
+use tlas::{Parking, TlasSource};
+
 use std::collections::{HashMap, VecDeque};
 
 use crate::backend::FaultPoint;
@@ -116,70 +119,6 @@ pub struct VulkanBackendDesc {
     /// freed when, and the bytes counted as retiring, do not depend on GPU speed. Off by
     /// default (frees as soon as the GPU is done).
     pub deterministic: bool,
-}
-
-/// When the per-frame TLAS is an update of the last frame's (`VK_BUILD_ACCELERATION_STRUCTURE_MODE_UPDATE_KHR`)
-/// instead of a build.
-///
-/// An update costs a fraction of a build (on the H200, 0.035 against 0.261 ms for the default
-/// run's 14,181 records, `docs/GPU.md`) but keeps the last build's tree: it stays correct
-/// whatever the records hold, and traces slower as they drift from what was built. So a build
-/// is followed by at most [`TlasUpdates::max_updates`] updates, and from half of that on the
-/// next build is taken early in a frame that builds few BLAS triangles.
-///
-/// **Off by default**: the manager does not keep a record in the same slot from frame to
-/// frame (a landmark that leaves is replaced by the last one, the near field's records are
-/// listed anew each frame), so an updated tree soon has boxes that span the map. On the H200
-/// at 1080p the default run's render passes took 75 ms p50 with up to 64 updates between
-/// builds, against 7.9 ms with a build every frame (`docs/GPU.md`). An engine whose records
-/// keep their slots can turn it on.
-///
-/// An update needs the same instance count as its build. A build therefore reserves
-/// [`TlasUpdates::headroom`] more records than the frame has; the records a frame does not
-/// fill are *parked*: mask 0 (no ray ever hits them), a zero transform, and a reference to a
-/// one-triangle BLAS the backend keeps (an instance must stay active across updates). A frame
-/// with more records than its source's count is built.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TlasUpdates {
-    /// Update in place between builds (default off). Off: every frame builds its TLAS.
-    pub enabled: bool,
-    /// Updates after a build before the next build is forced (default 16).
-    pub max_updates: u32,
-    /// From `max_updates / 2` updates on, a frame whose BLAS builds total at most this many
-    /// triangles builds its TLAS (default 16,384).
-    pub light_frame_triangles: u64,
-    /// Records a build reserves beyond the frame's, as a fraction of them (default 1/8, at
-    /// least 64): how many more records the updates that follow may hold.
-    pub headroom: f32,
-}
-
-impl Default for TlasUpdates {
-    fn default() -> Self {
-        Self {
-            enabled: false,
-            max_updates: Self::ON.max_updates,
-            light_frame_triangles: Self::ON.light_frame_triangles,
-            headroom: Self::ON.headroom,
-        }
-    }
-}
-
-impl TlasUpdates {
-    /// Updates in place with the default limits.
-    pub const ON: TlasUpdates = TlasUpdates {
-        enabled: true,
-        max_updates: 16,
-        light_frame_triangles: 16_384,
-        headroom: 0.125,
-    };
-
-    /// Every frame builds its TLAS (no updates).
-    pub const OFF: TlasUpdates = TlasUpdates {
-        enabled: false,
-        max_updates: 0,
-        light_frame_triangles: 0,
-        headroom: 0.0,
-    };
 }
 
 /// Who records and submits a frame's work.
@@ -490,27 +429,6 @@ pub struct VulkanBackend {
 
 /// What a BLAS's sizes depend on: triangles, vertices, opaque, class, position format, index
 /// type.
-/// The TLAS a frame may update from: the slot whose TLAS was built or updated last, with how
-/// many instances, and how many updates since its build.
-#[derive(Debug, Clone, Copy)]
-struct TlasSource {
-    slot: usize,
-    count: u32,
-    updates: u32,
-}
-
-/// The BLAS of parked TLAS records (`TlasUpdates`): one tiny triangle, never hit (mask 0).
-#[derive(Debug)]
-struct Parking {
-    accel: AccelStruct,
-    input: GpuBuffer,
-    /// (slot, frame) whose commands build it; None: no frame that ran built it yet (the one
-    /// that recorded its build was aborted, or never executed by the engine).
-    built: Option<(usize, u64)>,
-    /// A frame that built it ran (so every later frame may reference it).
-    confirmed: bool,
-}
-
 type SizeKey = (u32, u32, bool, BlasClass, vk::Format, vk::IndexType);
 
 /// The position format and index type a geometry is built with (CPU slices: f32x3, u32).
