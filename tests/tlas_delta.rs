@@ -1,6 +1,7 @@
 //! The TLAS instance buffers on Vulkan (lavapipe, validation on) hold exactly the manager's
 //! records every frame, although the backend writes only the records that changed since a
-//! slot's last use (`TlasDelta`: the far field's landmarks lead the records and persist). Three
+//! slot's last use (`TlasDelta`: the far field's landmarks lead the records and persist), and
+//! with updates on each record keeps its instance slot from frame to frame. Three
 //! frames in flight, a walk that keeps landmarks joining, leaving and changing LOD, instances
 //! added, moved and removed, and a failed frame.
 //!
@@ -12,6 +13,7 @@ mod common;
 use glam::{Affine3A, Quat, Vec3};
 use rtstream::as_manager::backend::vulkan::{TlasUpdates, VulkanBackend, VulkanBackendDesc};
 use rtstream::as_manager::backend::{BackendError, FaultPoint};
+use rtstream::as_manager::record::TlasInstance;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
     AsManager, Config, FrameInput, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshDesc,
@@ -19,6 +21,12 @@ use rtstream::as_manager::{
 };
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
 use rtstream_stats::Rng;
+use std::collections::HashMap;
+
+/// Where a record stands (its translation's bits).
+fn place_key(r: &TlasInstance) -> [u32; 3] {
+    [3, 7, 11].map(|i| r.transform[i].to_bits())
+}
 
 /// Four meshes of 3 LODs with data, 4 to 40 m across.
 fn tiles(m: &AsManager<VulkanBackend>) -> Vec<MeshId> {
@@ -69,6 +77,9 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
     };
     let mut live: Vec<InstanceId> = (0..600).map(|k| place(&m, &mut rng, k)).collect();
     let (mut frames_compared, mut max_landmarks) = (0, 0);
+    let (mut stayed, mut kept, mut shifted, mut kept_shifted) = (0usize, 0usize, 0usize, 0usize);
+    let mut before: HashMap<(u32, [u32; 3]), usize> = HashMap::new();
+    let mut listed_before = before.clone();
     for frame in 0..160u64 {
         if frame % 20 == 10 {
             // Churn: adds, moves and removes.
@@ -112,11 +123,76 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
             .backend()
             .tlas_instance_bytes(tlas)
             .expect("the frame's TLAS resolves");
-        assert_eq!(got.len(), want.len(), "frame {frame}: record count");
-        assert!(got == want, "frame {frame}: the instance buffer differs");
+        // With updates on, records keep their instance slots (`TlasUpdates`): the buffer holds
+        // the frame's records, each once, in any order, and parked slots (mask 0) between.
+        let slots: Vec<TlasInstance> = bytemuck::pod_collect_to_vec(&got);
+        let wanted: Vec<TlasInstance> = bytemuck::pod_collect_to_vec(&want);
+        let mut live: Vec<&[u8]> = got
+            .chunks(64)
+            .zip(&slots)
+            .filter(|(_, r)| r.mask() != 0)
+            .map(|(b, _)| b)
+            .collect();
+        let mut listed: Vec<&[u8]> = want.chunks(64).collect();
+        live.sort_unstable();
+        listed.sort_unstable();
+        assert!(
+            live == listed,
+            "frame {frame}: the instance buffer's records differ from the manager's"
+        );
+        let parking: Vec<u64> = slots
+            .iter()
+            .filter(|r| r.mask() == 0)
+            .map(|r| r.blas_address)
+            .collect();
+        assert!(
+            parking.windows(2).all(|w| w[0] == w[1]),
+            "frame {frame}: parked slots on more than one BLAS"
+        );
+        // A record shown last frame too (same instance, same place) keeps its slot.
+        let now: HashMap<(u32, [u32; 3]), usize> = slots
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.mask() != 0)
+            .map(|(i, r)| ((r.custom_index(), place_key(r)), i))
+            .collect();
+        let listed_now: HashMap<(u32, [u32; 3]), usize> = wanted
+            .iter()
+            .enumerate()
+            .map(|(i, r)| ((r.custom_index(), place_key(r)), i))
+            .collect();
+        for (k, i) in &listed_now {
+            if let (Some(a), Some(b)) = (before.get(k), now.get(k)) {
+                stayed += 1;
+                kept += usize::from(a == b);
+                // Its place in the manager's list changed, not its slot.
+                if listed_before.get(k).is_some_and(|j| j != i) {
+                    shifted += 1;
+                    kept_shifted += usize::from(a == b);
+                }
+            }
+        }
+        before = now;
+        listed_before = listed_now;
         frames_compared += 1;
     }
+    // Slots are laid out anew only when too many are parked or the records outgrow them (a
+    // failed frame keeps them: the next call matches every record by its place).
+    assert!(
+        stayed > 10_000 && kept * 100 >= stayed * 99,
+        "{kept} of {stayed} records that stayed kept their slots"
+    );
+    assert!(
+        shifted > 1_000 && kept_shifted * 100 >= shifted * 99,
+        "{kept_shifted} of {shifted} records that moved in the list kept their slots"
+    );
     let c = m.backend().counters();
+    assert!(
+        c.tlas_slots_joined * 10 < c.tlas_records_built,
+        "{} records took another's slot, of {}",
+        c.tlas_slots_joined,
+        c.tlas_records_built
+    );
     assert!(
         frames_compared >= 150 && max_landmarks >= 100,
         "{frames_compared} {max_landmarks}"

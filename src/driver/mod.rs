@@ -577,6 +577,7 @@ pub fn run_cached(
                     c.input_upload_bytes + c.pose_upload_bytes,
                     c.tlas_records_written,
                     c.tlas_updates,
+                    c.tlas_slots_joined,
                 )
             };
             let uploaded_before = uploaded(&p.manager);
@@ -600,6 +601,7 @@ pub fn run_cached(
                 uploaded_after.1 - uploaded_before.1,
             );
             row.tlas_updated = uploaded_after.2 > uploaded_before.2;
+            row.tlas_slots_joined = uploaded_after.3 - uploaded_before.3;
             rows.push(row);
             p.manager.backend_mut().record(&cmd)?;
         }
@@ -763,6 +765,23 @@ pub fn run_cached(
             passes_ms: pm,
             update_ms: later(&updates),
         });
+        if let Some(dir) = &config.out_dir {
+            // Per frame: the first policy's render passes and the frame time.
+            let frame_of: std::collections::HashMap<u64, f64> = frame_ms.iter().copied().collect();
+            let mut csv = String::from("frame,passes_ms,frame_ms\n");
+            for (f, p) in &passes_ms {
+                let t = frame_of.get(f).copied().unwrap_or(f64::NAN);
+                csv.push_str(&format!("{f},{p:.4},{t:.4}\n"));
+            }
+            let file = dir.join("render_times.csv");
+            let out = |e: std::io::Error| crate::Error::Output {
+                path: file.clone(),
+                message: e.to_string(),
+            };
+            std::fs::create_dir_all(dir).map_err(out)?;
+            std::fs::write(&file, csv).map_err(out)?;
+            files.push(file);
+        }
     }
     if let Some(dir) = &config.out_dir {
         for p in &policies {

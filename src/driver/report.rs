@@ -85,6 +85,9 @@ pub struct FrameRow {
     pub gpu_tlas_ms: f64,
     /// The backend updated this frame's TLAS from the last frame's instead of building it.
     pub tlas_updated: bool,
+    /// With TLAS updates on: records that took an instance slot another record held (see
+    /// `VulkanCounters::tlas_slots_joined`).
+    pub tlas_slots_joined: u64,
     /// Error against the opaque ground truth, on scored frames.
     pub score: Option<FrameScore>,
     /// Error against the all-geometry ground truth, on scored frames.
@@ -129,6 +132,7 @@ impl FrameRow {
             gpu_as_ms: s.measured_gpu_ms,
             gpu_tlas_ms: s.measured_tlas_ms,
             tlas_updated: false,
+            tlas_slots_joined: 0,
             score: None,
             score_all_geometry: None,
         }
@@ -189,6 +193,7 @@ struct CsvRow {
     gpu_as_ms: f64,
     gpu_tlas_ms: f64,
     tlas_updated: bool,
+    tlas_slots_joined: u64,
     hit_mismatch: Option<f64>,
     identity_mismatch: Option<f64>,
     shadow_mismatch: Option<f64>,
@@ -608,6 +613,7 @@ impl RunReport {
                 gpu_as_ms: r.gpu_as_ms,
                 gpu_tlas_ms: r.gpu_tlas_ms,
                 tlas_updated: r.tlas_updated,
+                tlas_slots_joined: r.tlas_slots_joined,
                 hit_mismatch: s.map(|s| s.hit_mismatch),
                 identity_mismatch: s.map(|s| s.identity_mismatch),
                 shadow_mismatch: s.map(|s| s.shadow_mismatch),

@@ -2,7 +2,8 @@
 //!
 //! Why one file over 600 lines: the backend's state (slots, entries, retirement), its creation
 //! and drop, and the `AsBackend` trait impl (thin forwards to `frame.rs`, `registry.rs`,
-//! `builds.rs`, `tlas.rs`) stay together; every phase's body lives in those files.
+//! `builds.rs`, `tlas.rs`) stay together; every phase's body lives in those files
+//! (`tlas_slots.rs`: which instance slot holds each record when the TLAS is updated).
 //!
 //! - **Frames in flight.** `frames_in_flight` slots (default 2), each with its own command
 //!   buffer, TLAS, instance buffer, scratch buffer and query pools, so frame `n+1`
@@ -50,6 +51,7 @@ mod gpu_quality;
 pub(crate) mod measure;
 mod registry;
 mod tlas;
+mod tlas_slots;
 
 pub use tlas::TlasUpdates;
 use tlas::{Parking, TlasSource};
@@ -364,6 +366,9 @@ pub struct VulkanCounters {
     pub tlas_builds: u64,
     /// TLASes updated from the previous frame's (see [`TlasUpdates`]).
     pub tlas_updates: u64,
+    /// With [`TlasUpdates`] on: records that took an instance slot another record held (joined
+    /// the TLAS); every other record kept its slot from the frame before.
+    pub tlas_slots_joined: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.
@@ -404,6 +409,8 @@ pub struct VulkanBackend {
     /// The one-triangle BLAS that parked TLAS records reference (created at the first build
     /// that parks records).
     parking: Option<Parking>,
+    /// With `TlasUpdates` on: which instance slot holds each record (see `tlas_slots.rs`).
+    slot_keeper: tlas_slots::SlotKeeper,
     /// Triangles of the BLAS builds recorded in the current frame.
     frame_build_triangles: u64,
     /// Faults armed by `inject_fault`, each striking once.
@@ -599,6 +606,7 @@ impl VulkanBackend {
             tlas_len: 0,
             tlas_source: None,
             parking: None,
+            slot_keeper: Default::default(),
             frame_build_triangles: 0,
             bases: Vec::new(),
             faults: Vec::new(),
@@ -798,6 +806,7 @@ impl AsBackend for VulkanBackend {
         // a build: the aborted frame's TLAS never ran.
         self.tlas_history.clear();
         self.tlas_source = None;
+        self.slot_keeper.distrust_next_delta();
         let (current, frame) = (self.current, self.slots[self.current].frame);
         if let Some(p) = self.parking.as_mut() {
             if !p.confirmed && p.built == Some((current, frame)) {

@@ -2,6 +2,7 @@
 //! build or its update in place from the last frame's (`TlasUpdates`, with parked records),
 //! and the handles that name it.
 
+use super::tlas_slots::SlotKeeper;
 use super::*;
 
 /// Build flags of the parking BLAS.
@@ -17,12 +18,18 @@ const PARKING_FLAGS: vk::BuildAccelerationStructureFlagsKHR =
 /// is followed by at most [`TlasUpdates::max_updates`] updates, and from half of that on the
 /// next build is taken early in a frame that builds few BLAS triangles.
 ///
-/// **Off by default**: the manager does not keep a record in the same slot from frame to
-/// frame (a landmark that leaves is replaced by the last one, the near field's records are
-/// listed anew each frame), so an updated tree soon has boxes that span the map. On the H200
-/// at 1080p the default run's render passes took 75 ms p50 with up to 64 updates between
-/// builds, against 7.9 ms with a build every frame (`docs/GPU.md`). An engine whose records
-/// keep their slots can turn it on.
+/// With updates on, each record keeps its instance slot from frame to frame whatever its
+/// place in the manager's list (`tlas_slots.rs`): a record that leaves parks its slot where it
+/// stood, one that joins takes a slot parked in or next to its 64 m cell, and a frame whose
+/// joining records find none there builds instead ([`TlasUpdates::max_misplaced`]). Builds
+/// move the parked slots to where the frame's near-field records stand.
+///
+/// **Off by default.** Written in list order, updated trees traced 9.5x slower on the H200
+/// (the default run's render passes at 1080p: 75 ms p50 with up to 64 updates, 7.9 ms with a
+/// build every frame). With stable slots they trace at 1.0-1.2x, but about 40 records join a
+/// frame at 8.2 m a frame and most frames find one without a parked slot near it: only 23-26 %
+/// of the frames update, which saves no GPU time and costs host time (`docs/GPU.md`, "Stable
+/// TLAS slots").
 ///
 /// An update needs the same instance count as its build. A build therefore reserves
 /// [`TlasUpdates::headroom`] more records than the frame has; the records a frame does not
@@ -41,6 +48,11 @@ pub struct TlasUpdates {
     /// Records a build reserves beyond the frame's, as a fraction of them (default 1/8, at
     /// least 64): how many more records the updates that follow may hold.
     pub headroom: f32,
+    /// A frame builds instead of updating once more than this fraction of the records
+    /// (default 0: any) joined since the last build into a parked slot away from where they
+    /// stand (none parked in or next to their 64 m cell): each stretches the updated tree's
+    /// boxes from that slot to the record, which every ray between them then visits.
+    pub max_misplaced: f32,
 }
 
 impl Default for TlasUpdates {
@@ -50,6 +62,7 @@ impl Default for TlasUpdates {
             max_updates: Self::ON.max_updates,
             light_frame_triangles: Self::ON.light_frame_triangles,
             headroom: Self::ON.headroom,
+            max_misplaced: Self::ON.max_misplaced,
         }
     }
 }
@@ -61,6 +74,7 @@ impl TlasUpdates {
         max_updates: 16,
         light_frame_triangles: 16_384,
         headroom: 0.125,
+        max_misplaced: 0.0,
     };
 
     /// Every frame builds its TLAS (no updates).
@@ -69,6 +83,7 @@ impl TlasUpdates {
         max_updates: 0,
         light_frame_triangles: 0,
         headroom: 0.0,
+        max_misplaced: 0.0,
     };
 }
 
@@ -142,7 +157,8 @@ impl VulkanBackend {
     }
 
     /// Test support: a copy of the instance records frame `handle` built its TLAS from (the
-    /// host-visible instance buffer), while the handle resolves.
+    /// host-visible instance buffer), while the handle resolves. With `TlasUpdates` on, they
+    /// are in slot order, parked slots (mask 0) included.
     #[doc(hidden)]
     pub fn tlas_instance_bytes(&self, handle: TlasHandle) -> Option<Vec<u8>> {
         let s = self.slot_of(handle)?;
@@ -218,8 +234,57 @@ impl VulkanBackend {
                 return (src.count, Some(src));
             }
         }
-        let spare = ((real as f32 * u.headroom.max(0.0)).ceil() as u32).max(64);
-        (real.saturating_add(spare), None)
+        (real.saturating_add(self.spare_records(real)), None)
+    }
+
+    /// Records a build reserves beyond `real` for the updates after it (`TlasUpdates::headroom`).
+    fn spare_records(&self, real: u32) -> u32 {
+        let h = self.desc.tlas_updates.headroom.max(0.0);
+        ((real as f32 * h).ceil() as u32).max(64)
+    }
+
+    /// With updates on: places the frame's records in the instance slots of the last frame's
+    /// (`SlotKeeper`), so an update refits each slot to where its record was built. An update
+    /// keeps the layout; so does a build while at most twice the headroom is parked, else the
+    /// slots are laid out anew. Returns the instance count and the source, which is dropped
+    /// when the layout could not be kept.
+    fn place_records(
+        &mut self,
+        keeper: &mut SlotKeeper,
+        instances: &[TlasInstance],
+        delta: TlasDelta<'_>,
+        planned: (u32, Option<TlasSource>),
+        parking: u64,
+    ) -> (u32, Option<TlasSource>) {
+        let _s = tracing::trace_span!("place_records").entered();
+        let real = instances.len() as u32;
+        let (count, source) = planned;
+        if let Some(src) = source {
+            if keeper.len() == src.count as usize && keeper.place(instances, delta, parking) {
+                // A record that joined far from any parked slot would stretch the updated
+                // tree across the map: past the allowance, this frame builds (on the layout
+                // just placed).
+                let allowed = self.desc.tlas_updates.max_misplaced * count as f32;
+                if keeper.misplaced as f32 <= allowed {
+                    return (count, source);
+                }
+                keeper.reset_misplaced();
+                keeper.repark(instances, delta.stable, parking);
+                return (count, None);
+            }
+        }
+        let spare = self.spare_records(real);
+        let kept = keeper.len() >= instances.len()
+            && keeper.parked() <= 2 * spare as usize
+            && keeper.place(instances, delta, parking);
+        if kept {
+            keeper.repark(instances, delta.stable, parking);
+        } else {
+            keeper.lay_out(instances, (real + spare) as usize, delta.stable, parking);
+        }
+        // A build: the tree is new, nothing is misplaced in it.
+        keeper.reset_misplaced();
+        (keeper.len() as u32, None)
     }
 
     /// The parking BLAS's address, built first if no frame that ran built it.
@@ -373,7 +438,32 @@ impl VulkanBackend {
         }
         self.bases = bases;
         let real = records_now.len() as u32;
-        let (count, source) = self.plan_tlas(real);
+        let planned = self.plan_tlas(real);
+        // Stable slots with updates on; split parts are written in list order (their
+        // primitive bases are indexed by slot).
+        let keep = self.desc.tlas_updates.enabled && !split;
+        let mut keeper = std::mem::take(&mut self.slot_keeper);
+        let (count, source, keeper_parking) = if keep {
+            let parking = match self.ensure_parking(cmd) {
+                Ok(p) => p,
+                Err(e) => {
+                    self.slot_keeper = keeper;
+                    return Err(e);
+                }
+            };
+            let (count, source) =
+                self.place_records(&mut keeper, instances, delta, planned, parking);
+            self.counters.tlas_slots_joined += u64::from(keeper.joined);
+            let entry = self.tlas_history.back_mut().expect("pushed above");
+            entry.1 = if keeper.all { 0 } else { keeper.len() };
+            entry.2.clear();
+            entry.2.extend_from_slice(&keeper.written);
+            (count, source, parking)
+        } else {
+            keeper.reset();
+            (planned.0, planned.1, 0)
+        };
+        self.slot_keeper = keeper;
         let flags = self.tlas_build_flags();
         let n = count.max(1);
         let bytes = u64::from(n) * 64;
@@ -418,7 +508,9 @@ impl VulkanBackend {
             }
             self.slots[s].tlas_capacity = cap;
         }
-        let parking = if count > real {
+        let parking = if keep {
+            keeper_parking
+        } else if count > real {
             self.ensure_parking(cmd)?
         } else {
             0
@@ -440,6 +532,12 @@ impl VulkanBackend {
             None
         } else {
             self.stale_records(call)
+        };
+        // With stable slots the buffer holds the keeper's image, parked slots included.
+        let records_now: &[TlasInstance] = if keep {
+            self.slot_keeper.image()
+        } else {
+            records_now
         };
         let slot = &mut self.slots[s];
         let ibuf = slot.instances.as_mut().expect("allocated above");
@@ -481,15 +579,20 @@ impl VulkanBackend {
             }
             written += (to - from) as usize;
         };
-        if had_from >= had_to || had_to < real || had_from > count {
-            park(real, count);
+        if keep {
+            // Parked slots are in the image.
+            slot.parked = (0, 0);
         } else {
-            park(real, had_from.clamp(real, count));
-            park(had_to.clamp(real, count), count);
+            if had_from >= had_to || had_to < real || had_from > count {
+                park(real, count);
+            } else {
+                park(real, had_from.clamp(real, count));
+                park(had_to.clamp(real, count), count);
+            }
+            slot.parked = (real, count);
         }
-        slot.parked = (real, count);
         self.counters.tlas_records_written += written as u64;
-        self.counters.tlas_records_built += records_now.len() as u64;
+        self.counters.tlas_records_built += u64::from(real);
         let slot = &mut self.slots[s];
         let ibuf = slot.instances.as_mut().expect("allocated above");
         slot.instances_call = if split { 0 } else { call };
@@ -497,7 +600,7 @@ impl VulkanBackend {
             ibuf.address,
             slot.tlas.as_ref().expect("allocated above").raw,
         );
-        slot.records = real;
+        slot.records = if keep { count } else { real };
         slot.tlas_count = count;
         self.tlas_len = real as usize;
         self.expanded = records;
