@@ -1,7 +1,7 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M]`
 
 use std::time::Instant;
 
@@ -34,6 +34,9 @@ struct Args {
     /// Frames measured after the 300 warm-up frames.
     #[arg(long, default_value_t = 3000)]
     frames: u64,
+    /// Camera speed, metres a frame (the bench's 0.5; the fly-through moves 8.2).
+    #[arg(long, default_value_t = 0.5)]
+    speed: f32,
 }
 
 fn main() {
@@ -61,7 +64,7 @@ fn main() {
         world.populate(&m).unwrap();
     }
     let cameras = |f: u64| -> Vec<Viewpoint> {
-        let lead = world.camera_on_path(f, 0.5);
+        let lead = world.camera_on_path(f, args.speed);
         let off = [
             glam::Vec3::ZERO,
             glam::Vec3::new(40.0, 0.0, 0.0),

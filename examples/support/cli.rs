@@ -138,6 +138,11 @@ pub struct RunArgs {
     /// default: a build every frame; see `TlasUpdates`).
     #[arg(long, default_value_t = 0)]
     pub tlas_max_updates: u32,
+    /// With `--tlas-max-updates`: the fraction of the records that may join an updated TLAS
+    /// in a parked slot away from where they stand before a frame builds
+    /// (`TlasUpdates::max_misplaced`; default 1/256).
+    #[arg(long)]
+    pub tlas_max_misplaced: Option<f32>,
     /// Far-field cut: a proxy is shown once its error projects under this many pixels.
     #[arg(long)]
     pub far_px: Option<f32>,
@@ -314,6 +319,9 @@ impl RunArgs {
         if self.tlas_max_updates > 0 {
             c.tlas_updates = TlasUpdates {
                 max_updates: self.tlas_max_updates,
+                max_misplaced: self
+                    .tlas_max_misplaced
+                    .unwrap_or(TlasUpdates::ON.max_misplaced),
                 ..TlasUpdates::ON
             };
         }

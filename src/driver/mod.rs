@@ -578,6 +578,7 @@ pub fn run_cached(
                     c.tlas_records_written,
                     c.tlas_updates,
                     c.tlas_slots_joined,
+                    c.tlas_slots_misplaced,
                 )
             };
             let uploaded_before = uploaded(&p.manager);
@@ -602,6 +603,7 @@ pub fn run_cached(
             );
             row.tlas_updated = uploaded_after.2 > uploaded_before.2;
             row.tlas_slots_joined = uploaded_after.3 - uploaded_before.3;
+            row.tlas_slots_misplaced = uploaded_after.4 - uploaded_before.4;
             rows.push(row);
             p.manager.backend_mut().record(&cmd)?;
         }

@@ -88,6 +88,8 @@ pub struct FrameRow {
     /// With TLAS updates on: records that took an instance slot another record held (see
     /// `VulkanCounters::tlas_slots_joined`).
     pub tlas_slots_joined: u64,
+    /// Of them, those placed away from where they stand.
+    pub tlas_slots_misplaced: u64,
     /// Error against the opaque ground truth, on scored frames.
     pub score: Option<FrameScore>,
     /// Error against the all-geometry ground truth, on scored frames.
@@ -133,6 +135,7 @@ impl FrameRow {
             gpu_tlas_ms: s.measured_tlas_ms,
             tlas_updated: false,
             tlas_slots_joined: 0,
+            tlas_slots_misplaced: 0,
             score: None,
             score_all_geometry: None,
         }
@@ -194,6 +197,7 @@ struct CsvRow {
     gpu_tlas_ms: f64,
     tlas_updated: bool,
     tlas_slots_joined: u64,
+    tlas_slots_misplaced: u64,
     hit_mismatch: Option<f64>,
     identity_mismatch: Option<f64>,
     shadow_mismatch: Option<f64>,
@@ -614,6 +618,7 @@ impl RunReport {
                 gpu_tlas_ms: r.gpu_tlas_ms,
                 tlas_updated: r.tlas_updated,
                 tlas_slots_joined: r.tlas_slots_joined,
+                tlas_slots_misplaced: r.tlas_slots_misplaced,
                 hit_mismatch: s.map(|s| s.hit_mismatch),
                 identity_mismatch: s.map(|s| s.identity_mismatch),
                 shadow_mismatch: s.map(|s| s.shadow_mismatch),

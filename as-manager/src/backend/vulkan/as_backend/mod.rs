@@ -369,6 +369,9 @@ pub struct VulkanCounters {
     /// With [`TlasUpdates`] on: records that took an instance slot another record held (joined
     /// the TLAS); every other record kept its slot from the frame before.
     pub tlas_slots_joined: u64,
+    /// Of them, those that found no parked slot in or next to their 64 m cell (see
+    /// `TlasUpdates::max_misplaced`).
+    pub tlas_slots_misplaced: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.

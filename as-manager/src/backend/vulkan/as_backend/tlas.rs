@@ -20,16 +20,16 @@ const PARKING_FLAGS: vk::BuildAccelerationStructureFlagsKHR =
 ///
 /// With updates on, each record keeps its instance slot from frame to frame whatever its
 /// place in the manager's list (`tlas_slots.rs`): a record that leaves parks its slot where it
-/// stood, one that joins takes a slot parked in or next to its 64 m cell, and a frame whose
-/// joining records find none there builds instead ([`TlasUpdates::max_misplaced`]). Builds
-/// move the parked slots to where the frame's near-field records stand.
+/// stood, one that joins takes the nearest parked slot (by rings of 64 m cells), and a frame
+/// builds instead once too many joined away from where they stand
+/// ([`TlasUpdates::max_misplaced`]). Builds spread the parked slots over the records again.
 ///
 /// **Off by default.** Written in list order, updated trees traced 9.5x slower on the H200
 /// (the default run's render passes at 1080p: 75 ms p50 with up to 64 updates, 7.9 ms with a
-/// build every frame). With stable slots they trace at 1.0-1.2x, but about 40 records join a
-/// frame at 8.2 m a frame and most frames find one without a parked slot near it: only 23-26 %
-/// of the frames update, which saves no GPU time and costs host time (`docs/GPU.md`, "Stable
-/// TLAS slots").
+/// build every frame). With stable slots, 76 % of the frames update and the GPU AS time drops
+/// from 0.51 to 0.29 ms p50, but the render passes take 8.47 against 7.89 ms p50 (11.2
+/// against 8.5 ms p99), more than the AS time saves, and the AS p99 stays at 0.60 ms (it is
+/// set by the build frames; `docs/GPU.md`, "Stable TLAS slots").
 ///
 /// An update needs the same instance count as its build. A build therefore reserves
 /// [`TlasUpdates::headroom`] more records than the frame has; the records a frame does not
@@ -49,9 +49,10 @@ pub struct TlasUpdates {
     /// least 64): how many more records the updates that follow may hold.
     pub headroom: f32,
     /// A frame builds instead of updating once more than this fraction of the records
-    /// (default 0: any) joined since the last build into a parked slot away from where they
-    /// stand (none parked in or next to their 64 m cell): each stretches the updated tree's
-    /// boxes from that slot to the record, which every ray between them then visits.
+    /// (default 1/256) joined since the last build into a parked slot away from where they
+    /// stand (the nearest parked slot, but none in or next to their 64 m cell): each
+    /// stretches the updated tree's boxes from that slot to the record, which every ray
+    /// between them then visits.
     pub max_misplaced: f32,
 }
 
@@ -74,7 +75,7 @@ impl TlasUpdates {
         max_updates: 16,
         light_frame_triangles: 16_384,
         headroom: 0.125,
-        max_misplaced: 0.0,
+        max_misplaced: 1.0 / 256.0,
     };
 
     /// Every frame builds its TLAS (no updates).
@@ -269,7 +270,7 @@ impl VulkanBackend {
                     return (count, source);
                 }
                 keeper.reset_misplaced();
-                keeper.repark(instances, delta.stable, parking);
+                keeper.repark(instances, parking);
                 return (count, None);
             }
         }
@@ -278,9 +279,9 @@ impl VulkanBackend {
             && keeper.parked() <= 2 * spare as usize
             && keeper.place(instances, delta, parking);
         if kept {
-            keeper.repark(instances, delta.stable, parking);
+            keeper.repark(instances, parking);
         } else {
-            keeper.lay_out(instances, (real + spare) as usize, delta.stable, parking);
+            keeper.lay_out(instances, (real + spare) as usize, parking);
         }
         // A build: the tree is new, nothing is misplaced in it.
         keeper.reset_misplaced();
@@ -454,6 +455,7 @@ impl VulkanBackend {
             let (count, source) =
                 self.place_records(&mut keeper, instances, delta, planned, parking);
             self.counters.tlas_slots_joined += u64::from(keeper.joined);
+            self.counters.tlas_slots_misplaced += u64::from(keeper.misplaced_now);
             let entry = self.tlas_history.back_mut().expect("pushed above");
             entry.1 = if keeper.all { 0 } else { keeper.len() };
             entry.2.clear();

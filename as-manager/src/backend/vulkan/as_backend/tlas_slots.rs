@@ -28,6 +28,9 @@ use crate::spatial::CellHasher;
 const NONE: u32 = u32::MAX;
 /// Cell size for matching joining records to parked slots, metres.
 const CELL_M: f32 = 64.0;
+/// Rings of cells around a joining record's own searched for the nearest parked slot (a
+/// joining record beyond the first ring counts as misplaced: `TlasUpdates::max_misplaced`).
+const SEARCH_RINGS: i32 = 4;
 
 fn cell_xz(x: f32, z: f32) -> (i32, i32) {
     ((x / CELL_M).floor() as i32, (z / CELL_M).floor() as i32)
@@ -66,19 +69,16 @@ fn parked(at: &TlasInstance, parking: u64) -> TlasInstance {
     }
 }
 
-/// Where the `k`-th of `spare` parked slots stands for `records`: half of them (at most one
-/// per record) at the records from `churn_from` on (the manager's near field, where most
-/// records join), the rest spread over all records.
-fn park_site(records: &[TlasInstance], churn_from: usize, k: usize, spare: usize) -> TlasInstance {
+/// Where the `k`-th of `spare` parked slots stands for `records`: spread evenly over them, at
+/// a record's translation. (Putting half of them at the near field's records, where most
+/// records join, made the H200's TLAS builds 1.7x as slow and found no more slots for the
+/// joining records: `docs/GPU.md`.)
+fn park_site(records: &[TlasInstance], k: usize, spare: usize) -> TlasInstance {
     let n = records.len();
-    let churn = &records[churn_from.min(n)..];
-    let near = (spare / 2).min(churn.len());
-    let at = if k < near {
-        churn.get(k * churn.len() / near)
-    } else {
-        records.get((k - near) * n / (spare - near).max(1))
-    };
-    at.copied().unwrap_or_else(bytemuck::Zeroable::zeroed)
+    records
+        .get(k * n / spare.max(1))
+        .copied()
+        .unwrap_or_else(bytemuck::Zeroable::zeroed)
 }
 
 /// The instance buffer's layout: which slot holds each of the manager's records. See the
@@ -119,6 +119,8 @@ pub(super) struct SlotKeeper {
     /// Of them, those that found no parked slot in or next to their cell, since the last
     /// layout or `reset_misplaced` (they stretch the updated tree most).
     pub misplaced: u32,
+    /// Of the last call's joining records, those misplaced.
+    pub misplaced_now: u32,
 }
 
 impl SlotKeeper {
@@ -200,28 +202,28 @@ impl SlotKeeper {
         }
     }
 
-    /// A parked slot for a record joining at `r`'s place: one in its cell or a neighbour if
-    /// any (`true`), else any.
+    /// A parked slot for a record joining at `r`'s place: the nearest by rings of cells
+    /// around its own, out to `SEARCH_RINGS` (`true` if within the first ring: its cell or a
+    /// neighbour), else any.
     fn free_slot_for(&mut self, r: &TlasInstance) -> Option<(u32, bool)> {
         let (cx, cz) = cell_of_record(r);
-        for (dx, dz) in [
-            (0, 0),
-            (1, 0),
-            (-1, 0),
-            (0, 1),
-            (0, -1),
-            (1, 1),
-            (-1, 1),
-            (1, -1),
-            (-1, -1),
-        ] {
-            if let Some(&s) = self
-                .cells
-                .get(&cell_key((cx + dx, cz + dz)))
-                .and_then(|l| l.last())
-            {
+        for ring in 0..=SEARCH_RINGS {
+            let mut found = None;
+            'ring: for dx in -ring..=ring {
+                for dz in -ring..=ring {
+                    if dx.abs().max(dz.abs()) != ring {
+                        continue;
+                    }
+                    let cell = self.cells.get(&cell_key((cx + dx, cz + dz)));
+                    if let Some(&s) = cell.and_then(|l| l.last()) {
+                        found = Some(s);
+                        break 'ring;
+                    }
+                }
+            }
+            if let Some(s) = found {
                 self.take_free(s);
-                return Some((s, true));
+                return Some((s, ring <= 1));
             }
         }
         let s = *self.free.last()?;
@@ -236,24 +238,16 @@ impl SlotKeeper {
     }
 
     /// Lays the slots out anew: record `i` in slot `i`, then parked slots up to `count`, each
-    /// at a record's translation (a cluster of parked slots in one place makes a degenerate
-    /// subtree that builds and updates slowly). Half of them (at most one per record) stand at
-    /// the records from `churn_from` on, the manager's near field, where most records join;
-    /// the rest spread over all records. Every slot is written.
-    pub fn lay_out(
-        &mut self,
-        records: &[TlasInstance],
-        count: usize,
-        churn_from: usize,
-        parking: u64,
-    ) {
+    /// at a record's translation (`park_site`; a cluster of parked slots in one place makes a
+    /// degenerate subtree that builds and updates slowly). Every slot is written.
+    pub fn lay_out(&mut self, records: &[TlasInstance], count: usize, parking: u64) {
         let (n, count) = (records.len(), count.max(records.len()));
         self.image.clear();
         self.image.extend_from_slice(records);
         let spare = count - n;
         for k in 0..spare {
             self.image
-                .push(parked(&park_site(records, churn_from, k, spare), parking));
+                .push(parked(&park_site(records, k, spare), parking));
         }
         self.slot_of.clear();
         self.slot_of.extend(0..records.len() as u32);
@@ -267,13 +261,13 @@ impl SlotKeeper {
         self.distrust = false;
         self.joined = 0;
         self.misplaced = 0;
+        self.misplaced_now = 0;
     }
 
     /// At a build (the tree is new, slot order does not matter): the parked slots move to
-    /// where `lay_out` puts them for this frame's records, near where records join now
-    /// rather than where they left. Writes the parked slots; `place` must have placed
-    /// `records` first.
-    pub fn repark(&mut self, records: &[TlasInstance], churn_from: usize, parking: u64) {
+    /// where `lay_out` puts them for this frame's records, rather than where records left.
+    /// Writes the parked slots; `place` must have placed `records` first.
+    pub fn repark(&mut self, records: &[TlasInstance], parking: u64) {
         let slots = std::mem::take(&mut self.free);
         for &s in &slots {
             self.take_cell(s);
@@ -282,7 +276,7 @@ impl SlotKeeper {
         let spare = self.free.len();
         for k in 0..spare {
             let s = self.free[k];
-            self.image[s as usize] = parked(&park_site(records, churn_from, k, spare), parking);
+            self.image[s as usize] = parked(&park_site(records, k, spare), parking);
             self.put_cell(s);
             self.written.push(s);
         }
@@ -373,6 +367,7 @@ impl SlotKeeper {
                 self.push_free(s);
             }
         }
+        let misplaced_before = self.misplaced;
         for k in 0..self.joining.len() {
             let i = self.joining[k] as usize;
             let (s, near) = self
@@ -384,6 +379,7 @@ impl SlotKeeper {
             self.written.push(s);
         }
         self.joined = self.joining.len() as u32;
+        self.misplaced_now = self.misplaced - misplaced_before;
         true
     }
 
@@ -499,7 +495,7 @@ mod tests {
             v
         };
         let mut records = list(&head, &tail);
-        keeper.lay_out(&records, records.len() + 64, 300, PARKING);
+        keeper.lay_out(&records, records.len() + 64, PARKING);
         keeper.check(&records, PARKING).unwrap();
         let (mut kept, mut stayed, mut written) = (0usize, 0usize, 0usize);
         for _frame in 0..200 {
@@ -567,7 +563,7 @@ mod tests {
         };
         let mut keeper = SlotKeeper::default();
         let a: Vec<TlasInstance> = (0..40).map(|i| at(i as f32 * 200.0, 0.0, i)).collect();
-        keeper.lay_out(&a, 40, 40, PARKING);
+        keeper.lay_out(&a, 40, PARKING);
         // Records 5 and 30 leave; one joins 10 m from where 5 stood, one 10 m from 30.
         let mut b = a.clone();
         b[5] = at(5.0 * 200.0 + 10.0, 0.0, 100);
@@ -599,21 +595,20 @@ mod tests {
         assert_eq!((keeper.joined, keeper.misplaced), (1, 1));
         keeper.reset_misplaced();
         assert_eq!(keeper.misplaced, 0);
-        // At a build the parked slots move to the records (here, to the churn from 20 on).
-        keeper.place(
-            &c,
-            TlasDelta {
-                stable: 40,
-                changed: &[],
-            },
-            PARKING,
-        );
-        keeper.repark(&c, 20, PARKING);
-        keeper.check(&c, PARKING).unwrap();
+        // At a build the parked slots move to where records stand now.
+        let d = c[..36].to_vec();
+        let delta = TlasDelta {
+            stable: 36,
+            changed: &[],
+        };
+        assert!(keeper.place(&d, delta, PARKING));
+        keeper.repark(&d, PARKING);
+        keeper.check(&d, PARKING).unwrap();
+        assert_eq!(keeper.parked(), 4);
         for &s in &keeper.free {
             let x = keeper.image[s as usize].transform[3];
             assert!(
-                c[20..].iter().any(|r| r.transform[3] == x),
+                d.iter().any(|r| r.transform[3] == x),
                 "slot {s} parked at {x}"
             );
         }
@@ -623,7 +618,7 @@ mod tests {
     fn too_many_records_ask_for_a_new_layout() {
         let mut keeper = SlotKeeper::default();
         let a: Vec<TlasInstance> = (0..10).map(|i| rec(i, 1)).collect();
-        keeper.lay_out(&a, 12, 0, PARKING);
+        keeper.lay_out(&a, 12, PARKING);
         let b: Vec<TlasInstance> = (0..13).map(|i| rec(i, 1)).collect();
         assert!(!keeper.place(&b, TlasDelta::ALL, PARKING));
         keeper.check(&a, PARKING).unwrap();
@@ -638,7 +633,7 @@ mod tests {
     fn shared_translations_and_repeated_changes() {
         let mut keeper = SlotKeeper::default();
         let mut a: Vec<TlasInstance> = (0..6).map(|i| rec(i % 2, i as u64)).collect();
-        keeper.lay_out(&a, 8, 0, PARKING);
+        keeper.lay_out(&a, 8, PARKING);
         a.swap(0, 5);
         a[3].blas_address = 99;
         let delta = TlasDelta {
