@@ -110,8 +110,16 @@ fn print_table(r: &RunReport) {
         s.reference.instances,
         s.reference.never_loaded_instances
     );
+    // The policy column fits the longest name (`managed-tlas-update`).
+    let w = s
+        .policies
+        .iter()
+        .map(|p| p.policy.len())
+        .max()
+        .unwrap_or(0)
+        .max(12);
     println!(
-        "{:<12} {:>9} {:>9} {:>7} {:>13} {:>8} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>9} {:>5}",
+        "{:<w$} {:>9} {:>9} {:>7} {:>13} {:>8} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>9} {:>5}",
         "policy",
         "peak MB",
         "p95 MB",
@@ -136,7 +144,7 @@ fn print_table(r: &RunReport) {
     };
     for p in &s.policies {
         println!(
-            "{:<12} {:>9.1} {:>9.1} {:>7} {:>13} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>9} {:>9} {:>9} {:>9} {:>5}",
+            "{:<w$} {:>9.1} {:>9.1} {:>7} {:>13} {:>8.2} {:>8.2} {:>8.2} {:>8.2} {:>9} {:>9} {:>9} {:>9} {:>5}",
             p.policy,
             p.peak_blas_bytes as f64 / 1e6,
             p.p95_blas_bytes as f64 / 1e6,
@@ -173,7 +181,7 @@ fn print_table(r: &RunReport) {
         let all = p.error_all_geometry.as_ref().map_or(String::new(), |e| {
             format!("; vs all geometry {:.2}%", e.hit_mismatch.mean * 100.0)
         });
-        println!("  {:<12} {}{all}", p.policy, bands.join(", "));
+        println!("  {:<w$} {}{all}", p.policy, bands.join(", "));
     }
     if let Some(t) = &s.frame_timing {
         println!(
@@ -195,7 +203,7 @@ fn print_table(r: &RunReport) {
     }
     for p in s.policies.iter().filter(|p| p.peak_landmark_instances > 0) {
         println!(
-            "  {:<12} landmarks: peak {} records, {:.0} / {:.0} candidates looked at per frame (p50 / p99)",
+            "  {:<w$} landmarks: peak {} records, {:.0} / {:.0} candidates looked at per frame (p50 / p99)",
             p.policy, p.peak_landmark_instances, p.landmarks_examined_p50, p.landmarks_examined_p99
         );
     }

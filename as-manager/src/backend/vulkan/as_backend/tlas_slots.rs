@@ -109,6 +109,9 @@ pub(super) struct SlotKeeper {
     next: Vec<u32>,
     vacated_list: Vec<u32>,
     joining: Vec<u32>,
+    /// This call's records matched without hashing (index, slot), and the others.
+    matched: Vec<(u32, u32)>,
+    leftover: Vec<u32>,
     /// Slots written by the last call (`all`: every slot).
     pub written: Vec<u32>,
     pub all: bool,
@@ -315,10 +318,6 @@ impl SlotKeeper {
         self.joined = 0;
         // Records at or after `stable` are all taken as changed.
         let stable = delta.stable.min(prev).min(records.len());
-        // The slots of the last call's records that may have left: those at the changed
-        // indices, keyed for the records that come back.
-        self.heads.clear();
-        self.vacated_list.clear();
         let changed = || {
             delta
                 .changed
@@ -326,6 +325,57 @@ impl SlotKeeper {
                 .map(|&i| i as usize)
                 .filter(move |&i| i < stable)
         };
+        // First without hashing: a changed record standing where the last call's record at
+        // its index stood takes that record's slot (a LOD change). The tail (the near field,
+        // the proxies) is mostly listed in the order of the last call, or shifted by a record
+        // that joined or left: there the index of the last match's shift, or one off, is
+        // tried too.
+        self.leftover.clear();
+        self.matched.clear();
+        let mut shift = 0isize;
+        for i in changed().chain(stable..records.len()) {
+            if self.seen[i] == call {
+                continue;
+            }
+            self.seen[i] = call;
+            let k = key(&records[i]);
+            let mut hit = None;
+            // A changed index before `stable` (a landmark's LOD changed, or another took its
+            // place) may only take its own index's slot; the tail also the shifted ones.
+            let offsets: &[isize] = if i >= stable {
+                &[0, shift, -1, 1]
+            } else {
+                &[0]
+            };
+            if i < prev {
+                for &off in offsets {
+                    let j = i as isize + off;
+                    let lo = if i >= stable { stable as isize } else { 0 };
+                    if j < lo || j >= prev as isize {
+                        continue;
+                    }
+                    let s = self.slot_of[j as usize];
+                    if self.claimed[s as usize] != call && key(&self.image[s as usize]) == k {
+                        hit = Some(s);
+                        if i >= stable {
+                            shift = off;
+                        }
+                        break;
+                    }
+                }
+            }
+            match hit {
+                Some(s) => {
+                    self.claimed[s as usize] = call;
+                    self.matched.push((i as u32, s));
+                }
+                None => self.leftover.push(i as u32),
+            }
+        }
+        // The other slots of the last call's records that may have left (those at the changed
+        // indices and the tail), keyed for the records that come back.
+        self.heads.clear();
+        self.vacated_list.clear();
         for i in changed().chain(stable..prev) {
             let s = self.slot_of[i];
             if self.vacated[s as usize] == call {
@@ -333,6 +383,9 @@ impl SlotKeeper {
             }
             self.vacated[s as usize] = call;
             self.vacated_list.push(s);
+            if self.claimed[s as usize] == call {
+                continue;
+            }
             let h = hash(key(&self.image[s as usize]));
             let head = self.heads.entry(h).or_insert(NONE);
             self.next[s as usize] = *head;
@@ -340,20 +393,16 @@ impl SlotKeeper {
         }
         self.slot_of.resize(records.len(), NONE);
         self.joining.clear();
-        for i in changed().chain(stable..records.len()) {
-            if self.seen[i] == call {
-                continue;
-            }
-            self.seen[i] = call;
-            let r = records[i];
-            match self.take_vacated(key(&r)) {
+        for m in 0..self.matched.len() {
+            let (i, s) = self.matched[m];
+            self.put(i as usize, s, &records[i as usize]);
+        }
+        for m in 0..self.leftover.len() {
+            let i = self.leftover[m] as usize;
+            match self.take_vacated(key(&records[i])) {
                 Some(s) => {
                     self.claimed[s as usize] = call;
-                    self.slot_of[i] = s;
-                    if self.image[s as usize] != r {
-                        self.image[s as usize] = r;
-                        self.written.push(s);
-                    }
+                    self.put(i, s, &records[i]);
                 }
                 None => self.joining.push(i as u32),
             }
@@ -381,6 +430,15 @@ impl SlotKeeper {
         self.joined = self.joining.len() as u32;
         self.misplaced_now = self.misplaced - misplaced_before;
         true
+    }
+
+    /// Record `i` (`r`) in slot `s`, written if the slot held something else.
+    fn put(&mut self, i: usize, s: u32, r: &TlasInstance) {
+        self.slot_of[i] = s;
+        if self.image[s as usize] != *r {
+            self.image[s as usize] = *r;
+            self.written.push(s);
+        }
     }
 
     /// A vacated slot whose record had key `k`, unlinked from its chain.
@@ -498,6 +556,7 @@ mod tests {
         keeper.lay_out(&records, records.len() + 64, PARKING);
         keeper.check(&records, PARKING).unwrap();
         let (mut kept, mut stayed, mut written) = (0usize, 0usize, 0usize);
+        let (mut tail_records, mut unhashed) = (0usize, 0usize);
         for _frame in 0..200 {
             let before: HashMap<[u32; 3], usize> = keeper
                 .image()
@@ -532,6 +591,7 @@ mod tests {
             assert!(keeper.place(&new, delta, PARKING));
             keeper.check(&new, PARKING).unwrap();
             written += keeper.written.len();
+            (tail_records, unhashed) = (tail_records + tail.len(), unhashed + keeper.matched.len());
             for (i, r) in new.iter().enumerate() {
                 if let Some(&s) = before.get(&key(r)) {
                     stayed += 1;
@@ -541,6 +601,11 @@ mod tests {
             records = new;
         }
         assert_eq!(kept, stayed, "every record that stayed kept its slot");
+        // The shifted tail is matched by index, not through the hash map.
+        assert!(
+            unhashed * 100 >= tail_records * 95,
+            "{unhashed} of {tail_records} tail records matched by index"
+        );
         // About 4 changes a frame (a leave, two joins, a LOD change, a tail removal) and no
         // rewrite of the shifted tail.
         assert!(written <= 200 * 8, "{written} slots written");
