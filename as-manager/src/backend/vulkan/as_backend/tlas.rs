@@ -26,10 +26,11 @@ const PARKING_FLAGS: vk::BuildAccelerationStructureFlagsKHR =
 ///
 /// **Off by default.** Written in list order, updated trees traced 9.5x slower on the H200
 /// (the default run's render passes at 1080p: 75 ms p50 with up to 64 updates, 7.9 ms with a
-/// build every frame). With stable slots, 76 % of the frames update and the GPU AS time drops
-/// from 0.51 to 0.29 ms p50, but the render passes take 8.47 against 7.89 ms p50 (11.2
-/// against 8.5 ms p99), more than the AS time saves, and the AS p99 stays at 0.60 ms (it is
-/// set by the build frames; `docs/GPU.md`, "Stable TLAS slots").
+/// build every frame). With stable slots, 76 % of the frames update, the GPU AS time drops
+/// from 0.51 to 0.29 ms p50, and the render passes take 8.14 against 7.92 ms p50 (9.42
+/// against 8.47 ms p99): about what the AS time saves. But `update` costs 0.3-0.6 ms more on
+/// the host, and the AS p99 stays at 0.60 ms (it is set by the build frames; `docs/GPU.md`,
+/// "Stable TLAS slots").
 ///
 /// An update needs the same instance count as its build. A build therefore reserves
 /// [`TlasUpdates::headroom`] more records than the frame has; the records a frame does not

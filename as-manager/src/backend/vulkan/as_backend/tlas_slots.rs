@@ -44,17 +44,25 @@ fn cell_of_record(r: &TlasInstance) -> (i32, i32) {
     cell_xz(r.transform[3], r.transform[11])
 }
 
-/// What identifies a record from one frame to the next: its translation's bits.
-fn key(r: &TlasInstance) -> [u32; 3] {
-    [
-        r.transform[3].to_bits(),
-        r.transform[7].to_bits(),
-        r.transform[11].to_bits(),
-    ]
+/// What identifies a record from one frame to the next: its translation's bits, and for a
+/// record at the origin (a mesh in world space, such as the far field's proxies, which all
+/// have the identity transform) its BLAS too, or every proxy would match every other.
+fn key(r: &TlasInstance) -> [u32; 4] {
+    let t = [r.transform[3], r.transform[7], r.transform[11]];
+    let blas = if t == [0.0; 3] {
+        (r.blas_address ^ (r.blas_address >> 32)) as u32
+    } else {
+        0
+    };
+    [t[0].to_bits(), t[1].to_bits(), t[2].to_bits(), blas]
 }
 
-fn hash(k: [u32; 3]) -> u64 {
-    u64::from(k[0]) ^ (u64::from(k[1]) << 21) ^ (u64::from(k[2]) << 42) ^ (u64::from(k[2]) >> 22)
+fn hash(k: [u32; 4]) -> u64 {
+    u64::from(k[0])
+        ^ (u64::from(k[1]) << 21)
+        ^ (u64::from(k[2]) << 42)
+        ^ (u64::from(k[2]) >> 22)
+        ^ (u64::from(k[3]) << 11)
 }
 
 /// A parked record: never hit (mask 0), a point at `at`'s translation, on the parking BLAS.
@@ -442,7 +450,7 @@ impl SlotKeeper {
     }
 
     /// A vacated slot whose record had key `k`, unlinked from its chain.
-    fn take_vacated(&mut self, k: [u32; 3]) -> Option<u32> {
+    fn take_vacated(&mut self, k: [u32; 4]) -> Option<u32> {
         let h = hash(k);
         let head = *self.heads.get(&h)?;
         let (mut prev, mut s) = (NONE, head);
@@ -558,7 +566,7 @@ mod tests {
         let (mut kept, mut stayed, mut written) = (0usize, 0usize, 0usize);
         let (mut tail_records, mut unhashed) = (0usize, 0usize);
         for _frame in 0..200 {
-            let before: HashMap<[u32; 3], usize> = keeper
+            let before: HashMap<[u32; 4], usize> = keeper
                 .image()
                 .iter()
                 .enumerate()
@@ -677,6 +685,24 @@ mod tests {
                 "slot {s} parked at {x}"
             );
         }
+    }
+
+    /// Records in world space (the identity transform, as the far field's proxies) are told
+    /// apart by their BLAS: each keeps its slot when the list is reordered.
+    #[test]
+    fn records_at_the_origin_keep_their_slots_by_blas() {
+        let proxy = |b: u64| TlasInstance::new(&Affine3A::IDENTITY, 0, 0xff, 0, 0, b << 8);
+        let mut keeper = SlotKeeper::default();
+        let a: Vec<TlasInstance> = (1..=10).map(proxy).collect();
+        keeper.lay_out(&a, 12, PARKING);
+        let b: Vec<TlasInstance> = [3, 9, 1, 10, 2, 8, 4, 7, 5, 6].map(proxy).to_vec();
+        assert!(keeper.place(&b, TlasDelta::ALL, PARKING));
+        keeper.check(&b, PARKING).unwrap();
+        for (i, r) in b.iter().enumerate() {
+            let was = a.iter().position(|x| x == r).unwrap();
+            assert_eq!(keeper.slot_of[i] as usize, was, "proxy {i} changed slot");
+        }
+        assert_eq!(keeper.written.len(), 0);
     }
 
     #[test]
