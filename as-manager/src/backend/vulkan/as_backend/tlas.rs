@@ -444,15 +444,9 @@ impl VulkanBackend {
         // Stable slots with updates on; split parts are written in list order (their
         // primitive bases are indexed by slot).
         let keep = self.desc.tlas_updates.enabled && !split;
-        let mut keeper = std::mem::take(&mut self.slot_keeper);
         let (count, source, keeper_parking) = if keep {
-            let parking = match self.ensure_parking(cmd) {
-                Ok(p) => p,
-                Err(e) => {
-                    self.slot_keeper = keeper;
-                    return Err(e);
-                }
-            };
+            let parking = self.ensure_parking(cmd)?;
+            let mut keeper = std::mem::take(&mut self.slot_keeper);
             let (count, source) =
                 self.place_records(&mut keeper, instances, delta, planned, parking);
             self.counters.tlas_slots_joined += u64::from(keeper.joined);
@@ -461,12 +455,15 @@ impl VulkanBackend {
             entry.1 = if keeper.all { 0 } else { keeper.len() };
             entry.2.clear();
             entry.2.extend_from_slice(&keeper.written);
+            self.slot_keeper = keeper;
             (count, source, parking)
         } else {
-            keeper.reset();
+            if self.desc.tlas_updates.enabled {
+                // Split parts this frame: the next frame with stable slots lays them out anew.
+                self.slot_keeper.reset();
+            }
             (planned.0, planned.1, 0)
         };
-        self.slot_keeper = keeper;
         let flags = self.tlas_build_flags();
         let n = count.max(1);
         let bytes = u64::from(n) * 64;

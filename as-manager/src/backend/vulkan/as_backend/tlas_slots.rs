@@ -100,12 +100,11 @@ pub(super) struct SlotKeeper {
     /// Parked slots, and each one's place in it (NONE: not parked).
     free: Vec<u32>,
     free_pos: Vec<u32>,
-    /// Parked slots by the cell (`CELL_M`) where they stand, each one's place in its cell's
-    /// list, and its cell: a joining record takes a parked slot in its own cell or next to it,
-    /// so the updated tree's box of that slot grows by little.
+    /// Parked slots by the cell (`CELL_M`) where they stand (that of their parked record), and
+    /// each one's place in its cell's list: a joining record takes a parked slot in its own
+    /// cell or next to it, so the updated tree's box of that slot grows by little.
     cells: HashMap<u64, Vec<u32>, BuildHasherDefault<CellHasher>>,
     cell_pos: Vec<u32>,
-    cell_of: Vec<u64>,
     /// Per slot: the call that last listed it as vacated or claimed it (`call`).
     vacated: Vec<u32>,
     claimed: Vec<u32>,
@@ -164,7 +163,6 @@ impl SlotKeeper {
         self.cells.clear();
         self.free_pos.clear();
         self.cell_pos.clear();
-        self.cell_of.clear();
     }
 
     /// Starts counting `misplaced` again (at a build: the tree is new).
@@ -185,7 +183,6 @@ impl SlotKeeper {
         let list = self.cells.entry(c).or_default();
         self.cell_pos[s as usize] = list.len() as u32;
         list.push(s);
-        self.cell_of[s as usize] = c;
     }
 
     /// Takes parked slot `s` out of the parked ones.
@@ -199,9 +196,9 @@ impl SlotKeeper {
         self.take_cell(s);
     }
 
-    /// Takes parked slot `s` out of its cell's list.
+    /// Takes parked slot `s` out of its cell's list (while it still holds its parked record).
     fn take_cell(&mut self, s: u32) {
-        let c = self.cell_of[s as usize];
+        let c = cell_key(cell_of_record(&self.image[s as usize]));
         let list = self.cells.get_mut(&c).expect("a parked slot's cell");
         let q = self.cell_pos[s as usize];
         list.swap_remove(q as usize);
@@ -300,7 +297,6 @@ impl SlotKeeper {
         self.next.resize(n, NONE);
         self.free_pos.resize(n, NONE);
         self.cell_pos.resize(n, NONE);
-        self.cell_of.resize(n, 0);
     }
 
     /// Places this call's records in the slots of the last call's, `delta` naming the records
