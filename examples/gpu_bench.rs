@@ -641,7 +641,14 @@ fn manager_build_ms(
     config.build.max_primitives = u64::MAX / 4;
     config.build.max_gpu_ms = 1e9;
     config.memory.blas_bytes = 64 << 30;
-    let backend = VulkanBackend::new(ctx, VulkanBackendDesc::default())?;
+    // The raw batch's flags (FAST_TRACE + ALLOW_COMPACTION), not the backend's default.
+    let backend = VulkanBackend::new(
+        ctx,
+        VulkanBackendDesc {
+            static_blas_prefer: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
+            ..VulkanBackendDesc::default()
+        },
+    )?;
     let mut manager = AsManager::new(config, backend)?;
     for k in 0..meshes_n {
         // Distinct meshes (same geometry): one BLAS each, as in the raw batch.

@@ -86,7 +86,9 @@ pub struct BuildBudget {
     /// they leave, and compactions what builds leave (at most `max_compaction_ms`). One build
     /// larger than the whole budget is admitted alone; each frame admits at least one build of
     /// near detail and one far-field proxy, so neither starves when the TLAS and refits take
-    /// the whole budget.
+    /// the whole budget. Default 0.45 ms: with the H200's cost model, 0.5 put the fly-through's
+    /// GPU AS p99 at 0.503 ms (the estimates' residuals), 0.45 at 0.483 ms with the same builds
+    /// per frame and the same image error (docs/GPU.md).
     pub max_gpu_ms: f32,
     /// Priority gained per frame of waiting (world units of distance), so nothing starves.
     pub aging_per_frame: f32,
@@ -110,7 +112,7 @@ impl Default for BuildBudget {
     fn default() -> Self {
         Self {
             max_primitives: 200_000,
-            max_gpu_ms: 0.5,
+            max_gpu_ms: 0.45,
             aging_per_frame: 2.0,
             in_view_bonus: 50.0,
             max_compactions: 8,

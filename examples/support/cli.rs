@@ -143,6 +143,14 @@ pub struct RunArgs {
     /// (`TlasUpdates::max_misplaced`; default 1/256).
     #[arg(long)]
     pub tlas_max_misplaced: Option<f32>,
+    /// Build every policy's TLAS with PREFER_FAST_TRACE instead of the backend's default
+    /// PREFER_FAST_BUILD (to compare build and trace times).
+    #[arg(long)]
+    pub tlas_fast_trace: bool,
+    /// Build every policy's static BLASes with PREFER_FAST_TRACE instead of the backend's
+    /// default PREFER_FAST_BUILD (to compare build and trace times).
+    #[arg(long)]
+    pub static_fast_trace: bool,
     /// Far-field cut: a proxy is shown once its error projects under this many pixels.
     #[arg(long)]
     pub far_px: Option<f32>,
@@ -312,6 +320,8 @@ impl RunArgs {
             all_geometry_reference: !self.opaque_only,
             near_only_too: self.compare_far_field,
             tlas_updates_too: self.compare_tlas_updates,
+            tlas_fast_trace: self.tlas_fast_trace,
+            static_fast_trace: self.static_fast_trace,
             out_dir: Some(self.out.clone()),
             maps: self.maps,
             ..RunConfig::default()

@@ -95,6 +95,12 @@ pub struct RunConfig {
     /// (`managed-tlas-update`: `tlas_updates` if enabled, else `TlasUpdates::ON`), to compare
     /// in the same run.
     pub tlas_updates_too: bool,
+    /// Build TLASes with PREFER_FAST_TRACE instead of `VulkanBackendDesc`'s default
+    /// (PREFER_FAST_BUILD).
+    pub tlas_fast_trace: bool,
+    /// Build static BLASes with PREFER_FAST_TRACE instead of `VulkanBackendDesc`'s default
+    /// (PREFER_FAST_BUILD).
+    pub static_fast_trace: bool,
     /// Output directory for the CSV, summary, pictures and maps (None: write nothing).
     pub out_dir: Option<PathBuf>,
     /// Top-down maps at this many evenly spaced frames.
@@ -140,6 +146,8 @@ impl Default for RunConfig {
             near_only_too: false,
             tlas_updates: TlasUpdates::default(),
             tlas_updates_too: false,
+            tlas_fast_trace: false,
+            static_fast_trace: false,
             out_dir: None,
             maps: 3,
             frames_in_flight: 2,
@@ -439,6 +447,8 @@ pub fn run_cached(
         };
         specs.push((PolicyKind::Managed, MANAGED_TLAS_UPDATE, true, on));
     }
+    const FAST_TRACE: rtstream_as_manager::backend::vulkan::ash::vk::BuildAccelerationStructureFlagsKHR =
+        rtstream_as_manager::backend::vulkan::ash::vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
     let mut policies = Vec::new();
     for (kind, name, far, tlas_updates) in specs {
         let mut c = config.managed.clone();
@@ -459,6 +469,16 @@ pub fn run_cached(
                 frames_in_flight: config.frames_in_flight,
                 deterministic: config.deterministic,
                 tlas_updates,
+                tlas_flags: if config.tlas_fast_trace {
+                    FAST_TRACE
+                } else {
+                    VulkanBackendDesc::default().tlas_flags
+                },
+                static_blas_prefer: if config.static_fast_trace {
+                    FAST_TRACE
+                } else {
+                    VulkanBackendDesc::default().static_blas_prefer
+                },
                 ..VulkanBackendDesc::default()
             },
         )?;
@@ -509,6 +529,8 @@ pub fn run_cached(
     let mut trail: Vec<Vec3> = Vec::new();
     let mut ever_loaded = vec![false; manifest.levels.len()];
     let mut files = Vec::new();
+    // Every timed GPU batch of every policy (`gpu_ops.csv`): what a frame's AS time is made of.
+    let mut gpu_ops = String::from("frame,policy,op,items,units,gpu_ms\n");
     for frame in 0..config.frames {
         let (a, b) = config.path_span;
         let t = match config.teleport_every {
@@ -605,6 +627,12 @@ pub fn run_cached(
             row.tlas_slots_joined = uploaded_after.3 - uploaded_before.3;
             row.tlas_slots_misplaced = uploaded_after.4 - uploaded_before.4;
             rows.push(row);
+            for m in p.manager.gpu_measurements() {
+                gpu_ops.push_str(&format!(
+                    "{frame},{},{:?},{},{},{:.5}\n",
+                    p.name, m.op, m.items, m.units, m.gpu_ms
+                ));
+            }
             p.manager.backend_mut().record(&cmd)?;
         }
         let scored = config.eval_every > 0 && frame > 0 && frame % config.eval_every == 0;
@@ -786,6 +814,14 @@ pub fn run_cached(
         }
     }
     if let Some(dir) = &config.out_dir {
+        let file = dir.join("gpu_ops.csv");
+        let out = |e: std::io::Error| crate::Error::Output {
+            path: file.clone(),
+            message: e.to_string(),
+        };
+        std::fs::create_dir_all(dir).map_err(out)?;
+        std::fs::write(&file, gpu_ops).map_err(out)?;
+        files.push(file);
         for p in &policies {
             if let Some((_, frame, w3, pic)) = &p.worst {
                 let file = dir.join(format!("worst_{}.png", p.name));

@@ -29,11 +29,32 @@ pub struct SizeModel {
     pub align: u64,
 }
 
-/// GPU time coefficients (milliseconds).
+/// Fixed GPU milliseconds of one batch (one command) of each kind of work, whatever its size.
+/// On the H200 these dominate a frame's small batches: a FAST_TRACE build of a few hundred to
+/// a few thousand triangles costs about 0.2 ms, a TLAS of any size at least 0.21 ms
+/// (docs/GPU.md, "What a frame's acceleration-structure time is made of").
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct BatchCosts {
+    /// A batch of static (FAST_TRACE) builds, skinned builds included.
+    pub build_static: f64,
+    /// A batch of skinned (FAST_BUILD) builds only.
+    pub build_skinned: f64,
+    /// A batch of refits (rebuilds of refitted BLASes included).
+    pub refit: f64,
+    /// One compaction copy.
+    pub compact: f64,
+    /// A TLAS build.
+    pub tlas: f64,
+    /// A TLAS update in place.
+    pub tlas_update: f64,
+}
+
+/// GPU time coefficients (milliseconds): a fixed cost per batch ([`BatchCosts`]) plus a cost
+/// per unit of work.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CostModel {
-    /// Per build call (batch) overhead.
-    pub batch_fixed_ms: f64,
+    /// Fixed cost of one batch of each kind.
+    pub batch_ms: BatchCosts,
     /// Static build, per million triangles.
     pub build_static_ms_per_mtri: f64,
     /// Skinned build, per million triangles.
@@ -229,10 +250,10 @@ impl Default for SizeModel {
 
 impl CostModel {
     /// Mesa lavapipe: ~150 ms per million triangles single-threaded; an update costs a rebuild;
-    /// TLAS of 100k instances ~20 ms.
+    /// TLAS of 100k instances ~20 ms. No fixed costs: the CPU builder has none worth budgeting.
     pub fn lavapipe() -> Self {
         Self {
-            batch_fixed_ms: 0.05,
+            batch_ms: BatchCosts::default(),
             build_static_ms_per_mtri: 150.0,
             build_skinned_ms_per_mtri: 150.0,
             refit_ms_per_mtri: 150.0,
@@ -243,19 +264,33 @@ impl CostModel {
         }
     }
 
-    /// NVIDIA H200, driver 580 (docs/GPU.md): 623 M tris/s FAST_TRACE and 1096 M tris/s
-    /// FAST_BUILD on large meshes, refit ≈ 0.28 ms per million triangles, compaction copies
-    /// ≈ 0.0015 ms per MiB, TLAS ≈ 1.2 ms per million instances.
+    /// NVIDIA H200, driver 580, at full clocks, fitted to every timed batch of the default
+    /// fly-through inside the manager's frames (docs/GPU.md, "What a frame's
+    /// acceleration-structure time is made of"; 2026-12-02):
+    /// - a static build batch (PREFER_FAST_BUILD, the backend's default): 0.14 ms + 8.6 ns
+    ///   per triangle over batches of 200 to 16,000 triangles (PREFER_FAST_TRACE: 0.20 ms +
+    ///   12 ns; large meshes build faster per triangle, so this overestimates them: an
+    ///   oversized mesh is admitted alone anyway);
+    /// - a skinned FAST_BUILD batch 0.053 ms, a refit batch 0.007 ms, a compaction 0.0075 ms,
+    ///   each plus the per-triangle (or per-MiB) cost measured on large meshes;
+    /// - a TLAS build (PREFER_FAST_BUILD, the backend's default) 0.21 ms + 1.45 µs per
+    ///   instance; an update in place 0.019 ms + 0.27 µs per instance (`gpu_bench`).
     pub fn nvidia() -> Self {
         Self {
-            batch_fixed_ms: 0.02,
-            build_static_ms_per_mtri: 1.61,
+            batch_ms: BatchCosts {
+                build_static: 0.141,
+                build_skinned: 0.053,
+                refit: 0.007,
+                compact: 0.0075,
+                tlas: 0.21,
+                tlas_update: 0.019,
+            },
+            build_static_ms_per_mtri: 8.6,
             build_skinned_ms_per_mtri: 0.91,
             refit_ms_per_mtri: 0.28,
             compact_ms_per_mib: 0.0015,
-            tlas_ms_per_kinst: 0.0012,
-            // 0.022 ms at 10k instances, 0.046 at 100k (docs/GPU.md).
-            tlas_update_ms_per_kinst: 0.0015,
+            tlas_ms_per_kinst: 0.00145,
+            tlas_update_ms_per_kinst: 0.00027,
         }
     }
 
@@ -272,6 +307,24 @@ impl CostModel {
         }
     }
 
+    /// The fixed GPU ms of one batch of `op`.
+    pub fn batch_fixed(&self, op: CostOp) -> f64 {
+        let b = &self.batch_ms;
+        match op {
+            CostOp::BuildStatic => b.build_static,
+            CostOp::BuildSkinned => b.build_skinned,
+            CostOp::Refit => b.refit,
+            CostOp::Compact => b.compact,
+            CostOp::Tlas => b.tlas,
+            CostOp::TlasUpdate => b.tlas_update,
+        }
+    }
+
+    /// Estimated GPU ms of one batch of `op` over `units`: its fixed cost plus the units'.
+    pub fn estimate_batch(&self, op: CostOp, units: u64) -> f64 {
+        self.batch_fixed(op) + self.estimate(op, units)
+    }
+
     /// Coefficient for `op` (per its unit scale).
     pub fn coefficient_mut(&mut self, op: CostOp) -> &mut f64 {
         match op {
@@ -286,8 +339,14 @@ impl CostModel {
 
     /// All coefficients finite and >= 0.
     pub fn validate(&self) -> Result<()> {
+        let b = &self.batch_ms;
         let all = [
-            self.batch_fixed_ms,
+            b.build_static,
+            b.build_skinned,
+            b.refit,
+            b.compact,
+            b.tlas,
+            b.tlas_update,
             self.build_static_ms_per_mtri,
             self.build_skinned_ms_per_mtri,
             self.refit_ms_per_mtri,

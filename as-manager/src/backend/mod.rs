@@ -159,6 +159,8 @@ pub struct Measurement {
     pub op: CostOp,
     /// Triangles, bytes or instances in the timed batch.
     pub units: u64,
+    /// BLASes (builds, refits, compactions) or TLAS records in the timed batch.
+    pub items: u32,
     /// Measured GPU milliseconds.
     pub gpu_ms: f64,
 }

@@ -16,7 +16,7 @@
 
 use std::collections::{HashMap, VecDeque};
 
-pub use super::calibration::{CostModel, SizeModel, SizeSample};
+pub use super::calibration::{BatchCosts, CostModel, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
     CostOp, FaultPoint, GeometryRef, Measurement, TlasDelta, TlasHandle,
@@ -349,11 +349,18 @@ impl AsBackend for ModelBackend {
         self.counters.build_calls += 1;
         let mut out = Vec::with_capacity(builds.len());
         let (mut st, mut sk) = (0u64, 0u64);
+        let (mut n_st, mut n_sk) = (0u32, 0u32);
         for b in builds {
             let t = b.geometry.triangle_count;
             match b.class {
-                BlasClass::Static => st += t as u64,
-                BlasClass::Skinned => sk += t as u64,
+                BlasClass::Static => {
+                    st += t as u64;
+                    n_st += 1;
+                }
+                BlasClass::Skinned => {
+                    sk += t as u64;
+                    n_sk += 1;
+                }
             }
             let frame = self.frame;
             out.push(self.alloc(ModelBlas {
@@ -365,10 +372,18 @@ impl AsBackend for ModelBackend {
             }));
             self.counters.builds += 1;
         }
-        for (op, units) in [(CostOp::BuildStatic, st), (CostOp::BuildSkinned, sk)] {
+        for (op, units, items) in [
+            (CostOp::BuildStatic, st, n_st),
+            (CostOp::BuildSkinned, sk, n_sk),
+        ] {
             if units > 0 {
-                let gpu_ms = self.costs.estimate(op, units);
-                self.measurements.push(Measurement { op, units, gpu_ms });
+                let gpu_ms = self.costs.estimate_batch(op, units);
+                self.measurements.push(Measurement {
+                    op,
+                    units,
+                    items,
+                    gpu_ms,
+                });
             }
         }
         Ok(out)
@@ -377,6 +392,7 @@ impl AsBackend for ModelBackend {
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
         self.check(FaultPoint::RefitBlases)?;
         let (mut rf, mut rb) = (0u64, 0u64);
+        let (mut n_rf, mut n_rb) = (0u32, 0u32);
         for r in refits {
             let b = self
                 .blases
@@ -385,16 +401,23 @@ impl AsBackend for ModelBackend {
             debug_assert_eq!(b.class, BlasClass::Skinned);
             if r.rebuild {
                 rb += b.triangles as u64;
+                n_rb += 1;
                 self.counters.rebuilds += 1;
             } else {
                 rf += b.triangles as u64;
+                n_rf += 1;
                 self.counters.refits += 1;
             }
         }
-        for (op, units) in [(CostOp::Refit, rf), (CostOp::BuildSkinned, rb)] {
+        for (op, units, items) in [(CostOp::Refit, rf, n_rf), (CostOp::BuildSkinned, rb, n_rb)] {
             if units > 0 {
-                let gpu_ms = self.costs.estimate(op, units);
-                self.measurements.push(Measurement { op, units, gpu_ms });
+                let gpu_ms = self.costs.estimate_batch(op, units);
+                self.measurements.push(Measurement {
+                    op,
+                    units,
+                    items,
+                    gpu_ms,
+                });
             }
         }
         Ok(())
@@ -430,10 +453,11 @@ impl AsBackend for ModelBackend {
             ..src
         });
         self.counters.compactions += 1;
-        let gpu_ms = self.costs.estimate(CostOp::Compact, src.bytes);
+        let gpu_ms = self.costs.estimate_batch(CostOp::Compact, src.bytes);
         self.measurements.push(Measurement {
             op: CostOp::Compact,
             units: src.bytes,
+            items: 1,
             gpu_ms,
         });
         Ok(h)
@@ -485,10 +509,11 @@ impl AsBackend for ModelBackend {
             }
         }
         let units = instances.len() as u64;
-        let gpu_ms = self.costs.estimate(CostOp::Tlas, units);
+        let gpu_ms = self.costs.estimate_batch(CostOp::Tlas, units);
         self.measurements.push(Measurement {
             op: CostOp::Tlas,
             units,
+            items: instances.len() as u32,
             gpu_ms,
         });
         Ok(TlasHandle::new(0, self.frame))

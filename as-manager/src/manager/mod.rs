@@ -275,6 +275,8 @@ pub struct AsManager<B: AsBackend> {
     last_frame: Option<u64>,
     frame: u64,
     stats: FrameStats,
+    /// The GPU timings the backend handed over this frame (see `gpu_measurements`).
+    measured: Vec<crate::backend::Measurement>,
     /// What this frame changed that a failure must undo.
     journal: journal::FrameJournal,
 }
@@ -322,6 +324,7 @@ impl<B: AsBackend> AsManager<B> {
             last_frame: None,
             frame: 0,
             stats: FrameStats::default(),
+            measured: Vec::new(),
             journal: journal::FrameJournal::default(),
         })
     }
@@ -504,6 +507,14 @@ impl<B: AsBackend> AsManager<B> {
         &self.stats
     }
 
+    /// The GPU timings the backend reported during the last `update`, one per timed batch
+    /// (builds, refits, each compaction, the TLAS). They belong to an earlier frame: the
+    /// backend reads a frame's timestamps once that frame completed. `FrameStats`'s
+    /// `measured_gpu_ms` is their sum.
+    pub fn gpu_measurements(&self) -> &[crate::backend::Measurement] {
+        &self.measured
+    }
+
     /// The LOD an instance is targeting (skinned poses are for this LOD), once applied.
     pub fn instance_lod(&self, id: InstanceId) -> Option<usize> {
         self.tables.instances.get(id.index as usize)?.as_ref()?;
@@ -633,12 +644,18 @@ impl<B: AsBackend> AsManager<B> {
         // The real TLAS: a backend may add records (split meshes' parts).
         self.stats.tlas_instances =
             self.backend.tlas_records().unwrap_or(self.records.len()) as u32;
+        let refit_ms = if self.stats.refits > 0 {
+            self.costs
+                .estimate_batch(CostOp::Refit, self.stats.refit_primitives)
+        } else {
+            0.0
+        };
         self.stats.as_estimated_ms = (self.stats.build_estimated_ms as f64
+            + refit_ms
+            + self.compaction_estimated_ms
             + self
                 .costs
-                .estimate(CostOp::Refit, self.stats.refit_primitives)
-            + self.compaction_estimated_ms
-            + self.costs.estimate(CostOp::Tlas, self.records.len() as u64))
+                .estimate_batch(CostOp::Tlas, self.records.len() as u64))
             as f32;
         self.stats.blas_count = self.built_count;
         self.stats.blas_bytes = self.live_bytes;
@@ -713,7 +730,8 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Exponential moving average of measured ms per unit into the cost model.
     fn refine_costs(&mut self) {
-        for m in self.backend.take_measurements() {
+        self.measured = self.backend.take_measurements();
+        for &m in &self.measured {
             self.stats.measured_gpu_ms += m.gpu_ms;
             if matches!(m.op, CostOp::Tlas | CostOp::TlasUpdate) {
                 self.stats.measured_tlas_ms += m.gpu_ms;
@@ -726,10 +744,12 @@ impl<B: AsBackend> AsManager<B> {
             if m.units < min_units || !m.gpu_ms.is_finite() {
                 continue;
             }
+            // The per-unit coefficient learns what the batch's fixed cost leaves.
             let est = self.costs.estimate(m.op, m.units);
-            if est > 0.0 && !self.config.freeze_cost_model {
+            let per_units = m.gpu_ms - self.costs.batch_fixed(m.op);
+            if est > 0.0 && per_units > 0.0 && !self.config.freeze_cost_model {
                 let c = self.costs.coefficient_mut(m.op);
-                *c *= 0.8 + 0.2 * (m.gpu_ms / est);
+                *c *= 0.8 + 0.2 * (per_units / est);
             }
         }
     }

@@ -128,12 +128,22 @@ impl<B: AsBackend> AsManager<B> {
         // The GPU budget covers all acceleration-structure work: builds get what the TLAS and
         // the refits (estimated from last frame) leave.
         // The TLAS holds at most the instances within r2 this frame (visited above).
-        let tlas_now = self.costs.estimate(CostOp::Tlas, self.visits.len() as u64);
+        let tlas_now = self
+            .costs
+            .estimate_batch(CostOp::Tlas, self.visits.len() as u64);
         let tlas_before = self
             .costs
-            .estimate(CostOp::Tlas, u64::from(self.prev_tlas_instances));
-        self.gpu_reserved_ms =
-            tlas_now.max(tlas_before) + self.costs.estimate(CostOp::Refit, self.prev_refit_prims);
+            .estimate_batch(CostOp::Tlas, u64::from(self.prev_tlas_instances));
+        let refits = if self.prev_refit_prims > 0 {
+            self.costs
+                .estimate_batch(CostOp::Refit, self.prev_refit_prims)
+        } else {
+            0.0
+        };
+        self.gpu_reserved_ms = tlas_now.max(tlas_before) + refits;
+        // The builds are one batch: its fixed cost is the static one once any static build
+        // is in it, else the skinned one (counted as the first item of each class goes).
+        let mut batch_fixed = 0.0f64;
         let build_ms = (b.max_gpu_ms as f64 - self.gpu_reserved_ms).max(0.0);
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
@@ -165,16 +175,21 @@ impl<B: AsBackend> AsManager<B> {
             } else {
                 CostOp::BuildStatic
             };
-            let est = self.costs.estimate(op, tris as u64);
+            let fixed_more = (self.costs.batch_fixed(op) - batch_fixed).max(0.0);
+            let est = self.costs.estimate(op, tris as u64) + fixed_more;
             let size = self
                 .backend
                 .blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
             let proxy = is_proxy(&self.tables, key);
             let oversized = !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
             if budgeted && proxy {
-                // Proxies: their share of the build budget; the first one of a frame always
-                // goes, so the far field builds even when the TLAS and refits take it all.
-                if proxy_ms > 0.0 && proxy_ms + est > proxy_ms_max * build_ms {
+                // Proxies: their share of what the build budget leaves past the batch's fixed
+                // cost (which the batch pays once, whoever is in it); the first one of a frame
+                // always goes, so the far field builds even when the TLAS and refits take it
+                // all.
+                let units_ms = est - fixed_more;
+                let room = (build_ms - batch_fixed.max(self.costs.batch_fixed(op))).max(0.0);
+                if proxy_ms > 0.0 && proxy_ms + units_ms > proxy_ms_max * room {
                     continue;
                 }
             } else if budgeted {
@@ -224,7 +239,7 @@ impl<B: AsBackend> AsManager<B> {
                 }
                 let _ = prio;
                 if proxy {
-                    proxy_ms += est;
+                    proxy_ms += est - fixed_more;
                     proxy_bytes += size.as_bytes;
                 } else {
                     detail_admitted += 1;
@@ -233,6 +248,7 @@ impl<B: AsBackend> AsManager<B> {
             }
             prims += tris as u64;
             ms += est;
+            batch_fixed += fixed_more;
             bytes += size.as_bytes;
             admitted.push(Admitted {
                 entry: key,
@@ -487,7 +503,8 @@ impl<B: AsBackend> AsManager<B> {
                 self.tables.entries[key].needs_compaction = false;
                 return false; // nothing worth saving (e.g. lavapipe)
             }
-            let est = self.costs.estimate(CostOp::Compact, e.bytes);
+            // Each compaction is a command of its own.
+            let est = self.costs.estimate_batch(CostOp::Compact, e.bytes);
             if done >= max_n || max_ms <= 0.0 || (done > 0 && ms + est > max_ms) {
                 return true;
             }

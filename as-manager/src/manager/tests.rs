@@ -506,7 +506,7 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
         cfg.freeze_cost_model = true;
         cfg.cost_prior.build_static_ms_per_mtri = 10.0; // 0.01 ms per 1k-triangle mesh
         cfg.cost_prior.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
-        cfg.cost_prior.batch_fixed_ms = 0.0;
+        cfg.cost_prior.batch_ms = Default::default();
         let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
         for i in 0..40 {
             let lod = LodDesc {
@@ -542,5 +542,72 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
     assert!(
         (35..200).contains(&dear),
         "dear TLAS: {dear} frames (one build a frame)"
+    );
+}
+
+#[test]
+fn a_build_batch_pays_its_fixed_cost_once() {
+    // The H200 builds a batch of small static BLASes for about its fixed cost: with a fixed
+    // cost of 0.6 ms in a 1 ms budget, one frame builds everything the per-triangle cost
+    // leaves room for (not one BLAS a frame), and a TLAS batch whose fixed cost takes the
+    // budget leaves builds one item a frame. Every frame stays within the budget but for
+    // its first build.
+    let frames_to_build = |tlas_fixed: f64| {
+        let mut cfg = Config::default();
+        cfg.build.max_gpu_ms = 1.0;
+        cfg.build.max_primitives = u64::MAX;
+        cfg.freeze_cost_model = true;
+        cfg.cost_prior.build_static_ms_per_mtri = 5.0; // 0.005 ms per 1k-triangle mesh
+        cfg.cost_prior.tlas_ms_per_kinst = 0.0;
+        cfg.cost_prior.batch_ms = crate::backend::model::BatchCosts {
+            build_static: 0.6,
+            tlas: tlas_fixed,
+            ..Default::default()
+        };
+        let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
+        for i in 0..40 {
+            let lod = LodDesc {
+                geometry: LodGeometry::Counts {
+                    vertices: 600,
+                    triangles: 1000,
+                },
+                geometric_error: 0.0,
+            };
+            let id = mesh(&m, format!("m{i}"), MeshKind::Static, 1.0, vec![lod]);
+            let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
+            m.add_instance(InstanceDesc::new(id, t)).unwrap();
+        }
+        let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
+        let mut frame = 0;
+        loop {
+            let s = run_frame(&mut m, frame, &cams).stats.clone();
+            if s.builds > 1 {
+                assert!(
+                    f64::from(s.build_estimated_ms) + tlas_fixed <= 1.0 + 1e-6,
+                    "frame {frame}: {} builds, {} ms",
+                    s.builds,
+                    s.build_estimated_ms
+                );
+                // The fixed cost is in the estimate once.
+                let per_units = f64::from(s.build_estimated_ms) - 0.6;
+                assert!(
+                    (per_units - 0.005 * f64::from(s.builds)).abs() < 1e-4,
+                    "frame {frame}: {} builds estimated at {} ms",
+                    s.builds,
+                    s.build_estimated_ms
+                );
+            }
+            if s.blas_count == 40 || frame == 200 {
+                return frame;
+            }
+            frame += 1;
+        }
+    };
+    let light = frames_to_build(0.0);
+    let heavy = frames_to_build(0.9);
+    assert!(light < 5, "a light TLAS: {light} frames");
+    assert!(
+        (35..200).contains(&heavy),
+        "a TLAS taking most of the budget: {heavy} frames (one build a frame)"
     );
 }

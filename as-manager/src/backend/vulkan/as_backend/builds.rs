@@ -163,7 +163,7 @@ impl VulkanBackend {
                             update_scratch: b.sizes.update_scratch,
                         }
                     } else {
-                        self.ctx.blas_sizes(&[g], class_flags(b.class))
+                        self.ctx.blas_sizes(&[g], self.blas_flags(b.class))
                     };
                     let a = self.create_accel(s.storage, "BLAS")?;
                     p.geoms.push(g);
@@ -212,7 +212,7 @@ impl VulkanBackend {
         let mut k = 0;
         for (b, p) in builds.iter().zip(&planned) {
             for _ in &p.accels {
-                raw_builds[k].flags = class_flags(b.class);
+                raw_builds[k].flags = self.blas_flags(b.class);
                 k += 1;
             }
         }
@@ -226,7 +226,7 @@ impl VulkanBackend {
             CostOp::BuildStatic
         };
         self.frame_build_triangles += tris;
-        let t = self.timestamp_begin(op, tris);
+        let t = self.timestamp_begin(op, tris, builds.len() as u32);
         let recording = tracing::trace_span!("cmd_build").entered();
         // SAFETY: cmd is recording; inputs are the BLASes' own buffers, retired with them after
         // the frame completes; scratch ranges are disjoint and aligned.
@@ -434,7 +434,7 @@ impl VulkanBackend {
         }
         let mut raw = Vec::with_capacity(plan.len());
         let mut tris_total = 0u64;
-        let flags = class_flags(BlasClass::Skinned);
+        let flags = self.blas_flags(BlasClass::Skinned);
         for (i, p) in plan.iter().enumerate() {
             let scratch_address = self.scratch_alloc(p.scratch.max(1));
             tris_total += u64::from(p.tris);
@@ -451,7 +451,7 @@ impl VulkanBackend {
                 self.counters.refits += 1;
             }
         }
-        let t = self.timestamp_begin(CostOp::Refit, tris_total);
+        let t = self.timestamp_begin(CostOp::Refit, tris_total, plan.len() as u32);
         // SAFETY: recording; the barrier orders this frame's earlier builds (and previous frames'
         // traces, via begin_frame's barrier) before the updates; src == dst is allowed. The
         // engine's pose buffers were written before this frame (begin_frame's input barrier).
@@ -520,7 +520,7 @@ impl VulkanBackend {
         let (src, class, sizes, shading, shading_plain) =
             (e.parts[0].raw, e.class, e.sizes, e.shading, e.shading_plain);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
-        let t = self.timestamp_begin(CostOp::Compact, entry_storage_bytes(self.entry(blas)));
+        let t = self.timestamp_begin(CostOp::Compact, entry_storage_bytes(self.entry(blas)), 1);
         // The compacted copy takes over the input buffers (shading reads them).
         let inputs = {
             self.blases

@@ -220,7 +220,7 @@ impl VulkanBackend {
         }
     }
 
-    pub(super) fn timestamp_begin(&mut self, op: CostOp, units: u64) -> Option<u32> {
+    pub(super) fn timestamp_begin(&mut self, op: CostOp, units: u64, items: u32) -> Option<u32> {
         let timestamps = self.ctx.info().timestamps;
         let s = &mut self.slots[self.current];
         let first = s.timed.len() as u32 * 2;
@@ -232,7 +232,7 @@ impl VulkanBackend {
         if !timestamps || first + 2 > room {
             return None;
         }
-        s.timed.push((op, units, first));
+        s.timed.push((op, units, items, first));
         // SAFETY: the slot's command buffer is recording; the query was reset in begin_frame.
         unsafe { s.timestamps.cmd_timestamp(&self.ctx, s.cmd, first) };
         Some(first)
@@ -256,11 +256,12 @@ impl VulkanBackend {
             .then(|| words[base..base + s.compact_queries.len()].to_vec());
         let s = &mut self.slots[slot];
         if let Some(ticks) = ticks {
-            for &(op, units, first) in &s.timed {
+            for &(op, units, items, first) in &s.timed {
                 let dt = ticks[first as usize + 1].saturating_sub(ticks[first as usize]);
                 let m = Measurement {
                     op,
                     units,
+                    items,
                     gpu_ms: s.timestamps.ticks_to_ms(dt),
                 };
                 self.measurements.push(m);

@@ -79,12 +79,24 @@ use crate::backend::{
 };
 use crate::record::TlasInstance;
 
-/// Build flags of a BLAS class.
+/// Build flags of a BLAS of `class` with the backend's default preference for static ones
+/// (see [`VulkanBackendDesc::static_blas_prefer`]): static BLASes PREFER_FAST_BUILD with
+/// ALLOW_COMPACTION, skinned ones PREFER_FAST_BUILD with ALLOW_UPDATE.
 pub fn class_flags(class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
+    flags_for(
+        class,
+        vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD,
+    )
+}
+
+/// Build flags of a BLAS of `class`, static ones preferring `static_prefer`.
+fn flags_for(
+    class: BlasClass,
+    static_prefer: vk::BuildAccelerationStructureFlagsKHR,
+) -> vk::BuildAccelerationStructureFlagsKHR {
     match class {
         BlasClass::Static => {
-            vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE
-                | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
+            static_prefer | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
         }
         BlasClass::Skinned => {
             vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
@@ -106,9 +118,18 @@ pub struct VulkanBackendDesc {
     /// times the skinned BLAS memory, which [`AsBackend::blas_sizes`] reports so that the
     /// manager's budget counts it. The TLAS is already one per frame in flight. Off by default.
     pub separate_refit_targets: bool,
-    /// TLAS build flags (default PREFER_FAST_TRACE; see docs/GPU.md for the measurement).
-    /// With [`TlasUpdates::enabled`], ALLOW_UPDATE is added.
+    /// TLAS build flags (default PREFER_FAST_BUILD: on the H200 inside the manager's frames it
+    /// builds the default fly-through's TLAS in 0.22 ms against 0.26 with PREFER_FAST_TRACE,
+    /// 0.36 against 0.46 at ten times the density, and the 1080p trace costs the same; see
+    /// docs/GPU.md). With [`TlasUpdates::enabled`], ALLOW_UPDATE is added.
     pub tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
+    /// The build preference of static BLASes (default PREFER_FAST_BUILD; ALLOW_COMPACTION is
+    /// always added). On the H200 inside the default fly-through, PREFER_FAST_BUILD takes a
+    /// frame's build batch from about 0.19 to 0.13 ms of fixed cost, the GPU AS p99 from 0.58
+    /// to 0.46 ms and the compacted BLAS memory from 32.2 to 24.0 MB, and the 1080p trace
+    /// costs the same (7.88 against 7.89–7.91 ms; docs/GPU.md). That part has no RT cores:
+    /// on RTX cards and consoles PREFER_FAST_TRACE may trace faster, so measure there.
+    pub static_blas_prefer: vk::BuildAccelerationStructureFlagsKHR,
     /// When the per-frame TLAS is updated in place from the last frame's instead of rebuilt.
     pub tlas_updates: TlasUpdates,
     /// Split a mesh whose BLAS storage or scratch would exceed this many bytes (default 256 MiB).
@@ -156,8 +177,9 @@ impl Default for VulkanBackendDesc {
             recording: Recording::OwnSubmit,
             frames_in_flight: 2,
             separate_refit_targets: false,
-            tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE,
+            tlas_flags: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD,
             tlas_updates: TlasUpdates::default(),
+            static_blas_prefer: vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD,
             max_part_bytes: 256 << 20,
             memory_limit: None,
             deterministic: false,
@@ -316,7 +338,7 @@ struct Slot {
     scratch_used: ScratchLayout,
     timestamps: QueryPool,
     /// (op, units, first query) of timestamp pairs recorded this frame.
-    timed: Vec<(CostOp, u64, u32)>,
+    timed: Vec<(CostOp, u64, u32, u32)>,
     compact_pool: QueryPool,
     /// (handle, query index) of compacted-size queries recorded this frame.
     compact_queries: Vec<(BlasHandle, u32)>,
@@ -749,7 +771,7 @@ impl AsBackend for VulkanBackend {
             triangle_count: g.triangle_count,
             opaque: g.opaque,
         };
-        let s = self.ctx.blas_sizes(&[geom], class_flags(class));
+        let s = self.ctx.blas_sizes(&[geom], self.blas_flags(class));
         let sizes = BlasSizes {
             as_bytes: s.storage * self.ring_len(class),
             build_scratch: s.build_scratch,

@@ -200,6 +200,11 @@ impl VulkanBackend {
     }
 
     /// The flags every TLAS of this backend is built with.
+    /// Build flags of this backend's BLASes of `class`.
+    pub(super) fn blas_flags(&self, class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
+        flags_for(class, self.desc.static_blas_prefer)
+    }
+
     fn tlas_build_flags(&self) -> vk::BuildAccelerationStructureFlagsKHR {
         if self.desc.tlas_updates.enabled {
             self.desc.tlas_flags | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
@@ -626,7 +631,7 @@ impl VulkanBackend {
             count,
             updates,
         });
-        let t = self.timestamp_begin(op, u64::from(count));
+        let t = self.timestamp_begin(op, u64::from(count), count);
         // SAFETY: recording; the barrier orders this frame's BLAS builds/refits/compactions
         // (and an earlier frame's TLAS build or update, `from`, in submission order) before
         // the TLAS build; every referenced BLAS is live until its retirement frame, the
