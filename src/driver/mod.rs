@@ -803,25 +803,11 @@ pub fn run_cached(
                 let t = frame_of.get(f).copied().unwrap_or(f64::NAN);
                 csv.push_str(&format!("{f},{p:.4},{t:.4}\n"));
             }
-            let file = dir.join("render_times.csv");
-            let out = |e: std::io::Error| crate::Error::Output {
-                path: file.clone(),
-                message: e.to_string(),
-            };
-            std::fs::create_dir_all(dir).map_err(out)?;
-            std::fs::write(&file, csv).map_err(out)?;
-            files.push(file);
+            files.push(write_text(dir, "render_times.csv", &csv)?);
         }
     }
     if let Some(dir) = &config.out_dir {
-        let file = dir.join("gpu_ops.csv");
-        let out = |e: std::io::Error| crate::Error::Output {
-            path: file.clone(),
-            message: e.to_string(),
-        };
-        std::fs::create_dir_all(dir).map_err(out)?;
-        std::fs::write(&file, gpu_ops).map_err(out)?;
-        files.push(file);
+        files.push(write_text(dir, "gpu_ops.csv", &gpu_ops)?);
         for p in &policies {
             if let Some((_, frame, w3, pic)) = &p.worst {
                 let file = dir.join(format!("worst_{}.png", p.name));
@@ -834,4 +820,16 @@ pub fn run_cached(
     }
     report.files = files;
     Ok(report)
+}
+
+/// Writes `text` to `dir/name` (making `dir`); the file's path.
+fn write_text(dir: &Path, name: &str, text: &str) -> Result<PathBuf> {
+    let file = dir.join(name);
+    let out = |e: std::io::Error| crate::Error::Output {
+        path: file.clone(),
+        message: e.to_string(),
+    };
+    std::fs::create_dir_all(dir).map_err(out)?;
+    std::fs::write(&file, text).map_err(out)?;
+    Ok(file)
 }

@@ -145,6 +145,21 @@ impl RecordRefs {
 }
 
 impl ModelBackend {
+    /// The model's timings of a frame's batches, (op, units, items) each; empty ones skipped.
+    fn measure_batches<const N: usize>(&mut self, batches: [(CostOp, u64, u32); N]) {
+        for (op, units, items) in batches {
+            if units > 0 {
+                let gpu_ms = self.costs.estimate_batch(op, units);
+                self.measurements.push(Measurement {
+                    op,
+                    units,
+                    items,
+                    gpu_ms,
+                });
+            }
+        }
+    }
+
     /// A backend with the given models and 2 frames in flight.
     pub fn new(sizes: SizeModel, costs: CostModel) -> Self {
         Self {
@@ -372,20 +387,10 @@ impl AsBackend for ModelBackend {
             }));
             self.counters.builds += 1;
         }
-        for (op, units, items) in [
+        self.measure_batches([
             (CostOp::BuildStatic, st, n_st),
             (CostOp::BuildSkinned, sk, n_sk),
-        ] {
-            if units > 0 {
-                let gpu_ms = self.costs.estimate_batch(op, units);
-                self.measurements.push(Measurement {
-                    op,
-                    units,
-                    items,
-                    gpu_ms,
-                });
-            }
-        }
+        ]);
         Ok(out)
     }
 
@@ -409,17 +414,7 @@ impl AsBackend for ModelBackend {
                 self.counters.refits += 1;
             }
         }
-        for (op, units, items) in [(CostOp::Refit, rf, n_rf), (CostOp::BuildSkinned, rb, n_rb)] {
-            if units > 0 {
-                let gpu_ms = self.costs.estimate_batch(op, units);
-                self.measurements.push(Measurement {
-                    op,
-                    units,
-                    items,
-                    gpu_ms,
-                });
-            }
-        }
+        self.measure_batches([(CostOp::Refit, rf, n_rf), (CostOp::BuildSkinned, rb, n_rb)]);
         Ok(())
     }
 

@@ -495,6 +495,23 @@ fn evaluation_is_recorded_for_its_frame_only() {
     );
 }
 
+/// Forty static 1,000-triangle meshes, an instance each, in front of a camera at the origin
+/// looking down +Z (the budget tests).
+fn forty_small_meshes(m: &AsManager<ModelBackend>) {
+    for i in 0..40 {
+        let lod = LodDesc {
+            geometry: LodGeometry::Counts {
+                vertices: 600,
+                triangles: 1000,
+            },
+            geometric_error: 0.0,
+        };
+        let id = mesh(m, format!("m{i}"), MeshKind::Static, 1.0, vec![lod]);
+        let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
+        m.add_instance(InstanceDesc::new(id, t)).unwrap();
+    }
+}
+
 #[test]
 fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
     // A TLAS estimated at most of the budget leaves builds one item per frame; a cheap TLAS
@@ -508,18 +525,7 @@ fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
         cfg.cost_prior.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
         cfg.cost_prior.batch_ms = Default::default();
         let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
-        for i in 0..40 {
-            let lod = LodDesc {
-                geometry: LodGeometry::Counts {
-                    vertices: 600,
-                    triangles: 1000,
-                },
-                geometric_error: 0.0,
-            };
-            let id = mesh(&m, format!("m{i}"), MeshKind::Static, 1.0, vec![lod]);
-            let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
-            m.add_instance(InstanceDesc::new(id, t)).unwrap();
-        }
+        forty_small_meshes(&m);
         let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
         let mut frame = 0;
         loop {
@@ -565,18 +571,7 @@ fn a_build_batch_pays_its_fixed_cost_once() {
             ..Default::default()
         };
         let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
-        for i in 0..40 {
-            let lod = LodDesc {
-                geometry: LodGeometry::Counts {
-                    vertices: 600,
-                    triangles: 1000,
-                },
-                geometric_error: 0.0,
-            };
-            let id = mesh(&m, format!("m{i}"), MeshKind::Static, 1.0, vec![lod]);
-            let t = Affine3A::from_translation(Vec3::new(i as f32 * 0.5, 0.0, 5.0));
-            m.add_instance(InstanceDesc::new(id, t)).unwrap();
-        }
+        forty_small_meshes(&m);
         let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
         let mut frame = 0;
         loop {
