@@ -443,7 +443,13 @@ impl<B: AsBackend> AsManager<B> {
             let (Some((mesh, _)), dist) = (n.proxy, self.far_dist(i)) else {
                 continue;
             };
-            self.request_proxy(mesh, dist, frame);
+            // Coverage before refinement: a node that covers k leaves is built as if it stood
+            // sqrt(k) times nearer, so a 16x16 block 2 km away (256 leaves: 125 m) goes before
+            // a leaf at 300 m. When the budget admits a proxy or two a frame (a TLAS that takes
+            // most of it), the far field is covered coarsely first instead of finely near the
+            // cameras and not at all farther out.
+            let leaves = n.leaves.max(1) as f32;
+            self.request_proxy(mesh, dist / leaves.sqrt(), frame);
         }
     }
 
@@ -457,6 +463,8 @@ impl<B: AsBackend> AsManager<B> {
         }
     }
 
+    /// Requests a proxy's BLAS this frame; `dist` orders its build and eviction among the
+    /// proxies (`far_prepare` passes a coverage-weighted distance).
     fn request_proxy(&mut self, mesh: u32, dist: f32, frame: u64) {
         let Some(Some(m)) = self.tables.meshes.get(mesh as usize) else {
             return;
