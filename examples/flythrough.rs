@@ -240,6 +240,14 @@ fn print_table(r: &RunReport) {
         "TLAS GPU ms p50 / p99 and frames updating the last frame's TLAS: {}",
         tlas.join("; ")
     );
+    if s.frame_timing.is_none() {
+        // Measured on the H200: without a render a frame, its SM clock sat at 345 MHz
+        // between the frames' short bursts of work (docs/GPU.md).
+        println!(
+            "(GPU ms without renders every frame: a GPU that idles between frames may run at \
+             its idle clock; add --render-every 1 --size 1920x1080 for a game's load)"
+        );
+    }
     println!("validation messages: {}", s.validation_messages);
     for f in &r.files {
         println!("wrote {}", f.display());
