@@ -364,6 +364,95 @@ impl CostModel {
     }
 }
 
+/// Units per coefficient of `op` (the coefficients are per million triangles, per MiB, per
+/// thousand instances).
+fn unit_scale(op: CostOp) -> f64 {
+    match op {
+        CostOp::BuildStatic | CostOp::BuildSkinned | CostOp::Refit => 1e6,
+        CostOp::Compact => (1u64 << 20) as f64,
+        CostOp::Tlas | CostOp::TlasUpdate => 1e3,
+    }
+}
+
+impl CostModel {
+    /// The fixed cost of one batch of `op`, to set.
+    pub fn batch_fixed_mut(&mut self, op: CostOp) -> &mut f64 {
+        let b = &mut self.batch_ms;
+        match op {
+            CostOp::BuildStatic => &mut b.build_static,
+            CostOp::BuildSkinned => &mut b.build_skinned,
+            CostOp::Refit => &mut b.refit,
+            CostOp::Compact => &mut b.compact,
+            CostOp::Tlas => &mut b.tlas,
+            CostOp::TlasUpdate => &mut b.tlas_update,
+        }
+    }
+}
+
+/// What an online fit forgets per measurement (a window of about 50 batches of a kind).
+const FIT_DECAY: f64 = 0.98;
+/// Batches of a kind measured before the fit replaces the prior's line for it.
+const FIT_MIN: f64 = 8.0;
+
+/// Online least-squares fit of one kind of batch, `ms = fixed + coefficient * units / scale`,
+/// older batches forgotten geometrically: how a manager learns its device's costs, fixed
+/// ones included, from the backend's GPU timestamps (`Config::freeze_cost_model` off).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct OpFit {
+    w: f64,
+    x: f64,
+    y: f64,
+    xx: f64,
+    xy: f64,
+}
+
+impl OpFit {
+    /// Adds a measured batch of `units` that took `ms`.
+    pub fn add(&mut self, op: CostOp, units: u64, ms: f64) {
+        if !ms.is_finite() || ms < 0.0 {
+            return;
+        }
+        let x = units as f64 / unit_scale(op);
+        self.w = self.w * FIT_DECAY + 1.0;
+        self.x = self.x * FIT_DECAY + x;
+        self.y = self.y * FIT_DECAY + ms;
+        self.xx = self.xx * FIT_DECAY + x * x;
+        self.xy = self.xy * FIT_DECAY + x * ms;
+    }
+
+    /// (fixed ms, coefficient) once enough batches were measured (`None` before). Batches
+    /// of nearly one size cannot tell the two apart: then both of the current line's
+    /// (`fixed`, `coefficient`) scale so that it meets the measurements at their mean size.
+    /// Both stay >= 0.
+    pub fn solve(&self, fixed: f64, coefficient: f64) -> Option<(f64, f64)> {
+        if self.w < FIT_MIN {
+            return None;
+        }
+        let (mx, my) = (self.x / self.w, self.y / self.w);
+        let var = self.xx / self.w - mx * mx;
+        let cov = self.xy / self.w - mx * my;
+        // Sizes spread by at least a tenth of their mean: the slope is measured.
+        let (a, b) = if var > (0.1 * mx).powi(2) && var > 0.0 {
+            let b = cov / var;
+            (my - b * mx, b)
+        } else {
+            let at_mean = fixed + coefficient * mx;
+            if at_mean <= 0.0 {
+                return None;
+            }
+            let k = my / at_mean;
+            (fixed * k, coefficient * k)
+        };
+        Some(if b < 0.0 {
+            (my.max(0.0), 0.0)
+        } else if a < 0.0 {
+            (0.0, if mx > 0.0 { my / mx } else { b })
+        } else {
+            (a, b)
+        })
+    }
+}
+
 impl Default for CostModel {
     fn default() -> Self {
         Self::lavapipe()

@@ -239,6 +239,8 @@ pub struct AsManager<B: AsBackend> {
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
+    /// The online fits that refine `costs`, one per kind of batch (`op_slot`).
+    cost_fits: [crate::backend::model::OpFit; 6],
     /// The far-field group tree.
     far: far::FarField,
     /// The far-field landmarks, kept incrementally (their records lead `records`).
@@ -294,6 +296,7 @@ impl<B: AsBackend> AsManager<B> {
             lod: LodSelector::new(&config.lod),
             culler: InstanceCuller::new(&config.cull),
             costs: config.cost_prior,
+            cost_fits: Default::default(),
             far: far::FarField::default(),
             tlas_groups: Vec::new(),
             near_boxes: Vec::new(),
@@ -728,7 +731,8 @@ impl<B: AsBackend> AsManager<B> {
         }
     }
 
-    /// Exponential moving average of measured ms per unit into the cost model.
+    /// Measured GPU timings into the cost model: per kind of batch, an online fit of its
+    /// fixed cost and its cost per unit (`OpFit`), unless the model is frozen.
     fn refine_costs(&mut self) {
         self.measured = self.backend.take_measurements();
         for &m in &self.measured {
@@ -736,20 +740,18 @@ impl<B: AsBackend> AsManager<B> {
             if matches!(m.op, CostOp::Tlas | CostOp::TlasUpdate) {
                 self.stats.measured_tlas_ms += m.gpu_ms;
             }
-            let min_units = match m.op {
-                CostOp::Tlas | CostOp::TlasUpdate => 1_000,
-                CostOp::Compact => 1 << 20,
-                _ => 10_000,
-            };
-            if m.units < min_units || !m.gpu_ms.is_finite() {
+            if self.config.freeze_cost_model {
                 continue;
             }
-            // The per-unit coefficient learns what the batch's fixed cost leaves.
-            let est = self.costs.estimate(m.op, m.units);
-            let per_units = m.gpu_ms - self.costs.batch_fixed(m.op);
-            if est > 0.0 && per_units > 0.0 && !self.config.freeze_cost_model {
-                let c = self.costs.coefficient_mut(m.op);
-                *c *= 0.8 + 0.2 * (per_units / est);
+            let fit = &mut self.cost_fits[op_slot(m.op)];
+            fit.add(m.op, m.units, m.gpu_ms);
+            let (fixed, coefficient) = (
+                self.costs.batch_fixed(m.op),
+                *self.costs.coefficient_mut(m.op),
+            );
+            if let Some((f, c)) = fit.solve(fixed, coefficient) {
+                *self.costs.batch_fixed_mut(m.op) = f;
+                *self.costs.coefficient_mut(m.op) = c;
             }
         }
     }
@@ -814,3 +816,15 @@ mod landmark_tests;
 mod lod_geometry_tests;
 #[cfg(test)]
 mod tests;
+
+/// `AsManager::cost_fits`' slot of a kind of batch.
+fn op_slot(op: CostOp) -> usize {
+    match op {
+        CostOp::BuildStatic => 0,
+        CostOp::BuildSkinned => 1,
+        CostOp::Refit => 2,
+        CostOp::Compact => 3,
+        CostOp::Tlas => 4,
+        CostOp::TlasUpdate => 5,
+    }
+}

@@ -464,6 +464,52 @@ fn measured_costs_refine_the_model() {
 }
 
 #[test]
+fn a_manager_learns_its_devices_fixed_costs() {
+    // The "device" has the H200's fixed batch costs; the manager starts from the lavapipe
+    // prior, which has none. A camera walking past meshes of 500 to 20,000 triangles makes
+    // build batches of many sizes and a TLAS of a changing size: after the walk, the learned
+    // model prices a small static batch, a large one and the TLAS as the device does.
+    use crate::backend::model::CostModel;
+    use crate::backend::CostOp;
+    let device = CostModel::nvidia();
+    let backend = ModelBackend::new(crate::backend::model::SizeModel::nvidia(), device);
+    let mut m = AsManager::new(Config::default(), backend).unwrap();
+    for i in 0..400u32 {
+        let tris = 500 + (i * 7919) % 19_500;
+        let mesh = static_mesh(&m, tris, 2.0);
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 4.0, 3.0)))
+            .unwrap();
+    }
+    for f in 0..400 {
+        run_frame(&mut m, f, &cam(f as f32 * 4.0, 0.0));
+    }
+    let learned = m.cost_model();
+    for (op, units) in [
+        (CostOp::BuildStatic, 1_000u64),
+        (CostOp::BuildStatic, 20_000),
+        (CostOp::Tlas, 300),
+    ] {
+        let (want, got) = (
+            device.estimate_batch(op, units),
+            learned.estimate_batch(op, units),
+        );
+        assert!(
+            (got - want).abs() <= 0.15 * want,
+            "{op:?} of {units}: learned {got:.4} ms, the device takes {want:.4} ms"
+        );
+    }
+    // The prior's lines were far off for the large batch and the TLAS.
+    let prior = CostModel::lavapipe();
+    for (op, units) in [(CostOp::BuildStatic, 20_000u64), (CostOp::Tlas, 300)] {
+        let (p, d) = (
+            prior.estimate_batch(op, units),
+            device.estimate_batch(op, units),
+        );
+        assert!((p - d).abs() > 0.5 * d, "{op:?}: prior {p}, device {d}");
+    }
+}
+
+#[test]
 fn thread_safety_bounds() {
     fn send<T: Send>() {}
     fn send_sync<T: Send + Sync>() {}
