@@ -632,6 +632,8 @@ impl<B: AsBackend> AsManager<B> {
         // Take the covered leaves' detail out of the TLAS list.
         if !self.far.picks.is_empty() {
             // In place; neighbours in the list mostly share their leaf, so its answer is kept.
+            // A near leaf is covered only by its own proxy (a parent is picked only when all
+            // its leaves are far): one look at its own epoch, not a walk up the tree.
             let (groups, far) = (&self.tlas_groups, &self.far);
             let (mut i, mut last) = (0, (NO_PARENT, false));
             self.tlas_list.retain(|_| {
@@ -639,7 +641,13 @@ impl<B: AsBackend> AsManager<B> {
                 i += 1;
                 g.is_none_or(|g| {
                     if last.0 != g {
-                        last = (g, far.is_covered(g));
+                        let near = far.near_bits.get(g as usize).copied().unwrap_or(false);
+                        let covered = if near {
+                            far.shown_at.get(g as usize) == Some(&e)
+                        } else {
+                            far.is_covered(g)
+                        };
+                        last = (g, covered);
                     }
                     !last.1
                 })
