@@ -206,7 +206,12 @@ impl<B: AsBackend> AsManager<B> {
                 landmarks.unsettled.push(slot);
             }
             if let Some(&ci) = landmarks.index.get(slot as usize) {
-                landmarks.cands[ci as usize].unsettled = unsettled;
+                let c = &mut landmarks.cands[ci as usize];
+                if c.unsettled && !unsettled {
+                    // Settled: its looks while unsettled queued nothing (`due_between`).
+                    landmarks.now.push(slot);
+                }
+                c.unsettled = unsettled;
             }
             let shown_pair = chosen.map(|k| {
                 let lod = tables.entries[k].lod;

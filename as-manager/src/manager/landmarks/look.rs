@@ -110,6 +110,14 @@ impl Landmarks {
         if lo <= 0.0 && hi == f32::INFINITY {
             return;
         }
+        let c = &self.cands[ci as usize];
+        if c.unsettled && c.member != NONE {
+            // A landmark choosing its BLAS every frame is looked at every frame until its
+            // target is built: an entry now would only go stale in the queue (they were most
+            // of what the queue popped after a start or a teleport). `landmarks_cull` makes it
+            // due at once when it settles, and that look queues it.
+            return;
+        }
         // A margin for rounding in the distances (f32) and the odometer.
         let m = 0.01 + 1e-4 * d;
         let band = (lo + m, hi - m);
