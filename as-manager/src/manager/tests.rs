@@ -558,35 +558,48 @@ fn forty_small_meshes(m: &AsManager<ModelBackend>) {
     }
 }
 
+/// Frames until the forty meshes of `forty_small_meshes` are built under a 1 ms GPU budget
+/// (no triangle limit, the model frozen at `costs`), `check` looking at each frame's stats.
+fn frames_to_build_forty(
+    costs: crate::backend::model::CostModel,
+    check: impl Fn(u64, &FrameStats),
+) -> u64 {
+    let mut cfg = Config::default();
+    cfg.build.max_gpu_ms = 1.0;
+    cfg.build.max_primitives = u64::MAX;
+    cfg.freeze_cost_model = true;
+    cfg.cost_prior = costs;
+    let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
+    forty_small_meshes(&m);
+    let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
+    let mut frame = 0;
+    loop {
+        let s = run_frame(&mut m, frame, &cams).stats.clone();
+        check(frame, &s);
+        if s.blas_count == 40 || frame == 200 {
+            return frame;
+        }
+        frame += 1;
+    }
+}
+
 #[test]
 fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
     // A TLAS estimated at most of the budget leaves builds one item per frame; a cheap TLAS
     // leaves them the whole budget.
     let frames_to_build = |tlas_ms_per_instance: f64| {
-        let mut cfg = Config::default();
-        cfg.build.max_gpu_ms = 1.0;
-        cfg.build.max_primitives = u64::MAX;
-        cfg.freeze_cost_model = true;
-        cfg.cost_prior.build_static_ms_per_mtri = 10.0; // 0.01 ms per 1k-triangle mesh
-        cfg.cost_prior.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
-        cfg.cost_prior.batch_ms = Default::default();
-        let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
-        forty_small_meshes(&m);
-        let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
-        let mut frame = 0;
-        loop {
-            let s = run_frame(&mut m, frame, &cams).stats.clone();
+        let mut costs = Config::default().cost_prior;
+        costs.build_static_ms_per_mtri = 10.0; // 0.01 ms per 1k-triangle mesh
+        costs.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
+        costs.batch_ms = Default::default();
+        frames_to_build_forty(costs, |frame, s| {
             assert!(
                 s.builds <= 1 || f64::from(s.build_estimated_ms) <= 1.0 + 1e-6,
                 "frame {frame}: {} builds, {} ms",
                 s.builds,
                 s.build_estimated_ms
             );
-            if s.blas_count == 40 || frame == 200 {
-                return frame;
-            }
-            frame += 1;
-        }
+        })
     };
     let cheap = frames_to_build(1e-6);
     let dear = frames_to_build(0.03); // 40 instances: 1.2 ms, more than the budget
@@ -605,23 +618,15 @@ fn a_build_batch_pays_its_fixed_cost_once() {
     // budget leaves builds one item a frame. Every frame stays within the budget but for
     // its first build.
     let frames_to_build = |tlas_fixed: f64| {
-        let mut cfg = Config::default();
-        cfg.build.max_gpu_ms = 1.0;
-        cfg.build.max_primitives = u64::MAX;
-        cfg.freeze_cost_model = true;
-        cfg.cost_prior.build_static_ms_per_mtri = 5.0; // 0.005 ms per 1k-triangle mesh
-        cfg.cost_prior.tlas_ms_per_kinst = 0.0;
-        cfg.cost_prior.batch_ms = crate::backend::model::BatchCosts {
+        let mut costs = Config::default().cost_prior;
+        costs.build_static_ms_per_mtri = 5.0; // 0.005 ms per 1k-triangle mesh
+        costs.tlas_ms_per_kinst = 0.0;
+        costs.batch_ms = crate::backend::model::BatchCosts {
             build_static: 0.6,
             tlas: tlas_fixed,
             ..Default::default()
         };
-        let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
-        forty_small_meshes(&m);
-        let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
-        let mut frame = 0;
-        loop {
-            let s = run_frame(&mut m, frame, &cams).stats.clone();
+        frames_to_build_forty(costs, |frame, s| {
             if s.builds > 1 {
                 assert!(
                     f64::from(s.build_estimated_ms) + tlas_fixed <= 1.0 + 1e-6,
@@ -638,11 +643,7 @@ fn a_build_batch_pays_its_fixed_cost_once() {
                     s.build_estimated_ms
                 );
             }
-            if s.blas_count == 40 || frame == 200 {
-                return frame;
-            }
-            frame += 1;
-        }
+        })
     };
     let light = frames_to_build(0.0);
     let heavy = frames_to_build(0.9);
