@@ -34,6 +34,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::Vec3;
+use rtstream_as_manager::backend::vulkan::ash::vk;
 use rtstream_as_manager::backend::vulkan::{
     ContextDesc, FrameLoop, Recording, TlasUpdates, Validation, VulkanBackend, VulkanBackendDesc,
     VulkanContext, RECORDED_SETS,
@@ -287,7 +288,7 @@ impl PolicyRun {
         &self,
         desc: RenderDesc,
     ) -> Option<(
-        rtstream_as_manager::backend::vulkan::ash::vk::AccelerationStructureKHR,
+        vk::AccelerationStructureKHR,
         Vec<rtstream_renderer::InstanceShading>,
         RenderDesc,
     )> {
@@ -447,8 +448,8 @@ pub fn run_cached(
         };
         specs.push((PolicyKind::Managed, MANAGED_TLAS_UPDATE, true, on));
     }
-    const FAST_TRACE: rtstream_as_manager::backend::vulkan::ash::vk::BuildAccelerationStructureFlagsKHR =
-        rtstream_as_manager::backend::vulkan::ash::vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
+    const FAST_TRACE: vk::BuildAccelerationStructureFlagsKHR =
+        vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
     let mut policies = Vec::new();
     for (kind, name, far, tlas_updates) in specs {
         let mut c = config.managed.clone();

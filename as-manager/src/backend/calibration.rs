@@ -30,14 +30,15 @@ pub struct SizeModel {
 }
 
 /// Fixed GPU milliseconds of one batch (one command) of each kind of work, whatever its size.
-/// On the H200 these dominate a frame's small batches: a FAST_TRACE build of a few hundred to
-/// a few thousand triangles costs about 0.2 ms, a TLAS of any size at least 0.21 ms
-/// (docs/GPU.md, "What a frame's acceleration-structure time is made of").
+/// On the H200 these dominate a frame's small batches: a build of a few hundred to a few
+/// thousand triangles costs 0.14 ms (PREFER_FAST_BUILD; 0.2 ms PREFER_FAST_TRACE), a TLAS of
+/// any size at least 0.21 ms (docs/GPU.md, "What a frame's acceleration-structure time is made
+/// of").
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct BatchCosts {
-    /// A batch of static (FAST_TRACE) builds, skinned builds included.
+    /// A batch of builds with a static BLAS in it (skinned ones may share it).
     pub build_static: f64,
-    /// A batch of skinned (FAST_BUILD) builds only.
+    /// A batch of skinned builds only.
     pub build_skinned: f64,
     /// A batch of refits (rebuilds of refitted BLASes included).
     pub refit: f64,
@@ -320,6 +321,19 @@ impl CostModel {
         }
     }
 
+    /// The fixed cost of one batch of `op`, to set.
+    pub fn batch_fixed_mut(&mut self, op: CostOp) -> &mut f64 {
+        let b = &mut self.batch_ms;
+        match op {
+            CostOp::BuildStatic => &mut b.build_static,
+            CostOp::BuildSkinned => &mut b.build_skinned,
+            CostOp::Refit => &mut b.refit,
+            CostOp::Compact => &mut b.compact,
+            CostOp::Tlas => &mut b.tlas,
+            CostOp::TlasUpdate => &mut b.tlas_update,
+        }
+    }
+
     /// Estimated GPU ms of one batch of `op` over `units`: its fixed cost plus the units'.
     pub fn estimate_batch(&self, op: CostOp, units: u64) -> f64 {
         self.batch_fixed(op) + self.estimate(op, units)
@@ -374,21 +388,6 @@ fn unit_scale(op: CostOp) -> f64 {
     }
 }
 
-impl CostModel {
-    /// The fixed cost of one batch of `op`, to set.
-    pub fn batch_fixed_mut(&mut self, op: CostOp) -> &mut f64 {
-        let b = &mut self.batch_ms;
-        match op {
-            CostOp::BuildStatic => &mut b.build_static,
-            CostOp::BuildSkinned => &mut b.build_skinned,
-            CostOp::Refit => &mut b.refit,
-            CostOp::Compact => &mut b.compact,
-            CostOp::Tlas => &mut b.tlas,
-            CostOp::TlasUpdate => &mut b.tlas_update,
-        }
-    }
-}
-
 /// What an online fit forgets per measurement (a window of about 50 batches of a kind).
 const FIT_DECAY: f64 = 0.98;
 /// Batches of a kind measured before the fit replaces the prior's line for it.
@@ -432,7 +431,7 @@ impl OpFit {
         let var = self.xx / self.w - mx * mx;
         let cov = self.xy / self.w - mx * my;
         // Sizes spread by at least a tenth of their mean: the slope is measured.
-        let (a, b) = if var > (0.1 * mx).powi(2) && var > 0.0 {
+        let (a, b) = if var > (0.1 * mx).powi(2) {
             let b = cov / var;
             (my - b * mx, b)
         } else {
@@ -450,6 +449,32 @@ impl OpFit {
         } else {
             (a, b)
         })
+    }
+}
+
+/// The online fits that refine a manager's cost model, one per kind of batch.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct CostFits([OpFit; 6]);
+
+impl CostFits {
+    /// Adds a measured batch of `op` over `units` that took `ms`, and sets `costs`' line for
+    /// `op` to the fit once it has one.
+    pub fn learn(&mut self, costs: &mut CostModel, op: CostOp, units: u64, ms: f64) {
+        let slot = match op {
+            CostOp::BuildStatic => 0,
+            CostOp::BuildSkinned => 1,
+            CostOp::Refit => 2,
+            CostOp::Compact => 3,
+            CostOp::Tlas => 4,
+            CostOp::TlasUpdate => 5,
+        };
+        let fit = &mut self.0[slot];
+        fit.add(op, units, ms);
+        let coefficient = *costs.coefficient_mut(op);
+        if let Some((f, c)) = fit.solve(costs.batch_fixed(op), coefficient) {
+            *costs.batch_fixed_mut(op) = f;
+            *costs.coefficient_mut(op) = c;
+        }
     }
 }
 

@@ -16,7 +16,7 @@
 
 use std::collections::{HashMap, VecDeque};
 
-pub use super::calibration::{BatchCosts, CostModel, OpFit, SizeModel, SizeSample};
+pub use super::calibration::{BatchCosts, CostFits, CostModel, OpFit, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
     CostOp, FaultPoint, GeometryRef, Measurement, TlasDelta, TlasHandle,

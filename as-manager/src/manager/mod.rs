@@ -239,8 +239,8 @@ pub struct AsManager<B: AsBackend> {
     lod: LodSelector,
     culler: InstanceCuller,
     costs: CostModel,
-    /// The online fits that refine `costs`, one per kind of batch (`op_slot`).
-    cost_fits: [crate::backend::model::OpFit; 6],
+    /// The online fits that refine `costs`.
+    cost_fits: crate::backend::model::CostFits,
     /// The far-field group tree.
     far: far::FarField,
     /// The far-field landmarks, kept incrementally (their records lead `records`).
@@ -743,16 +743,8 @@ impl<B: AsBackend> AsManager<B> {
             if self.config.freeze_cost_model {
                 continue;
             }
-            let fit = &mut self.cost_fits[op_slot(m.op)];
-            fit.add(m.op, m.units, m.gpu_ms);
-            let (fixed, coefficient) = (
-                self.costs.batch_fixed(m.op),
-                *self.costs.coefficient_mut(m.op),
-            );
-            if let Some((f, c)) = fit.solve(fixed, coefficient) {
-                *self.costs.batch_fixed_mut(m.op) = f;
-                *self.costs.coefficient_mut(m.op) = c;
-            }
+            self.cost_fits
+                .learn(&mut self.costs, m.op, m.units, m.gpu_ms);
         }
     }
 
@@ -816,15 +808,3 @@ mod landmark_tests;
 mod lod_geometry_tests;
 #[cfg(test)]
 mod tests;
-
-/// `AsManager::cost_fits`' slot of a kind of batch.
-fn op_slot(op: CostOp) -> usize {
-    match op {
-        CostOp::BuildStatic => 0,
-        CostOp::BuildSkinned => 1,
-        CostOp::Refit => 2,
-        CostOp::Compact => 3,
-        CostOp::Tlas => 4,
-        CostOp::TlasUpdate => 5,
-    }
-}
