@@ -4,8 +4,7 @@
 //! follows what is near the cameras, not the world's size. Spheres larger than a cell go to a
 //! short list visited every frame. (The benchmark compares it with an rstar R*-tree query.)
 
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
+use rustc_hash::FxHashMap;
 
 use glam::Vec3;
 
@@ -30,25 +29,6 @@ pub struct GridLoc {
     index: u32,
 }
 
-/// Multiplicative hasher for the cell keys (two i32s): the std SipHash costs more than the
-/// lookup itself here.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct CellHasher(u64);
-
-impl Hasher for CellHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for b in bytes {
-            self.0 = (self.0.rotate_left(5) ^ *b as u64).wrapping_mul(0x517c_c1b7_2722_0a95);
-        }
-    }
-    fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x517c_c1b7_2722_0a95);
-    }
-}
-
 /// `GridLoc::cell` of an entry in the large list (not in a cell).
 const LARGE: u32 = u32::MAX;
 
@@ -57,7 +37,7 @@ const LARGE: u32 = u32::MAX;
 pub struct GridIndex<T = ()> {
     cell_size: f32,
     inv_cell: f32,
-    cells: HashMap<u64, u32, BuildHasherDefault<CellHasher>>,
+    cells: FxHashMap<u64, u32>,
     cell_coords: Vec<(i32, i32)>,
     cell_entries: Vec<Vec<GridEntry<T>>>,
     large: Vec<GridEntry<T>>,
@@ -81,7 +61,7 @@ impl<T: Copy> GridIndex<T> {
         Self {
             cell_size,
             inv_cell: 1.0 / cell_size,
-            cells: HashMap::default(),
+            cells: FxHashMap::default(),
             cell_coords: Vec::new(),
             cell_entries: Vec::new(),
             large: Vec::new(),

@@ -14,7 +14,9 @@
 //! assert!(s.as_bytes >= 100_000);
 //! ```
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
+
+use rustc_hash::FxHashMap;
 
 pub use super::calibration::{BatchCosts, CostFits, CostModel, OpFit, SizeModel, SizeSample};
 use super::{
@@ -77,7 +79,7 @@ pub struct ModelBackend {
     /// build of counts-only geometry fails with [`BackendError::MissingGeometry`] (default
     /// `false`: counts are enough for a model).
     pub require_geometry: bool,
-    blases: HashMap<BlasHandle, ModelBlas>,
+    blases: FxHashMap<BlasHandle, ModelBlas>,
     retiring: VecDeque<(u64, BlasHandle)>,
     next_handle: u64,
     frame: u64,
@@ -170,7 +172,7 @@ impl ModelBackend {
             lose_device: false,
             faults: Vec::new(),
             require_geometry: false,
-            blases: HashMap::new(),
+            blases: FxHashMap::default(),
             retiring: VecDeque::new(),
             next_handle: 1,
             frame: 0,

@@ -451,7 +451,7 @@ impl<B: AsBackend> AsManager<B> {
             return;
         }
         // One pass over the built skinned entries, not one per report.
-        let by_handle: std::collections::HashMap<_, EntryKey> = self
+        let by_handle: rustc_hash::FxHashMap<_, EntryKey> = self
             .tables
             .active
             .iter()

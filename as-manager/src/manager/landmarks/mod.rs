@@ -50,13 +50,13 @@ mod pairs;
 mod queue;
 
 use std::collections::HashMap;
-use std::hash::BuildHasherDefault;
+
+use rustc_hash::FxHashMap;
 
 use glam::Vec3;
 
 use super::state::{InstanceHot, NO_GROUP};
 use crate::record::TlasInstance;
-use crate::spatial::CellHasher;
 use queue::{Due, DueQueue};
 
 const NONE: u32 = u32::MAX;
@@ -187,7 +187,7 @@ pub(crate) struct Landmarks {
     /// With `detail`: per leaf group, its instances that are not candidates (skinned ones),
     /// which the residency pass visits beyond r2 when the leaf is near; and each slot's place
     /// in its list (NONE: listed nowhere).
-    others: HashMap<u32, Vec<u32>>,
+    others: FxHashMap<u32, Vec<u32>>,
     other_pos: Vec<u32>,
     other_group: Vec<u32>,
     /// Camera travel so far, metres.
@@ -211,7 +211,7 @@ pub(crate) struct Landmarks {
     /// Meshes whose candidates are all due now.
     meshes_changed: Vec<u32>,
     /// Per leaf group: its candidates (slots).
-    groups: HashMap<u32, Vec<u32>>,
+    groups: FxHashMap<u32, Vec<u32>>,
     members: Vec<Member>,
     /// `records[i]` (the manager's; the first `record_slots.len()` are the landmarks') is slot
     /// `record_slots[i]`'s.
@@ -220,7 +220,7 @@ pub(crate) struct Landmarks {
     /// their indices.
     pairs: Vec<Option<PairUse>>,
     free_pairs: Vec<u32>,
-    pair_index: HashMap<u64, u32, BuildHasherDefault<CellHasher>>,
+    pair_index: FxHashMap<u64, u32>,
     /// Members whose shown BLAS is chosen again this frame.
     rechoose: Vec<u32>,
     /// Members choosing again next frame (their target is not built).
@@ -242,7 +242,7 @@ impl Default for Landmarks {
             detail: false,
             hidden: Vec::new(),
             detail_records: 0,
-            others: HashMap::new(),
+            others: FxHashMap::default(),
             other_pos: Vec::new(),
             other_group: Vec::new(),
             odo: 0.0,
@@ -256,7 +256,7 @@ impl Default for Landmarks {
             next_stamp: 0,
             now: Vec::new(),
             meshes_changed: Vec::new(),
-            groups: HashMap::new(),
+            groups: FxHashMap::default(),
             members: Vec::new(),
             record_slots: Vec::new(),
             pairs: Vec::new(),

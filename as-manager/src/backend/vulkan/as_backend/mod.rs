@@ -56,7 +56,9 @@ mod tlas_slots;
 pub use tlas::TlasUpdates;
 use tlas::{Parking, TlasSource};
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
+
+use rustc_hash::FxHashMap;
 
 use crate::backend::FaultPoint;
 use std::sync::Arc;
@@ -408,9 +410,9 @@ pub struct VulkanBackend {
     blases: slotmap::SlotMap<BlasKey, BlasEntry>,
     /// First-part address -> other parts' addresses, for split meshes.
     /// (the parts' addresses and first primitives).
-    split_parts: HashMap<u64, Vec<(u64, u32)>>,
+    split_parts: FxHashMap<u64, Vec<(u64, u32)>>,
     /// First-part address -> blas slot (shading lookups by instance record).
-    by_address: HashMap<u64, BlasKey>,
+    by_address: FxHashMap<u64, BlasKey>,
     retiring: VecDeque<(u64, Retired)>,
     completed: Option<u64>,
     measurements: Vec<Measurement>,
@@ -444,7 +446,7 @@ pub struct VulkanBackend {
     engine_done: Option<u64>,
     /// Sizes by (triangles, vertices, opaque, class): they depend on nothing else, and the
     /// manager asks for every queued item every frame (one driver call each, before).
-    size_cache: std::cell::RefCell<HashMap<SizeKey, BlasSizes>>,
+    size_cache: std::cell::RefCell<FxHashMap<SizeKey, BlasSizes>>,
     /// Static BLASes' uploaded positions and indices, as ranges of a few large host-visible
     /// buffers (`device/arena.rs`).
     inputs: BufferArena,
@@ -615,8 +617,8 @@ impl VulkanBackend {
             slots,
             current: 0,
             blases: slotmap::SlotMap::with_key(),
-            split_parts: HashMap::new(),
-            by_address: HashMap::new(),
+            split_parts: FxHashMap::default(),
+            by_address: FxHashMap::default(),
             retiring: VecDeque::new(),
             completed: None,
             measurements: Vec::new(),

@@ -18,12 +18,10 @@
 //! Only slots whose content changed are written (`SlotKeeper::written`). A build keeps the
 //! layout too while the parked slots are few, so build frames write deltas as well.
 
-use std::collections::HashMap;
-use std::hash::BuildHasherDefault;
+use rustc_hash::FxHashMap;
 
 use crate::backend::TlasDelta;
 use crate::record::TlasInstance;
-use crate::spatial::CellHasher;
 
 const NONE: u32 = u32::MAX;
 /// Cell size for matching joining records to parked slots, metres.
@@ -103,7 +101,7 @@ pub(super) struct SlotKeeper {
     /// Parked slots by the cell (`CELL_M`) where they stand (that of their parked record), and
     /// each one's place in its cell's list: a joining record takes a parked slot in its own
     /// cell or next to it, so the updated tree's box of that slot grows by little.
-    cells: HashMap<u64, Vec<u32>, BuildHasherDefault<CellHasher>>,
+    cells: FxHashMap<u64, Vec<u32>>,
     cell_pos: Vec<u32>,
     /// Per slot: the call that last listed it as vacated or claimed it (`call`).
     vacated: Vec<u32>,
@@ -112,7 +110,7 @@ pub(super) struct SlotKeeper {
     seen: Vec<u32>,
     call: u32,
     /// Vacated slots by key: chains through `next` (a few records may share a translation).
-    heads: HashMap<u64, u32, BuildHasherDefault<CellHasher>>,
+    heads: FxHashMap<u64, u32>,
     next: Vec<u32>,
     vacated_list: Vec<u32>,
     joining: Vec<u32>,
@@ -562,7 +560,7 @@ mod tests {
         let (mut kept, mut stayed, mut written) = (0usize, 0usize, 0usize);
         let (mut tail_records, mut unhashed) = (0usize, 0usize);
         for _frame in 0..200 {
-            let before: HashMap<[u32; 4], usize> = keeper
+            let before: std::collections::HashMap<[u32; 4], usize> = keeper
                 .image()
                 .iter()
                 .enumerate()
