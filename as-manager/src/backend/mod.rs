@@ -279,6 +279,22 @@ impl TlasDelta<'_> {
     };
 }
 
+/// How a backend will make the next frame's TLAS, as far as it knows before the frame's builds
+/// ([`AsBackend::next_tlas`]): the manager's GPU budget sets aside what that costs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum NextTlas {
+    /// Every frame builds its TLAS (updates in place off).
+    #[default]
+    BuildEveryFrame,
+    /// An update in place of the last frame's TLAS (unless the frame's records outgrow it).
+    Update,
+    /// A build after updates: the tree is due to be rebuilt. A backend that updates in place
+    /// rebuilds in a frame that builds few BLAS triangles, so the manager admits builds in
+    /// such a frame only within its budget (no build is forced through for progress: the
+    /// frames that follow update).
+    Rebuild,
+}
+
 /// What the manager needs from a GPU (or a model of one). See the module docs for the frame
 /// contract. Only the thread that owns the manager calls it.
 pub trait AsBackend: Send {
@@ -317,6 +333,11 @@ pub trait AsBackend: Send {
         instances: &[TlasInstance],
         delta: TlasDelta<'_>,
     ) -> BackendResult<TlasHandle>;
+    /// How the next frame's TLAS will be made (see [`NextTlas`]); asked before the frame's
+    /// builds are chosen.
+    fn next_tlas(&self) -> NextTlas {
+        NextTlas::BuildEveryFrame
+    }
     /// Records in the last TLAS built, where the backend adds its own (a mesh split into
     /// parts has one record per part); `None`: exactly the instances given.
     fn tlas_records(&self) -> Option<usize> {

@@ -21,7 +21,7 @@ use rustc_hash::FxHashMap;
 pub use super::calibration::{BatchCosts, CostFits, CostModel, OpFit, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, FaultPoint, GeometryRef, Measurement, TlasDelta, TlasHandle,
+    CostOp, FaultPoint, GeometryRef, Measurement, NextTlas, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -79,6 +79,16 @@ pub struct ModelBackend {
     /// build of counts-only geometry fails with [`BackendError::MissingGeometry`] (default
     /// `false`: counts are enough for a model).
     pub require_geometry: bool,
+    /// Model TLAS updates in place as the Vulkan backend makes them (`TlasUpdates`): after a
+    /// build, updates until this many, the build due from half of them on in a frame whose
+    /// BLAS builds total at most `light_frame_triangles` (0, the default: every frame builds).
+    pub tlas_max_updates: u32,
+    /// See `tlas_max_updates` (default: any frame, as the Vulkan backend's).
+    pub light_frame_triangles: u64,
+    /// Updates since the last TLAS build (`None`: no TLAS yet).
+    tlas_updates_since: Option<u32>,
+    /// BLAS triangles built this frame.
+    frame_build_triangles: u64,
     blases: FxHashMap<BlasHandle, ModelBlas>,
     retiring: VecDeque<(u64, BlasHandle)>,
     next_handle: u64,
@@ -172,6 +182,10 @@ impl ModelBackend {
             lose_device: false,
             faults: Vec::new(),
             require_geometry: false,
+            tlas_max_updates: 0,
+            light_frame_triangles: u64::MAX,
+            tlas_updates_since: None,
+            frame_build_triangles: 0,
             blases: FxHashMap::default(),
             retiring: VecDeque::new(),
             next_handle: 1,
@@ -313,6 +327,7 @@ impl AsBackend for ModelBackend {
     fn begin_frame(&mut self, frame: u64) -> BackendResult<()> {
         self.lost()?;
         self.frame = frame;
+        self.frame_build_triangles = 0;
         self.tlas_marks.clear();
         if frame >= self.frames_in_flight {
             let done = frame - self.frames_in_flight;
@@ -389,6 +404,7 @@ impl AsBackend for ModelBackend {
             }));
             self.counters.builds += 1;
         }
+        self.frame_build_triangles += st + sk;
         self.measure_batches([
             (CostOp::BuildStatic, st, n_st),
             (CostOp::BuildSkinned, sk, n_sk),
@@ -506,9 +522,27 @@ impl AsBackend for ModelBackend {
             }
         }
         let units = instances.len() as u64;
-        let gpu_ms = self.costs.estimate_batch(CostOp::Tlas, units);
+        let op = match self.next_tlas() {
+            NextTlas::BuildEveryFrame => CostOp::Tlas,
+            NextTlas::Update => CostOp::TlasUpdate,
+            NextTlas::Rebuild => {
+                let forced = self.tlas_updates_since >= Some(self.tlas_max_updates);
+                if forced || self.frame_build_triangles <= self.light_frame_triangles {
+                    CostOp::Tlas
+                } else {
+                    CostOp::TlasUpdate
+                }
+            }
+        };
+        if self.tlas_max_updates > 0 {
+            self.tlas_updates_since = match op {
+                CostOp::TlasUpdate => self.tlas_updates_since.map(|n| n + 1),
+                _ => Some(0),
+            };
+        }
+        let gpu_ms = self.costs.estimate_batch(op, units);
         self.measurements.push(Measurement {
-            op: CostOp::Tlas,
+            op,
             units,
             items: instances.len() as u32,
             gpu_ms,
@@ -516,11 +550,23 @@ impl AsBackend for ModelBackend {
         Ok(TlasHandle::new(0, self.frame))
     }
 
+    fn next_tlas(&self) -> NextTlas {
+        match self.tlas_updates_since {
+            _ if self.tlas_max_updates == 0 => NextTlas::BuildEveryFrame,
+            Some(n) if n < self.tlas_max_updates.div_ceil(2) => NextTlas::Update,
+            _ => NextTlas::Rebuild,
+        }
+    }
+
     fn end_frame(&mut self, _frame: u64) -> BackendResult<()> {
         self.check(FaultPoint::EndFrame)
     }
 
     fn abort_frame(&mut self) {
+        // An update needs a TLAS that ran: the next one is built.
+        if self.tlas_max_updates > 0 {
+            self.tlas_updates_since = None;
+        }
         // The frame's TLAS was never submitted: it used nothing.
         for (h, prev) in self.tlas_marks.drain(..).rev() {
             if let Some(b) = self.blases.get_mut(&h) {

@@ -7,7 +7,7 @@ use super::journal::{CompactUndo, RefitUndo};
 use super::state::{EntryKey, EntryState, Tables};
 use super::AsManager;
 use crate::backend::{
-    AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef,
+    AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef, NextTlas,
 };
 use crate::mesh::{DeviceVertices, LodGeometry, MeshKind};
 use crate::quality::RefitQuality;
@@ -127,13 +127,20 @@ impl<B: AsBackend> AsManager<B> {
         let (mut prims, mut ms, mut bytes) = (0u64, 0f64, 0u64);
         // The GPU budget covers all acceleration-structure work: builds get what the TLAS and
         // the refits (estimated from last frame) leave.
-        // The TLAS holds at most the instances within r2 this frame (visited above).
-        let tlas_now = self
-            .costs
-            .estimate_batch(CostOp::Tlas, self.visits.len() as u64);
+        // The TLAS holds at most the instances within r2 this frame (visited above). A backend
+        // that updates its TLAS in place says whether this frame's is an update or a build; a
+        // build after updates takes no build that the budget does not hold (the frames after
+        // it update, so nothing starves), which keeps the rebuild and the builds apart.
+        let next = self.backend.next_tlas();
+        let tlas_op = match next {
+            NextTlas::Update => CostOp::TlasUpdate,
+            NextTlas::BuildEveryFrame | NextTlas::Rebuild => CostOp::Tlas,
+        };
+        let progress = next != NextTlas::Rebuild;
+        let tlas_now = self.costs.estimate_batch(tlas_op, self.visits.len() as u64);
         let tlas_before = self
             .costs
-            .estimate_batch(CostOp::Tlas, u64::from(self.prev_tlas_instances));
+            .estimate_batch(tlas_op, u64::from(self.prev_tlas_instances));
         let refits = if self.prev_refit_prims > 0 {
             self.costs
                 .estimate_batch(CostOp::Refit, self.prev_refit_prims)
@@ -189,16 +196,19 @@ impl<B: AsBackend> AsManager<B> {
                 // all.
                 let units_ms = est - fixed_more;
                 let room = (build_ms - batch_fixed.max(self.costs.batch_fixed(op))).max(0.0);
-                if proxy_ms > 0.0 && proxy_ms + units_ms > proxy_ms_max * room {
+                if (proxy_ms > 0.0 || !progress) && proxy_ms + units_ms > proxy_ms_max * room {
+                    continue;
+                }
+                if !progress && ms + est > build_ms {
                     continue;
                 }
             } else if budgeted {
-                if oversized && detail_admitted > 0 {
+                if oversized && (detail_admitted > 0 || !progress) {
                     continue;
                 }
                 // The first detail item always goes (progress even when the TLAS and refits
                 // take the whole budget); later ones only within what is left.
-                if detail_admitted > 0
+                if (detail_admitted > 0 || !progress)
                     && (prims + tris as u64 > b.max_primitives || ms + est > build_ms)
                 {
                     continue;

@@ -564,12 +564,21 @@ fn frames_to_build_forty(
     costs: crate::backend::model::CostModel,
     check: impl Fn(u64, &FrameStats),
 ) -> u64 {
+    frames_to_build_forty_on(ModelBackend::lavapipe(), costs, check)
+}
+
+/// `frames_to_build_forty` on `backend`.
+fn frames_to_build_forty_on(
+    backend: ModelBackend,
+    costs: crate::backend::model::CostModel,
+    check: impl Fn(u64, &FrameStats),
+) -> u64 {
     let mut cfg = Config::default();
     cfg.build.max_gpu_ms = 1.0;
     cfg.build.max_primitives = u64::MAX;
     cfg.freeze_cost_model = true;
     cfg.cost_prior = costs;
-    let mut m = AsManager::new(cfg, ModelBackend::lavapipe()).unwrap();
+    let mut m = AsManager::new(cfg, backend).unwrap();
     forty_small_meshes(&m);
     let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     let mut frame = 0;
@@ -652,4 +661,47 @@ fn a_build_batch_pays_its_fixed_cost_once() {
         (35..200).contains(&heavy),
         "a TLAS taking most of the budget: {heavy} frames (one build a frame)"
     );
+}
+
+#[test]
+fn a_tlas_rebuild_after_updates_takes_no_build_past_the_budget() {
+    // A backend that updates its TLAS in place (0.05 ms) and rebuilds it every few frames
+    // (0.9 ms of the 1 ms budget): the builds go in the update frames and each rebuild comes
+    // with no build the budget does not hold, so no frame's GPU work passes the budget, and the
+    // forty BLASes take a few frames. Reserving a rebuild in every frame would leave one
+    // (forced) build a frame; forcing a build into a rebuild frame would pass the budget.
+    let mut costs = Config::default().cost_prior;
+    costs.build_static_ms_per_mtri = 50.0; // 0.05 ms per 1k-triangle mesh
+    costs.tlas_ms_per_kinst = 0.0;
+    costs.tlas_update_ms_per_kinst = 0.0;
+    costs.batch_ms = crate::backend::model::BatchCosts {
+        build_static: 0.3,
+        tlas: 0.9,
+        tlas_update: 0.05,
+        ..Default::default()
+    };
+    let mut backend = ModelBackend::lavapipe();
+    backend.costs = costs;
+    backend.tlas_max_updates = 4;
+    let rebuilds_with_builds = std::cell::Cell::new(0);
+    let rebuilds = std::cell::Cell::new(0);
+    let frames = frames_to_build_forty_on(backend, costs, |frame, s| {
+        // The measurements of an update are the last frame's batches.
+        assert!(
+            s.measured_gpu_ms <= 1.0 + 1e-6,
+            "frame {frame}: {} ms of GPU work (TLAS {} ms)",
+            s.measured_gpu_ms,
+            s.measured_tlas_ms
+        );
+        if s.measured_tlas_ms > 0.5 {
+            rebuilds.set(rebuilds.get() + 1);
+            if s.measured_gpu_ms > s.measured_tlas_ms + 1e-9 {
+                rebuilds_with_builds.set(rebuilds_with_builds.get() + 1);
+            }
+        }
+    });
+    assert!(frames < 10, "{frames} frames to build forty");
+    // Frame 0 and at least one after updates were rebuilds, and none of them built.
+    assert!(rebuilds.get() >= 2, "{} rebuilds", rebuilds.get());
+    assert_eq!(rebuilds_with_builds.get(), 0);
 }

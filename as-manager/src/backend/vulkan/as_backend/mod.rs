@@ -806,6 +806,10 @@ impl AsBackend for VulkanBackend {
         self.retire_blas(blas, last_used_frame)
     }
 
+    fn next_tlas(&self) -> crate::backend::NextTlas {
+        self.planned_tlas()
+    }
+
     fn blas_address(&self, blas: BlasHandle) -> u64 {
         self.entry(blas).map_or(0, |e| e.parts[0].address)
     }
