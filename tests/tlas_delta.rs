@@ -12,7 +12,7 @@ mod common;
 
 use glam::{Affine3A, Quat, Vec3};
 use rtstream::as_manager::backend::vulkan::{TlasUpdates, VulkanBackend, VulkanBackendDesc};
-use rtstream::as_manager::backend::{BackendError, FaultPoint};
+use rtstream::as_manager::backend::{AsBackend, BackendError, FaultPoint, NextTlas};
 use rtstream::as_manager::record::TlasInstance;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{
@@ -80,6 +80,9 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
     let (mut stayed, mut kept, mut shifted, mut kept_shifted) = (0usize, 0usize, 0usize, 0usize);
     let mut before: HashMap<(u32, [u32; 3]), usize> = HashMap::new();
     let mut listed_before = before.clone();
+    // What the backend said of each frame's TLAS before its builds (`next_tlas`, which the
+    // manager's budget relies on), against what the frame made: (said, built, updated).
+    let mut plans: HashMap<NextTlas, (u32, u32, u32)> = HashMap::new();
     for frame in 0..160u64 {
         if frame % 20 == 10 {
             // Churn: adds, moves and removes.
@@ -104,6 +107,12 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
         let t = frame as f32 * 0.01;
         let cam = Vec3::new(1200.0 * t.sin(), 2.0, 1200.0 * (t * 0.7).cos() - 600.0);
         let cams = [Viewpoint::new(cam, Vec3::X)];
+        let said = m.backend().next_tlas();
+        let made = |m: &AsManager<VulkanBackend>| {
+            let c = m.backend().counters();
+            (c.tlas_builds, c.tlas_updates)
+        };
+        let (built_before, updated_before) = made(&m);
         let out = match m.update(FrameInput {
             frame,
             cameras: &cams,
@@ -114,11 +123,17 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
                 continue;
             }
         };
+
         let (tlas, want) = (
             out.tlas,
             bytemuck::cast_slice::<_, u8>(out.instances).to_vec(),
         );
         max_landmarks = max_landmarks.max(out.stats.landmark_instances);
+        let (built, updated) = made(&m);
+        let tally = plans.entry(said).or_default();
+        tally.0 += 1;
+        tally.1 += (built - built_before) as u32;
+        tally.2 += (updated - updated_before) as u32;
         let got = m
             .backend()
             .tlas_instance_bytes(tlas)
@@ -197,6 +212,19 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
         frames_compared >= 150 && max_landmarks >= 100,
         "{frames_compared} {max_landmarks}"
     );
+    // A frame said to rebuild built; most of those said to update did (the others' records
+    // outgrew the last build or joined too far from their slots, found only once placed).
+    let rebuilds = plans.get(&NextTlas::Rebuild).copied().unwrap_or_default();
+    let updates = plans.get(&NextTlas::Update).copied().unwrap_or_default();
+    assert!(
+        rebuilds.0 >= 5 && rebuilds.1 == rebuilds.0 && rebuilds.2 == 0,
+        "frames said to rebuild: {rebuilds:?} (frames, builds, updates)"
+    );
+    assert!(
+        updates.0 >= 100 && updates.2 * 10 >= updates.0 * 8,
+        "frames said to update: {updates:?} (frames, builds, updates)"
+    );
+    assert!(!plans.contains_key(&NextTlas::BuildEveryFrame), "{plans:?}");
     // Most frames updated their TLAS from the last frame's.
     assert!(
         c.tlas_updates > c.tlas_builds && c.tlas_builds >= 2,

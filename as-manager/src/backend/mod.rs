@@ -281,7 +281,7 @@ impl TlasDelta<'_> {
 
 /// How a backend will make the next frame's TLAS, as far as it knows before the frame's builds
 /// ([`AsBackend::next_tlas`]): the manager's GPU budget sets aside what that costs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum NextTlas {
     /// Every frame builds its TLAS (updates in place off).
     #[default]
