@@ -73,6 +73,13 @@ pub(crate) struct FarField {
     roots_dirty: bool,
     /// Leaves on the near side of the hand-over.
     near_leaves: Vec<u32>,
+    /// Scratch of `far_prepare` kept between frames: last frame's `near_leaves` while this
+    /// frame's are listed, the walk's stack, the nodes whose proxies are wanted.
+    near_spare: Vec<u32>,
+    stack: Vec<u32>,
+    want: Vec<u32>,
+    /// Scratch of `far_select`: the display cut's (group, entry, address).
+    cut: Vec<(u32, EntryKey, u64)>,
     /// Leaves whose `unready` count is non-zero this frame.
     unready_leaves: Vec<u32>,
     /// Nodes of this frame's display cut.
@@ -213,8 +220,9 @@ impl FarField {
     }
 
     /// The root slots and every node's leaf count (recomputed after the tree changed; it
-    /// changes rarely).
-    fn roots(&mut self) -> Vec<u32> {
+    /// changes rarely). Taken out of the tree (give them back with `put_roots`): the walks
+    /// borrow the tree while they go through them, and a copy a frame cost an allocation.
+    fn take_roots(&mut self) -> Vec<u32> {
         if self.roots_dirty {
             self.roots = (0..self.nodes.len() as u32)
                 .filter(|&i| matches!(&self.nodes[i as usize], Some(n) if n.parent.is_none()))
@@ -237,7 +245,14 @@ impl FarField {
             }
             self.roots_dirty = false;
         }
-        self.roots.clone()
+        std::mem::take(&mut self.roots)
+    }
+
+    /// Gives back what `take_roots` took (unless the tree changed meanwhile).
+    fn put_roots(&mut self, roots: Vec<u32>) {
+        if !self.roots_dirty {
+            self.roots = roots;
+        }
     }
 
     /// Whether `leaf` or one of its ancestors was part of the display cut of `epoch`.
@@ -386,8 +401,12 @@ impl<B: AsBackend> AsManager<B> {
             }
             n.near != was
         };
-        let listed = std::mem::take(&mut far.near_leaves);
-        for i in listed {
+        // Last frame's list is walked while this frame's fills the spare one (no allocation
+        // a frame).
+        let mut listed = std::mem::take(&mut far.near_leaves);
+        far.near_leaves = std::mem::take(&mut far.near_spare);
+        far.near_leaves.clear();
+        for &i in &listed {
             if let Some(Some(n)) = far.nodes.get_mut(i as usize) {
                 if visit(n) {
                     far.flipped.push(i);
@@ -399,8 +418,15 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
         }
-        let mut want = Vec::new();
-        let mut stack = far.roots();
+        listed.clear();
+        far.near_spare = listed;
+        let mut want = std::mem::take(&mut far.want);
+        want.clear();
+        let roots = far.take_roots();
+        let mut stack = std::mem::take(&mut far.stack);
+        stack.clear();
+        stack.extend_from_slice(&roots);
+        far.put_roots(roots);
         while let Some(i) = stack.pop() {
             let n = far.nodes[i as usize].as_mut().expect("live group");
             if visit(n) {
@@ -436,9 +462,10 @@ impl<B: AsBackend> AsManager<B> {
                 stack.extend(n.children.iter().copied());
             }
         }
+        far.stack = stack;
         self.cam_pos = cams;
         let frame = self.frame;
-        for i in want {
+        for &i in &want {
             let n = self.far.node(i);
             let (Some((mesh, _)), dist) = (n.proxy, self.far_dist(i)) else {
                 continue;
@@ -451,6 +478,7 @@ impl<B: AsBackend> AsManager<B> {
             let leaves = n.leaves.max(1) as f32;
             self.request_proxy(mesh, dist / leaves.sqrt(), frame);
         }
+        self.far.want = want;
     }
 
     /// A node's distance to the nearest camera this frame (cached by the walk, else computed).
@@ -567,10 +595,13 @@ impl<B: AsBackend> AsManager<B> {
             self.tlas_groups.clear();
             return;
         }
-        let mut picks = Vec::new();
-        for r in self.far.roots() {
+        let mut picks = std::mem::take(&mut self.far.cut);
+        picks.clear();
+        let roots = self.far.take_roots();
+        for &r in &roots {
             self.display_cut(r, &mut picks);
         }
+        self.far.put_roots(roots);
         let frame = self.frame;
         let mut proxy_bytes = 0;
         for &(g, key, addr) in &picks {
@@ -605,6 +636,7 @@ impl<B: AsBackend> AsManager<B> {
                 addr,
             ));
         }
+        self.far.cut = picks;
         // Every leaf under a pick is covered this frame.
         let e = self.far.epoch;
         let mut covered_leaves = 0;
