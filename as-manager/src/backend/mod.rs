@@ -22,6 +22,10 @@
 //!   Both copies count against the memory budget until the original is retired.
 //! - Measured GPU costs arrive late (timestamps of finished frames) through
 //!   [`AsBackend::take_measurements`]; the manager refines its cost model with them.
+//! - [`AsBackend::next_tlas`], asked after `begin_frame(n)` and before the frame's builds are
+//!   chosen, says how frame `n`'s TLAS will be made (built, or updated in place); the manager
+//!   sets aside that cost in its GPU budget. A backend that says `Update` may still build
+//!   (more records than its last build holds), but one that says `Rebuild` builds.
 //! - Oversized meshes: a backend that splits a geometry (primitive count, scratch size or a
 //!   configured cap) still answers with one [`BlasSizes`] (summed) and one [`BlasHandle`];
 //!   if the parts are separate BLASes it expands each record that carries that handle's
