@@ -1,7 +1,11 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M] [--json]`
+//!
+//! `--json` prints one JSON object instead (the run's parameters, `update`'s median, mean and
+//! percentiles in µs, the landmark looks and waits a frame), for scripts that sweep speeds or
+//! worlds (`docs/PROFILE.md`, "What the far field costs with camera speed").
 
 use std::time::Instant;
 
@@ -37,6 +41,9 @@ struct Args {
     /// Camera speed, metres a frame (the bench's 0.5; the fly-through moves 8.2).
     #[arg(long, default_value_t = 0.5)]
     speed: f32,
+    /// Print one JSON object (parameters and figures) instead of the text report.
+    #[arg(long)]
+    json: bool,
 }
 
 fn main() {
@@ -102,6 +109,28 @@ fn main() {
         std::fs::write(path, text).unwrap();
     }
     let t = Samples::new(times);
+    let (l, w) = (Samples::new(looks), Samples::new(waits));
+    if args.json {
+        let out = serde_json::json!({
+            "world": if args.million { "million" } else { "default" },
+            "far_field": args.far,
+            "cameras": cams,
+            "speed_m_per_frame": args.speed,
+            "frames": args.frames,
+            "update_us": {
+                "median": t.median(),
+                "mean": t.mean(),
+                "p10": t.percentile(0.1),
+                "p90": t.percentile(0.9),
+                "p99": t.percentile(0.99),
+                "max": t.max(),
+            },
+            "landmark_looks_per_frame": { "mean": l.mean(), "median": l.median() },
+            "landmark_waits_per_frame": { "mean": w.mean(), "median": w.median() },
+        });
+        println!("{out}");
+        return;
+    }
     println!(
         "median {:.1} us, mean {:.1} us, p10 {:.1} p90 {:.1} p99 {:.1} max {:.1} us",
         t.median(),
@@ -112,7 +141,6 @@ fn main() {
         t.max()
     );
     println!("{:?}", m.stats());
-    let (l, w) = (Samples::new(looks), Samples::new(waits));
     println!(
         "landmark looks per frame: mean {:.1}, median {:.1}; waits: mean {:.1}, median {:.1}",
         l.mean(),
