@@ -80,8 +80,9 @@ pub struct ModelBackend {
     /// `false`: counts are enough for a model).
     pub require_geometry: bool,
     /// Model TLAS updates in place as the Vulkan backend makes them (`TlasUpdates`): after a
-    /// build, updates until this many, the build due from half of them on in a frame whose
-    /// BLAS builds total at most `light_frame_triangles` (0, the default: every frame builds).
+    /// build, at most this many updates, the next build due from half of them on in a frame
+    /// whose BLAS builds total at most `light_frame_triangles`. 0 (the default): every frame
+    /// builds its TLAS.
     pub tlas_max_updates: u32,
     /// See `tlas_max_updates` (default: any frame, as the Vulkan backend's).
     pub light_frame_triangles: u64,
