@@ -2,13 +2,20 @@
 //!
 //! A timing wheel in two levels. Entries due within the current block of 64 one-metre buckets
 //! go to a fine ring (a vector per bucket); entries due in later blocks, up to 4 km ahead, go
-//! to a coarse ring (a vector per block) and move to the fine ring when their block becomes
-//! current; farther ones wait in an overflow list, brought in every kilometre. A push appends
+//! to a coarse ring (a list of fixed-size chunks per block, from one shared pool) and move to
+//! the fine ring when their block becomes current; farther ones wait in an overflow list, brought in every kilometre. A push appends
 //! to one of 64 + 128 vectors whose ends stay in cache; with a vector per metre over 4 km, the
 //! pushes of a fast camera (8 m a frame: about 1,300 a frame) went to cold vectors, and pushing
 //! took 14 % of `update`'s samples (`docs/PROFILE.md`, "The due queue in two levels"). Entries
 //! come out in the order the one-level ring gave them (by bucket, then as pushed), so the looks
 //! are the same.
+//!
+//! The coarse ring holds most entries (about 400,000 in the million world). With a vector per
+//! block, each block kept the capacity of the fullest it had ever been: the ring's capacity
+//! grew to the sum of 128 peaks (4.2 M entries, 167 MB, after 12 km of travel), and each new
+//! peak cost a reallocation and fresh pages in the frame (13 % of the landmarks' samples were
+//! the kernel clearing pages). Chunks of `CHUNK` entries go back to the pool when their block
+//! moves to the fine ring, so the ring holds about the entries live at once.
 
 use glam::Vec3;
 
@@ -22,6 +29,8 @@ const BLOCK: u64 = 64;
 const RING: u64 = 1 << 12;
 /// Blocks in the coarse ring: every block that a bucket less than `RING` ahead can be in.
 const COARSE: u64 = 2 * RING / BLOCK;
+/// Entries per chunk of a coarse block.
+const CHUNK: usize = 1024;
 
 /// A queued look: the candidate (index and stamp: an entry whose stamp is no longer the
 /// candidate's is stale), with what deciding that it only waits again needs (its centre and the
@@ -36,12 +45,17 @@ pub(super) struct Due {
 }
 
 /// When each candidate is due, as camera travel (see the module docs).
+/// A coarse block's chunk: (bucket, entry), at most `CHUNK` of them.
+type Chunk = Vec<(u64, Due)>;
+
 #[derive(Debug)]
 pub(super) struct DueQueue {
     /// The current block's buckets, by bucket index modulo `BLOCK`.
     fine: Vec<Vec<Due>>,
     /// (bucket, entry) of the later blocks, by block index modulo `COARSE`.
-    coarse: Vec<Vec<(u64, Due)>>,
+    coarse: Vec<Vec<Chunk>>,
+    /// Emptied chunks, for the next block that needs one.
+    spare: Vec<Chunk>,
     /// Bucket index of the next bucket to pop.
     base: u64,
     /// Due before `base` (within the bucket popped last): popped at the next pop, whatever
@@ -56,6 +70,7 @@ impl Default for DueQueue {
         Self {
             fine: (0..BLOCK).map(|_| Vec::new()).collect(),
             coarse: (0..COARSE).map(|_| Vec::new()).collect(),
+            spare: Vec::new(),
             base: 0,
             soon: Vec::new(),
             overflow: Vec::new(),
@@ -66,7 +81,12 @@ impl Default for DueQueue {
 impl DueQueue {
     pub(super) fn clear(&mut self) {
         self.fine.iter_mut().for_each(Vec::clear);
-        self.coarse.iter_mut().for_each(Vec::clear);
+        for block in &mut self.coarse {
+            for mut chunk in block.drain(..) {
+                chunk.clear();
+                self.spare.push(chunk);
+            }
+        }
         self.soon.clear();
         self.overflow.clear();
     }
@@ -84,7 +104,18 @@ impl DueQueue {
         } else if b / BLOCK == self.base / BLOCK {
             self.fine[(b % BLOCK) as usize].push(entry);
         } else {
-            self.coarse[((b / BLOCK) % COARSE) as usize].push((b, entry));
+            let block = &mut self.coarse[((b / BLOCK) % COARSE) as usize];
+            match block.last_mut() {
+                Some(chunk) if chunk.len() < CHUNK => chunk.push((b, entry)),
+                _ => {
+                    let mut chunk = self
+                        .spare
+                        .pop()
+                        .unwrap_or_else(|| Vec::with_capacity(CHUNK));
+                    chunk.push((b, entry));
+                    block.push(chunk);
+                }
+            }
         }
     }
 
@@ -100,10 +131,13 @@ impl DueQueue {
                 // A new block: its entries move to the fine ring, in the order pushed.
                 let block = (self.base / BLOCK) % COARSE;
                 let mut moving = std::mem::take(&mut self.coarse[block as usize]);
-                for &(b, entry) in &moving {
-                    self.fine[(b % BLOCK) as usize].push(entry);
+                for mut chunk in moving.drain(..) {
+                    for &(b, entry) in &chunk {
+                        self.fine[(b % BLOCK) as usize].push(entry);
+                    }
+                    chunk.clear();
+                    self.spare.push(chunk);
                 }
-                moving.clear();
                 self.coarse[block as usize] = moving;
             }
             if self.base % (RING / 4) == 0 && !self.overflow.is_empty() {
@@ -207,6 +241,20 @@ mod tests {
                 q.push(odo + ahead, e);
                 r.push(odo + ahead, e);
             }
+            if step % 500 == 7 {
+                // A burst into one coarse block: more than a chunk holds.
+                for _ in 0..3 * CHUNK {
+                    let e = Due {
+                        ci,
+                        stamp: step,
+                        center: Vec3::ZERO,
+                        band: (0.0, 1.0),
+                    };
+                    ci += 1;
+                    q.push(odo + 700.0, e);
+                    r.push(odo + 700.0, e);
+                }
+            }
             odo += if next() % 97 == 0 {
                 (next() % 3_000) as f64
             } else {
@@ -220,5 +268,43 @@ mod tests {
             b.clear();
         }
         assert!(popped > 50_000, "{popped}");
+    }
+
+    /// Entries the coarse ring can hold without allocating (its chunks and the spare ones).
+    fn coarse_capacity(q: &DueQueue) -> usize {
+        let held: usize = q.coarse.iter().flatten().map(Vec::capacity).sum();
+        held + q.spare.iter().map(Vec::capacity).sum::<usize>()
+    }
+
+    #[test]
+    fn the_coarse_ring_holds_about_its_live_entries_not_every_blocks_peak() {
+        // Each block in turn is the fullest (10,000 entries), while the queue never holds
+        // more than about 12,000: vectors kept per block would hold 128 peaks.
+        let mut q = DueQueue::default();
+        let mut out = Vec::new();
+        let mut odo = 0.0f64;
+        let mut peak_live = 0;
+        for round in 0..(2 * COARSE as u32) {
+            for i in 0..10_000u32 {
+                let e = Due {
+                    ci: round * 10_000 + i,
+                    stamp: 1,
+                    center: Vec3::ZERO,
+                    band: (0.0, 1.0),
+                };
+                q.push(odo + 100.0 + f64::from(i % 50), e);
+            }
+            let live: usize = q.coarse.iter().flatten().map(Vec::len).sum::<usize>()
+                + q.fine.iter().map(Vec::len).sum::<usize>();
+            peak_live = peak_live.max(live);
+            odo += BLOCK as f64;
+            q.pop_due(odo, &mut out);
+            out.clear();
+        }
+        let cap = coarse_capacity(&q);
+        assert!(
+            cap <= 2 * peak_live + CHUNK * COARSE as usize,
+            "coarse capacity {cap} for at most {peak_live} live entries"
+        );
     }
 }
