@@ -6,6 +6,9 @@
 //! `--json` prints one JSON object instead (the run's parameters, `update`'s median, mean and
 //! percentiles in µs, the landmark looks and waits a frame), for scripts that sweep speeds or
 //! worlds (`docs/PROFILE.md`, "What the far field costs with camera speed").
+//!
+//! With `FRAME_COST_DUMP=path`, every measured frame's figures go to `path`, one line a frame:
+//! `update` µs, landmark looks, landmark waits, BLAS builds, releases, TLAS records.
 
 use std::time::Instant;
 
@@ -90,7 +93,7 @@ fn main() {
         .unwrap();
     }
     let mut times = Vec::new();
-    let (mut looks, mut waits) = (Vec::new(), Vec::new());
+    let (mut looks, mut waits, mut other) = (Vec::new(), Vec::new(), Vec::new());
     for f in 300..300 + args.frames {
         let c = cameras(f);
         let t = Instant::now();
@@ -103,9 +106,16 @@ fn main() {
         let st = m.stats();
         looks.push(st.landmarks_examined as f64);
         waits.push(st.landmarks_waited as f64);
+        other.push((st.builds, st.releases, st.tlas_instances));
     }
     if let Ok(path) = std::env::var("FRAME_COST_DUMP") {
-        let text: String = times.iter().map(|t| format!("{t:.1}\n")).collect();
+        // One line a frame: µs, landmark looks, landmark waits, builds, releases, TLAS records.
+        let text: String = (0..times.len())
+            .map(|i| {
+                let (t, l, w, b) = (times[i], looks[i], waits[i], &other[i]);
+                format!("{t:.1} {l} {w} {} {} {}\n", b.0, b.1, b.2)
+            })
+            .collect();
         std::fs::write(path, text).unwrap();
     }
     let t = Samples::new(times);

@@ -3,7 +3,8 @@
 //! A timing wheel in two levels. Entries due within the current block of 64 one-metre buckets
 //! go to a fine ring (a vector per bucket); entries due in later blocks, up to 4 km ahead, go
 //! to a coarse ring (a list of fixed-size chunks per block, from one shared pool) and move to
-//! the fine ring when their block becomes current; farther ones wait in an overflow list, brought in every kilometre. A push appends
+//! the fine ring when their block becomes current; farther ones wait in an overflow map by
+//! block, each block brought into the coarse ring as it comes within 4 km. A push appends
 //! to one of 64 + 128 vectors whose ends stay in cache; with a vector per metre over 4 km, the
 //! pushes of a fast camera (8 m a frame: about 1,300 a frame) went to cold vectors, and pushing
 //! took 14 % of `update`'s samples (`docs/PROFILE.md`, "The due queue in two levels"). Entries
@@ -16,8 +17,15 @@
 //! peak cost a reallocation and fresh pages in the frame (13 % of the landmarks' samples were
 //! the kernel clearing pages). Chunks of `CHUNK` entries go back to the pool when their block
 //! moves to the fine ring, so the ring holds about the entries live at once.
+//!
+//! The overflow was one list, scanned in full every kilometre of travel to bring in what came
+//! within 4 km: 100,000–320,000 entries in the million world, a 1.3–3.6 ms frame every 2,048
+//! frames at 0.5 m a frame (the slowest frames of `frame_cost --million --far`). By kilometre,
+//! the kilometre coming in still took 0.9–1.5 ms; by block, each 64 m of travel brings in its
+//! own 64 m.
 
 use glam::Vec3;
+use rustc_hash::FxHashMap;
 
 /// Metres of camera travel per bucket of the due queue (a candidate may be looked at up to this
 /// much early, never late).
@@ -61,8 +69,8 @@ pub(super) struct DueQueue {
     /// Due before `base` (within the bucket popped last): popped at the next pop, whatever
     /// the travel.
     soon: Vec<Due>,
-    /// (bucket, entry) `RING` or more buckets ahead.
-    overflow: Vec<(u64, Due)>,
+    /// (bucket, entry) `RING` or more buckets ahead, by block (bucket / `BLOCK`).
+    overflow: FxHashMap<u64, Vec<(u64, Due)>>,
 }
 
 impl Default for DueQueue {
@@ -73,7 +81,7 @@ impl Default for DueQueue {
             spare: Vec::new(),
             base: 0,
             soon: Vec::new(),
-            overflow: Vec::new(),
+            overflow: FxHashMap::default(),
         }
     }
 }
@@ -100,7 +108,7 @@ impl DueQueue {
         if b < self.base {
             self.soon.push(entry);
         } else if b - self.base >= RING {
-            self.overflow.push((b, entry));
+            self.overflow.entry(b / BLOCK).or_default().push((b, entry));
         } else if b / BLOCK == self.base / BLOCK {
             self.fine[(b % BLOCK) as usize].push(entry);
         } else {
@@ -139,20 +147,16 @@ impl DueQueue {
                     self.spare.push(chunk);
                 }
                 self.coarse[block as usize] = moving;
-            }
-            if self.base % (RING / 4) == 0 && !self.overflow.is_empty() {
-                // A quarter of the ring passed: bring the overflow that now fits into it
-                // (after the block's own entries, as the one-level ring had them).
-                let mut overflow = std::mem::take(&mut self.overflow);
-                overflow.retain(|&(b, entry)| {
-                    if b - self.base.min(b) < RING {
-                        self.push_bucket(b.max(self.base), entry);
-                        false
-                    } else {
-                        true
+                // The block that came within `RING`: its overflow joins the coarse ring
+                // (after what was pushed there directly). `base` and `RING` are whole
+                // blocks, and the overflow never holds a block within `RING` (pushes there go
+                // to the rings): only the block that just came within is in it.
+                let entering = (self.base + RING) / BLOCK - 1;
+                if let Some(entries) = self.overflow.remove(&entering) {
+                    for (b, e) in entries {
+                        self.push_bucket(b.max(self.base), e);
                     }
-                });
-                self.overflow = overflow;
+                }
             }
         }
     }
@@ -191,7 +195,7 @@ mod tests {
                     out.append(&mut v);
                 }
                 self.base += 1;
-                if self.base % (RING / 4) == 0 {
+                if self.base % BLOCK == 0 {
                     let base = self.base;
                     let mut keep = Vec::new();
                     for (b, e) in std::mem::take(&mut self.overflow) {
