@@ -1,7 +1,7 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M] [--instances N] [--json]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M] [--instances N] [--no-incremental-detail] [--json]`
 //!
 //! `--json` prints one JSON object instead (the run's parameters, `update`'s median, mean and
 //! percentiles in µs, the landmark looks and waits a frame), for scripts that sweep speeds or
@@ -47,6 +47,10 @@ struct Args {
     /// Print one JSON object (parameters and figures) instead of the text report.
     #[arg(long)]
     json: bool,
+    /// The near leaves' detail beyond r2 visited by the residency pass every frame instead of
+    /// kept by the landmark set (`FarFieldConfig::incremental_detail: false`).
+    #[arg(long)]
+    no_incremental_detail: bool,
     /// Instances in the world (default: the world's own; e.g. 1100000 on the default world's
     /// 4 km map for 10x density).
     #[arg(long)]
@@ -71,6 +75,7 @@ fn main() {
         config.residency.cell_size = c;
     }
     config.far_field.enabled = args.far;
+    config.far_field.incremental_detail = !args.no_incremental_detail;
     if let Some(a) = args.keep_angle {
         config.far_field.keep_angle = a.to_radians();
     }
