@@ -201,6 +201,20 @@ fn print_table(r: &RunReport) {
             t.frame_over_passes_p50
         );
     }
+    let cpu: Vec<String> = s
+        .policies
+        .iter()
+        .map(|p| {
+            format!(
+                "{} {:.2} / {:.2}",
+                p.policy, p.update_cpu_ms_p50, p.update_cpu_ms_p99
+            )
+        })
+        .collect();
+    println!(
+        "update's CPU time on its thread, ms p50 / p99 (wall time less waits for the core): {}",
+        cpu.join("; ")
+    );
     for p in s.policies.iter().filter(|p| p.peak_landmark_instances > 0) {
         println!(
             "  {:<w$} landmarks: peak {} records, {:.0} / {:.0} candidates looked at per frame (p50 / p99)",

@@ -89,6 +89,8 @@ fn a_deterministic_run_repeats_exactly_and_scores_against_the_whole_world() {
             "peak_tlas_instances",
             "update_ms_p50",
             "update_ms_p99",
+            "update_cpu_ms_p50",
+            "update_cpu_ms_p99",
             "gpu_as_ms_p50",
             "gpu_as_ms_p99",
             "gpu_tlas_ms_p99",
@@ -103,6 +105,17 @@ fn a_deterministic_run_repeats_exactly_and_scores_against_the_whole_world() {
         ] {
             assert!(p.get(key).is_some(), "{}: missing {key}", p["policy"]);
         }
+        // The thread's CPU time is part of the wall time (the two clocks are read a few
+        // hundred nanoseconds apart).
+        let (wall, cpu) = (
+            p["update_ms_p50"].as_f64().unwrap(),
+            p["update_cpu_ms_p50"].as_f64().unwrap(),
+        );
+        assert!(
+            cpu > 0.0 && cpu <= wall * 1.05 + 0.01,
+            "{}: cpu {cpu} wall {wall}",
+            p["policy"]
+        );
         assert_eq!(p["mismatch_by_band"].as_array().unwrap().len(), 4);
         assert_eq!(p["over_budget_frames"], 0);
         assert_eq!(p["validation_messages"], 0);

@@ -4,7 +4,8 @@
 //! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M] [--instances N] [--no-incremental-detail] [--json]`
 //!
 //! `--json` prints one JSON object instead (the run's parameters, `update`'s median, mean and
-//! percentiles in µs, the landmark looks and waits a frame), for scripts that sweep speeds or
+//! percentiles in µs, wall and the calling thread's CPU time, the landmark looks and waits a
+//! frame), for scripts that sweep speeds or
 //! worlds (`docs/PROFILE.md`, "What the far field costs with camera speed").
 //!
 //! With `FRAME_COST_DUMP=path`, every measured frame's figures go to `path`, one line a frame:
@@ -69,6 +70,7 @@ fn main() {
         ..params
     };
     let cams = args.cams;
+    let instances = params.instances;
     let world = SynthWorld::generate(params);
     let mut config = Config::default();
     if let Some(c) = args.cell_size {
@@ -105,17 +107,19 @@ fn main() {
         })
         .unwrap();
     }
-    let mut times = Vec::new();
+    let (mut times, mut cpu) = (Vec::new(), Vec::new());
     let (mut looks, mut waits, mut other) = (Vec::new(), Vec::new(), Vec::new());
     for f in 300..300 + args.frames {
         let c = cameras(f);
         let t = Instant::now();
+        let thread = cpu_time::ThreadTime::now();
         m.update(FrameInput {
             frame: f,
             cameras: &c,
         })
         .unwrap();
         times.push(t.elapsed().as_secs_f64() * 1e6);
+        cpu.push(thread.elapsed().as_secs_f64() * 1e6);
         let st = m.stats();
         looks.push(st.landmarks_examined as f64);
         waits.push(st.landmarks_waited as f64);
@@ -132,6 +136,7 @@ fn main() {
         std::fs::write(path, text).unwrap();
     }
     let t = Samples::new(times);
+    let cpu = Samples::new(cpu);
     let (l, w) = (Samples::new(looks), Samples::new(waits));
     if args.json {
         let out = serde_json::json!({
@@ -148,6 +153,12 @@ fn main() {
                 "p99": t.percentile(0.99),
                 "max": t.max(),
             },
+            "update_thread_cpu_us": {
+                "median": cpu.median(),
+                "mean": cpu.mean(),
+                "p99": cpu.percentile(0.99),
+            },
+            "instances": instances,
             "landmark_looks_per_frame": { "mean": l.mean(), "median": l.median() },
             "landmark_waits_per_frame": { "mean": w.mean(), "median": w.median() },
         });
@@ -162,6 +173,12 @@ fn main() {
         t.percentile(0.9),
         t.percentile(0.99),
         t.max()
+    );
+    println!(
+        "the calling thread's CPU time: median {:.1} us, mean {:.1} us, p99 {:.1} us",
+        cpu.median(),
+        cpu.mean(),
+        cpu.percentile(0.99)
     );
     println!("{:?}", m.stats());
     println!(

@@ -606,15 +606,18 @@ pub fn run_cached(
             };
             let uploaded_before = uploaded(&p.manager);
             let t = Instant::now();
+            let cpu = cpu_time::ThreadTime::now();
             let out = p.manager.update(FrameInput {
                 frame,
                 cameras: &mcams,
             })?;
             let update_ms = t.elapsed().as_secs_f64() * 1e3;
+            let update_cpu_ms = cpu.elapsed().as_secs_f64() * 1e3;
             if rows.len() % policies_len == 0 {
                 update0_ms.push((frame, update_ms));
             }
             let row = FrameRow::new(frame, p.name, out.stats, update_ms)
+                .with_update_cpu(update_cpu_ms)
                 .with_build_budget(max_prims, out.stats);
             p.tlas = out.tlas;
             p.records.clear();

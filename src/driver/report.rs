@@ -79,6 +79,11 @@ pub struct FrameRow {
     pub tlas_records_written: u64,
     /// Wall time of `update` (policy and Vulkan recording), ms.
     pub update_ms: f64,
+    /// CPU time of the thread that called `update`, during it, ms: the wall time less what
+    /// the thread waited for (the scheduler giving its core to another process, page faults
+    /// served from disk). Work `update` hands to rayon's pool (record assembly above
+    /// `AssemblyConfig::parallel_threshold` records) is not in it.
+    pub update_cpu_ms: f64,
     /// GPU acceleration-structure ms measured by the backend (received this frame).
     pub gpu_as_ms: f64,
     /// Of `gpu_as_ms`, the TLAS's build or update.
@@ -131,6 +136,7 @@ impl FrameRow {
             build_budget: u64::MAX,
             over_build_budget: false,
             update_ms,
+            update_cpu_ms: update_ms,
             gpu_as_ms: s.measured_gpu_ms,
             gpu_tlas_ms: s.measured_tlas_ms,
             tlas_updated: false,
@@ -139,6 +145,12 @@ impl FrameRow {
             score: None,
             score_all_geometry: None,
         }
+    }
+
+    /// Sets the CPU time of `update`'s thread during it (see `update_cpu_ms`).
+    pub fn with_update_cpu(mut self, ms: f64) -> Self {
+        self.update_cpu_ms = ms;
+        self
     }
 
     /// Sets the build budget the frame ran under and whether its builds exceeded it (one
@@ -193,6 +205,7 @@ struct CsvRow {
     geometry_upload_bytes: u64,
     tlas_records_written: u64,
     update_ms: f64,
+    update_cpu_ms: f64,
     gpu_as_ms: f64,
     gpu_tlas_ms: f64,
     tlas_updated: bool,
@@ -286,6 +299,10 @@ pub struct PolicySummary {
     pub update_ms_p50: f64,
     /// `update` wall time, 99th percentile.
     pub update_ms_p99: f64,
+    /// CPU time of the thread that called `update`, during it (`FrameRow::update_cpu_ms`),
+    /// median and 99th percentile: on a shared machine, less of the other processes' load.
+    pub update_cpu_ms_p50: f64,
+    pub update_cpu_ms_p99: f64,
     /// Peak far-field landmark records in the TLAS.
     pub peak_landmark_instances: u32,
     /// Landmark candidates looked at per frame, median and 99th percentile (the landmarks are
@@ -465,6 +482,7 @@ impl RunReport {
             let bytes = Summary::of(mine.iter().map(|r| r.blas_bytes as f64));
             let tlas = Summary::of(mine.iter().map(|r| f64::from(r.tlas_instances)));
             let update = Summary::of(mine.iter().map(|r| r.update_ms));
+            let update_cpu = Summary::of(mine.iter().map(|r| r.update_cpu_ms));
             let gpu = Summary::of(mine.iter().map(|r| r.gpu_as_ms));
             let gpu_tlas = Summary::of(mine.iter().map(|r| r.gpu_tlas_ms));
             let examined = Summary::of(mine.iter().map(|r| f64::from(r.landmarks_examined)));
@@ -491,6 +509,8 @@ impl RunReport {
                 p95_tlas_instances: tlas.p95 as u32,
                 update_ms_p50: update.p50,
                 update_ms_p99: update.p99,
+                update_cpu_ms_p50: update_cpu.p50,
+                update_cpu_ms_p99: update_cpu.p99,
                 peak_landmark_instances: mine
                     .iter()
                     .map(|r| r.landmark_instances)
@@ -614,6 +634,7 @@ impl RunReport {
                 geometry_upload_bytes: r.geometry_upload_bytes,
                 tlas_records_written: r.tlas_records_written,
                 update_ms: r.update_ms,
+                update_cpu_ms: r.update_cpu_ms,
                 gpu_as_ms: r.gpu_as_ms,
                 gpu_tlas_ms: r.gpu_tlas_ms,
                 tlas_updated: r.tlas_updated,

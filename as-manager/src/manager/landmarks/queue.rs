@@ -214,6 +214,17 @@ mod tests {
     /// Random pushes (within a block, blocks ahead, beyond the rings, already due) and pops
     /// (steps of a few metres, and teleport-sized jumps across many blocks) give the same
     /// entries in the same order as the one-level ring.
+    /// A fresh entry for candidate `*ci` (then the next one).
+    fn entry(ci: &mut u32, stamp: u32) -> Due {
+        *ci += 1;
+        Due {
+            ci: *ci - 1,
+            stamp,
+            center: Vec3::ZERO,
+            band: (0.0, 1.0),
+        }
+    }
+
     #[test]
     fn the_two_level_queue_pops_what_the_one_level_ring_popped() {
         let (mut q, mut r) = (DueQueue::default(), Reference::default());
@@ -235,26 +246,14 @@ mod tests {
                     2..=4 => (next() % 4_200) as f64 + 0.5,
                     _ => (next() % 70) as f64 * 0.7,
                 };
-                let e = Due {
-                    ci,
-                    stamp: step,
-                    center: Vec3::ZERO,
-                    band: (0.0, 1.0),
-                };
-                ci += 1;
+                let e = entry(&mut ci, step);
                 q.push(odo + ahead, e);
                 r.push(odo + ahead, e);
             }
             if step % 500 == 7 {
                 // A burst into one coarse block: more than a chunk holds.
                 for _ in 0..3 * CHUNK {
-                    let e = Due {
-                        ci,
-                        stamp: step,
-                        center: Vec3::ZERO,
-                        band: (0.0, 1.0),
-                    };
-                    ci += 1;
+                    let e = entry(&mut ci, step);
                     q.push(odo + 700.0, e);
                     r.push(odo + 700.0, e);
                 }
