@@ -1,7 +1,7 @@
 //! Quick frame-cost probe on the synthetic worlds (no criterion): mean and median `update`
 //! time over a camera path, plus the frame statistics.
 //!
-//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M] [--instances N] [--no-incremental-detail] [--json]`
+//! `cargo run --release -p rtstream-as-manager --no-default-features --example frame_cost -- [--million] [--cams N] [--cell-size M] [--far] [--keep-angle DEG] [--frames N] [--speed M] [--instances N] [--no-incremental-detail] [--evict-mb N] [--json]`
 //!
 //! `--json` prints one JSON object instead (the run's parameters, `update`'s median, mean and
 //! percentiles in µs, wall and the calling thread's CPU time, the landmark looks and waits a
@@ -52,6 +52,10 @@ struct Args {
     /// kept by the landmark set (`FarFieldConfig::incremental_detail: false`).
     #[arg(long)]
     no_incremental_detail: bool,
+    /// Writes this many MB between frames (outside the timing), as an engine's other work
+    /// and a renderer do: `update` then starts with cold caches.
+    #[arg(long, default_value_t = 0)]
+    evict_mb: usize,
     /// Instances in the world (default: the world's own; e.g. 1100000 on the default world's
     /// 4 km map for 10x density).
     #[arg(long)]
@@ -109,8 +113,13 @@ fn main() {
     }
     let (mut times, mut cpu) = (Vec::new(), Vec::new());
     let (mut looks, mut waits, mut other) = (Vec::new(), Vec::new(), Vec::new());
+    let mut evict = vec![0u8; args.evict_mb << 20];
     for f in 300..300 + args.frames {
         let c = cameras(f);
+        for (i, chunk) in evict.chunks_mut(64).enumerate() {
+            chunk[0] = chunk[0].wrapping_add(i as u8 | 1);
+        }
+        std::hint::black_box(&mut evict);
         let t = Instant::now();
         let thread = cpu_time::ThreadTime::now();
         m.update(FrameInput {
