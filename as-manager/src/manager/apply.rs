@@ -226,15 +226,19 @@ impl<B: AsBackend> AsManager<B> {
             seed_keep: None,
             seed_has: false,
         });
+        if self.templates.len() <= slot {
+            self.templates
+                .resize(slot + 1, bytemuck::Zeroable::zeroed());
+        }
+        self.templates[slot] = TlasInstance::new(
+            &desc.transform,
+            desc.custom_index,
+            desc.mask,
+            desc.sbt_offset,
+            flags,
+            0,
+        );
         let hot = InstanceHot {
-            template: TlasInstance::new(
-                &desc.transform,
-                desc.custom_index,
-                desc.mask,
-                desc.sbt_offset,
-                flags,
-                0,
-            ),
             mesh: desc.mesh.index,
             scale,
             shown: None,
@@ -270,7 +274,7 @@ impl<B: AsBackend> AsManager<B> {
         inst.center = center;
         inst.radius = radius;
         let mut hot = grid_entry.data;
-        hot.template.transform = crate::record::transform_rows(&transform);
+        self.templates[id.index as usize].transform = crate::record::transform_rows(&transform);
         hot.scale = scale;
         let is_static = mesh.kind == MeshKind::Static;
         let group = hot.group;

@@ -121,7 +121,7 @@ impl<B: AsBackend> AsManager<B> {
                 let e = &mut self.tables.entries[key];
                 e.last_in_tlas = Some(self.frame);
                 let addr = e.record_address(&self.backend);
-                self.tlas_list.push((loc, addr));
+                self.tlas_list.push((slot as u32, addr));
             }
         }
         self.stats.instances_visited = self.live_instances;
@@ -261,7 +261,7 @@ impl<B: AsBackend> AsManager<B> {
             let e = &mut self.tables.entries[shown];
             e.last_in_tlas = Some(frame);
             let addr = e.record_address(&self.backend);
-            self.tlas_list.push((loc, addr));
+            self.tlas_list.push((slot as u32, addr));
         }
         self.stats.culled = culled;
         self.stats.instances_visited = self.live_instances;

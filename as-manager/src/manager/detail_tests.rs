@@ -172,7 +172,7 @@ impl Side {
         let m = &self.m;
         for slot in 0..m.tables.instances.len() as u32 {
             let Some(ge) = m.grid.get(slot) else { continue };
-            if ge.data.template.custom_index() != ci {
+            if m.templates[slot as usize].custom_index() != ci {
                 continue;
             }
             let c = Vec3::from(ge.center);

@@ -655,10 +655,10 @@ impl<B: AsBackend> AsManager<B> {
         }
         covered_near.sort_unstable();
         // The detail the landmark set keeps leaves the TLAS with them.
-        let grid = &self.grid;
+        let (grid, templates) = (&self.grid, &self.templates);
         self.landmarks
             .hide_covered(&covered_near, &mut self.records, |slot| {
-                grid.get(slot).map(|g| g.data.template)
+                grid.loc(slot).map(|_| templates[slot as usize])
             });
         self.far.covered_near = covered_near;
         // Take the covered leaves' detail out of the TLAS list.

@@ -174,7 +174,7 @@ impl<B: AsBackend> AsManager<B> {
         for vi in 0..self.visits.len() {
             let v = self.visits[vi];
             let grid_entry = self.grid.at_mut(v.loc);
-            let radius = grid_entry.radius;
+            let (radius, slot) = (grid_entry.radius, grid_entry.slot);
             let group = if far { grid_entry.data.group } else { NO_GROUP };
             let hot = &mut grid_entry.data;
             let tables = &mut self.tables;
@@ -214,8 +214,7 @@ impl<B: AsBackend> AsManager<B> {
                     let e = &mut tables.entries[chosen];
                     e.last_in_tlas = Some(frame);
                     e.last_keep = frame;
-                    self.tlas_list
-                        .push((v.loc, e.record_address(&self.backend)));
+                    self.tlas_list.push((slot, e.record_address(&self.backend)));
                     self.tlas_groups.push((group != NO_GROUP).then_some(group));
                 }
             }
@@ -230,7 +229,7 @@ impl<B: AsBackend> AsManager<B> {
     pub(crate) fn assemble_records(&mut self) {
         self.records.truncate(self.landmarks.len());
         let list = &self.tlas_list;
-        let grid = &self.grid;
+        let templates = &self.templates;
         let a = &self.config.assembly;
         assemble(
             list.len(),
@@ -238,10 +237,10 @@ impl<B: AsBackend> AsManager<B> {
             a.threads,
             a.parallel_threshold,
             |i| {
-                let (loc, address) = list[i];
+                let (slot, address) = list[i];
                 TlasInstance {
                     blas_address: address,
-                    ..grid.at(loc).data.template
+                    ..templates[slot as usize]
                 }
             },
         );

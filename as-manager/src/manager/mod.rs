@@ -261,7 +261,10 @@ pub struct AsManager<B: AsBackend> {
     visits: Vec<Visit>,
     cam_pos: Vec<Vec3>,
     cam_fwd: Vec<Vec3>,
-    tlas_list: Vec<(GridLoc, u64)>,
+    tlas_list: Vec<(u32, u64)>,
+    /// Per instance slot: its record with `blas_address` 0 (transform, customIndex, mask, SBT
+    /// offset, flags), apart from the grid so that a grid entry is one cache line.
+    templates: Vec<TlasInstance>,
     records: Vec<TlasInstance>,
     /// Built static entries waiting for compaction (stale keys are skipped).
     compact_pending: Vec<EntryKey>,
@@ -313,6 +316,7 @@ impl<B: AsBackend> AsManager<B> {
             cam_pos: Vec::new(),
             cam_fwd: Vec::new(),
             tlas_list: Vec::new(),
+            templates: Vec::new(),
             records: Vec::new(),
             compact_pending: Vec::new(),
             retiring: VecDeque::new(),

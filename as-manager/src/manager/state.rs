@@ -9,7 +9,6 @@ use slotmap::SlotMap;
 use crate::backend::{BlasHandle, BlasSizes};
 use crate::mesh::{MeshDesc, MeshKind, MAX_LODS};
 use crate::quality::RefitQuality;
-use crate::record::TlasInstance;
 
 slotmap::new_key_type! {
     /// A BLAS entry in [`Tables::entries`]. Dropping the entry makes its key stale: a key kept
@@ -198,8 +197,6 @@ pub(crate) struct BlasEntry {
 /// residency/cull/assembly passes stream through memory.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct InstanceHot {
-    /// The record with `blas_address` 0 (transform, customIndex, mask, SBT offset, flags).
-    pub template: TlasInstance,
     pub mesh: u32,
     pub scale: f32,
     /// Entry shown in the TLAS (may be stale: check it against `Tables::entries`).
@@ -214,7 +211,10 @@ pub(crate) struct InstanceHot {
     pub culled: bool,
 }
 
-const _: () = assert!(std::mem::size_of::<InstanceHot>() <= 104);
+// With its centre, radius and slot, a grid entry is one cache line: the residency pass walks
+// the cells near the cameras, and with the record template in the entry (two lines) it
+// touched twice the memory. The templates are `AsManager::templates`.
+const _: () = assert!(std::mem::size_of::<crate::spatial::GridEntry<InstanceHot>>() <= 64);
 
 /// Per-instance state touched only on changes (and by the baselines' full passes).
 #[derive(Debug)]

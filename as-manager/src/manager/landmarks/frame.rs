@@ -148,6 +148,7 @@ impl<B: AsBackend> AsManager<B> {
             backend,
             records,
             far,
+            templates,
             ..
         } = self;
         let address_of = |tables: &Tables, key: Option<EntryKey>| -> u64 {
@@ -243,7 +244,7 @@ impl<B: AsBackend> AsManager<B> {
             let hidden = culled || (mb.detail && landmarks.hidden.contains(&group));
             let record = chosen.filter(|_| !hidden).map(|k| TlasInstance {
                 blas_address: address_of(tables, Some(k)),
-                ..hot.template
+                ..templates[slot as usize]
             });
             landmarks.put_record(mi, record, records);
         }
