@@ -25,6 +25,7 @@ fn config(dir: &std::path::Path) -> RunConfig {
 fn untimed(r: &FrameRow) -> FrameRow {
     FrameRow {
         update_ms: 0.0,
+        update_cpu_ms: 0.0,
         gpu_as_ms: 0.0,
         gpu_tlas_ms: 0.0,
         ..r.clone()
