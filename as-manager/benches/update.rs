@@ -1,6 +1,8 @@
 //! `update` cost on the synthetic worlds: Managed vs the SeedR1R2 and Naive baselines, one and
 //! four cameras, the default world and the 1M-instance world at the same density; and the
 //! residency query itself: the manager's hash grid vs an rstar R*-tree (the peer design).
+//! `update/default/managed(_far)/1cam_cold` time the same frames with the caches cold (64 MB
+//! written between frames, not timed).
 //!
 //! Run: `cargo bench -p rtstream-as-manager --no-default-features --bench update`
 //! (pin to one core with `taskset -c 0` for the single-core figure).
@@ -171,6 +173,31 @@ fn bench_update(c: &mut Criterion) {
                 });
             }
         }
+    }
+    // The same frames with the caches cold: 64 MB written before each (not timed), as an
+    // engine's other work and its renderer do between two calls of `update`
+    // (`docs/PROFILE.md`, "Cold caches"). The far field's share of a cold frame is what an
+    // engine pays; the warm figures above are what the code's own work costs.
+    let mut evict = vec![0u8; 64 << 20];
+    for (pname, far) in [("managed", false), ("managed_far", true)] {
+        let mut run: Option<Run> = None;
+        let id = BenchmarkId::new(format!("default/{pname}"), "1cam_cold");
+        g.bench_function(id, |b| {
+            let run = run.get_or_insert_with(|| Run::new(default, PolicyKind::Managed, 1, far));
+            b.iter_custom(|iters| {
+                let mut total = Duration::ZERO;
+                for _ in 0..iters {
+                    for (i, line) in evict.chunks_mut(64).enumerate() {
+                        line[0] = line[0].wrapping_add(i as u8 | 1);
+                    }
+                    black_box(&mut evict);
+                    let t = std::time::Instant::now();
+                    black_box(run.step());
+                    total += t.elapsed();
+                }
+                total
+            })
+        });
     }
     let mut naive: Option<Run> = None;
     g.bench_function(BenchmarkId::new("default/naive", "1cam"), |b| {
