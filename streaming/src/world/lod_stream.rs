@@ -1,7 +1,5 @@
 //! Finer-LOD streaming under the mesh memory budget (see the `world` module header).
 
-use std::collections::HashMap;
-
 use super::{LevelState, StreamFocus, World, WorldEvent};
 use crate::loader::Job;
 use crate::model::WorldMeshId;
@@ -12,8 +10,13 @@ impl World {
         if cameras.is_empty() {
             return;
         }
-        // Effective distance (distance / scale) of each streamed mesh's nearest loaded instance.
-        let mut eff: HashMap<WorldMeshId, f32> = HashMap::new();
+        // Effective distance (distance / scale) of each streamed mesh's nearest loaded
+        // instance, by mesh id (infinite: no loaded instance). Every loaded instance is
+        // looked at each frame: a dense array, not a hash map (hashing each instance was a
+        // tenth of this pass).
+        let mut eff = std::mem::take(&mut self.lod_eff);
+        eff.clear();
+        eff.resize(self.meshes.len(), f32::INFINITY);
         for l in &self.levels {
             let LevelState::Loaded { instances, .. } = &l.state else {
                 continue;
@@ -29,16 +32,15 @@ impl World {
                     })
                     .fold(f32::INFINITY, f32::min)
                     / inst.max_scale().max(1e-6);
-                let e = eff.entry(inst.mesh).or_insert(f32::INFINITY);
+                let e = &mut eff[inst.mesh.0 as usize];
                 *e = e.min(d);
             }
         }
         self.shed_finer(&eff, ev);
         let angle = self.config.lod_error_angle;
         let mut requests: Vec<(f32, WorldMeshId, usize)> = Vec::new();
-        let mut ids: Vec<(&WorldMeshId, &f32)> = eff.iter().collect();
-        ids.sort_unstable_by_key(|(m, _)| **m);
-        for (&m, &d) in ids {
+        for (i, &d) in eff.iter().enumerate().filter(|(_, d)| d.is_finite()) {
+            let m = WorldMeshId(i as u32);
             let slot = &mut self.meshes[m.0 as usize];
             let want = slot.desired(d, angle);
             let keep = slot.desired(d / self.config.lod_evict_factor, angle);
@@ -76,13 +78,14 @@ impl World {
                 ticket,
             });
         }
+        self.lod_eff = eff;
     }
 
     /// Coarsest LODs arrive with their levels and are never refused; when they push resident
     /// plus in-flight bytes over the budget (finer LODs admitted while those levels were still
     /// loading), finer LODs go, farthest mesh first, until the total fits again (or nothing
     /// finer is left: the budget is then below what the load radius holds).
-    fn shed_finer(&mut self, eff: &HashMap<WorldMeshId, f32>, ev: &mut Vec<WorldEvent>) {
+    fn shed_finer(&mut self, eff: &[f32], ev: &mut Vec<WorldEvent>) {
         let budget = self.config.mesh_budget_bytes;
         if self.mesh_bytes + self.in_flight_bytes <= budget {
             return;
@@ -95,18 +98,14 @@ impl World {
 
     /// The resident LODs finer than the coarsest of the streamed meshes (farther than `beyond`
     /// when given), as (mesh distance, mesh, LOD), in mesh and LOD order.
-    fn finer_lods(
-        &self,
-        eff: &HashMap<WorldMeshId, f32>,
-        beyond: Option<f32>,
-    ) -> Vec<(f32, WorldMeshId, usize)> {
+    fn finer_lods(&self, eff: &[f32], beyond: Option<f32>) -> Vec<(f32, WorldMeshId, usize)> {
         let mut victims = Vec::new();
         for (i, s) in self.meshes.iter().enumerate() {
             if !s.streamed {
                 continue;
             }
             let m = WorldMeshId(i as u32);
-            let md = eff.get(&m).copied().unwrap_or(f32::INFINITY);
+            let md = eff.get(i).copied().unwrap_or(f32::INFINITY);
             if beyond.is_some_and(|d| md <= d) {
                 continue;
             }
@@ -143,13 +142,7 @@ impl World {
     }
 
     /// Evicts finer LODs of meshes farther than `d` (farthest first) until `bytes` fit the budget.
-    fn make_room(
-        &mut self,
-        bytes: usize,
-        d: f32,
-        eff: &HashMap<WorldMeshId, f32>,
-        ev: &mut Vec<WorldEvent>,
-    ) -> bool {
+    fn make_room(&mut self, bytes: usize, d: f32, eff: &[f32], ev: &mut Vec<WorldEvent>) -> bool {
         let budget = self.config.mesh_budget_bytes;
         if self.mesh_bytes + self.in_flight_bytes + bytes <= budget {
             return true;

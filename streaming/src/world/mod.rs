@@ -168,6 +168,8 @@ pub struct World {
     proxies: Option<std::result::Result<crate::proxy::ProxyFile, Arc<crate::StreamingError>>>,
     /// Per proxy node: resident, or its failure reported.
     proxy_state: Vec<ProxyState>,
+    /// LOD streaming's per-mesh nearest distances, kept between frames (`lod_stream.rs`).
+    lod_eff: Vec<f32>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -266,6 +268,7 @@ impl World {
                     .map_or(0, |p| p.as_ref().map_or(0, |f| f.tree.nodes.len()))
             ],
             proxies,
+            lod_eff: Vec::new(),
         })
     }
 
