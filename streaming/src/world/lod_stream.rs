@@ -18,21 +18,16 @@ impl World {
         eff.clear();
         eff.resize(self.meshes.len(), f32::INFINITY);
         for l in &self.levels {
-            let LevelState::Loaded { instances, .. } = &l.state else {
+            let LevelState::Loaded { lod_points, .. } = &l.state else {
                 continue;
             };
-            for inst in instances.iter() {
-                if !self.meshes[inst.mesh.0 as usize].streamed {
-                    continue;
-                }
+            for p in lod_points {
                 let d = cameras
                     .iter()
-                    .map(|c| {
-                        ((c.position - inst.sphere.center).length() - inst.sphere.radius).max(0.0)
-                    })
+                    .map(|c| ((c.position - p.center).length() - p.radius).max(0.0))
                     .fold(f32::INFINITY, f32::min)
-                    / inst.max_scale().max(1e-6);
-                let e = &mut eff[inst.mesh.0 as usize];
+                    / p.scale;
+                let e = &mut eff[p.mesh.0 as usize];
                 *e = e.min(d);
             }
         }

@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use glam::Mat4;
+use glam::{Mat4, Vec3};
 
 use crate::bake::{read_manifest, Manifest};
 use crate::error::{Result, StreamingError};
@@ -50,12 +50,25 @@ enum LevelState {
     Loaded {
         instances: Arc<[Instance]>,
         meshes: Vec<WorldMeshId>,
+        /// The instances of streamed meshes as LOD streaming reads them every frame: a
+        /// compact copy (a level's instances do not move).
+        lod_points: Vec<LodPoint>,
     },
     /// The last load failed; after `attempts` loads it may be tried again at frame `retry_at`.
     Failed {
         attempts: u32,
         retry_at: u64,
     },
+}
+
+/// What LOD streaming reads of an instance of a streamed mesh (`LevelState::Loaded`).
+#[derive(Debug, Clone, Copy)]
+struct LodPoint {
+    mesh: WorldMeshId,
+    center: Vec3,
+    radius: f32,
+    /// Its largest axis scale (at least 1e-6).
+    scale: f32,
 }
 
 #[derive(Debug)]
@@ -719,7 +732,22 @@ impl World {
             bounds: slot.bounds,
             instances: Arc::clone(&instances),
         });
-        slot.state = LevelState::Loaded { instances, meshes };
+        let lod_points = instances
+            .iter()
+            .filter(|i| self.meshes[i.mesh.0 as usize].streamed)
+            .map(|i| LodPoint {
+                mesh: i.mesh,
+                center: i.sphere.center,
+                radius: i.sphere.radius,
+                scale: i.max_scale().max(1e-6),
+            })
+            .collect();
+        let slot = &mut self.levels[level.0 as usize];
+        slot.state = LevelState::Loaded {
+            instances,
+            meshes,
+            lod_points,
+        };
     }
 
     fn residency(&mut self, cameras: &[StreamFocus], ev: &mut Vec<WorldEvent>) {
@@ -770,7 +798,10 @@ impl World {
             &mut self.levels[level.0 as usize].state,
             LevelState::Unloaded,
         );
-        let LevelState::Loaded { instances, meshes } = state else {
+        let LevelState::Loaded {
+            instances, meshes, ..
+        } = state
+        else {
             return;
         };
         ev.push(WorldEvent::LevelUnloaded { level, instances });
