@@ -19,7 +19,7 @@
 //! moves to the fine ring, so the ring holds about the entries live at once.
 //!
 //! The overflow was one list, scanned in full every kilometre of travel to bring in what came
-//! within 4 km: 100,000–320,000 entries in the million world, a 1.3–3.6 ms frame every 2,048
+//! within 4 km: 100,000–320,000 entries in the million world, a 1.3–4.8 ms frame every 2,048
 //! frames at 0.5 m a frame (the slowest frames of `frame_cost --million --far`). By kilometre,
 //! the kilometre coming in still took 0.9–1.5 ms; by block, each 64 m of travel brings in its
 //! own 64 m.
@@ -52,10 +52,10 @@ pub(super) struct Due {
     pub(super) band: (f32, f32),
 }
 
-/// When each candidate is due, as camera travel (see the module docs).
 /// A coarse block's chunk: (bucket, entry), at most `CHUNK` of them.
 type Chunk = Vec<(u64, Due)>;
 
+/// When each candidate is due, as camera travel (see the module docs).
 #[derive(Debug)]
 pub(super) struct DueQueue {
     /// The current block's buckets, by bucket index modulo `BLOCK`.
