@@ -17,8 +17,9 @@ slotmap::new_key_type! {
 }
 
 /// `InstanceHot::group` when the instance has no far-field group. A sentinel, not an
-/// `Option<u32>`: the option would take 4 more bytes and push `InstanceHot` past its 104-byte
-/// bound (the residency and cull passes stream through these records).
+/// `Option<u32>`: the option would take 4 more bytes and push a grid entry past its cache line
+/// (the residency and cull passes stream through these records; see the assert below
+/// `InstanceHot`).
 pub(crate) const NO_GROUP: u32 = u32::MAX;
 
 #[derive(Debug)]
@@ -194,7 +195,8 @@ pub(crate) struct BlasEntry {
 
 /// Per-instance state a frame touches (the hot half of an instance; [`InstanceState`] is the
 /// cold half), stored in the spatial index's cells (see `spatial::GridEntry::data`) so the
-/// residency/cull/assembly passes stream through memory.
+/// residency and cull passes stream through memory. Its TLAS record template is apart
+/// (`AsManager::templates`), read by assembly.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct InstanceHot {
     pub mesh: u32,
