@@ -51,8 +51,8 @@ impl InstanceId {
 /// - the spatial grid (`spatial::GridIndex`) maps an instance's `u32` slot to its cell through
 ///   a `Vec`, and each cell entry names its instance by that slot (4 bytes, in the records the
 ///   residency and cull passes stream through);
-/// - `InstanceHot` (a grid entry is one cache line) names its mesh and far-field group by `u32` slot, and the
-///   manager's mesh and instance tables are `Vec`s indexed by it;
+/// - `InstanceHot` (with its grid entry, one cache line) names its mesh and far-field group by
+///   `u32` slot, and the manager's mesh and instance tables are `Vec`s indexed by it;
 /// - [`MeshId::index`], [`InstanceId::index`] and [`GroupId::index`] are public, and callers
 ///   key their own tables with them.
 ///
