@@ -478,3 +478,67 @@ fn memory_floors_with_lod_data_coming_and_going_match_the_rule() {
     let fallbacks = run_and_compare(s, 400, None);
     assert!(fallbacks > 0, "the budget forced no LOD fallback");
 }
+
+/// A landmark whose old selection becomes its new target while it selects another LOD: the
+/// pair of both is the same and no one else uses it, so it must not be freed in between (it
+/// was: a panic on a dead pair, first met in a world whose meshes are mostly distinct).
+#[test]
+fn a_landmarks_old_selection_can_become_its_target() {
+    let mut c = config();
+    // Nothing is built: LODs resolve by their data alone.
+    c.residency.create_threshold = 1_000_000;
+    let mut m = AsManager::new(c, ModelBackend::lavapipe()).unwrap();
+    m.backend_mut().require_geometry = true;
+    let radius = 40.0;
+    let chain = counts_chain(4000, 3, 0.5);
+    let errors: Vec<f32> = chain.iter().map(|l| l.geometric_error).collect();
+    let mesh = m
+        .register_mesh(MeshDesc::new("tower", MeshKind::Static, radius, chain))
+        .unwrap();
+    let data = |m: &AsManager<ModelBackend>, lod: usize, on: bool| {
+        let g = if on {
+            LodGeometry::Data(grid_geometry(8, 1.0))
+        } else {
+            LodGeometry::Counts {
+                vertices: 81,
+                triangles: 128,
+            }
+        };
+        m.set_lod_geometry(mesh, lod, g).unwrap();
+    };
+    let at = Vec3::new(0.0, 0.0, 0.0);
+    let id = m
+        .add_instance(InstanceDesc::new(mesh, Affine3A::from_translation(at)))
+        .unwrap();
+    // Camera distances (beyond r2, within the keep angle and range) at which the selection is
+    // LOD 0 from any LOD, and LOD 1 from LOD 1.
+    let select = |m: &AsManager<ModelBackend>, d: f32, current: usize| {
+        m.lod.select(&errors, 1.0, d - radius, current, 0)
+    };
+    let ds: Vec<f32> = (0..400).map(|i| 300.0 + 5.0 * i as f32).collect();
+    let d0 = *ds.iter().find(|&&d| select(&m, d, 2) == 0).unwrap();
+    let d1 = *ds.iter().find(|&&d| select(&m, d, 1) == 1).unwrap();
+    assert!(d1 > d0 && d1 < 900.0, "distances {d0} and {d1}");
+    let mut frame = 0;
+    let mut run = |m: &mut AsManager<ModelBackend>, d: f32| {
+        let vp = [Viewpoint::new(at + Vec3::new(d, 0.0, 0.0), -Vec3::X)];
+        m.update(FrameInput {
+            frame,
+            cameras: &vp,
+        })
+        .unwrap();
+        frame += 1;
+        m.check_invariants().unwrap();
+        incremental(m)
+    };
+    // LOD 1 alone has data: the selection (LOD 0) resolves to LOD 1, the target.
+    data(&m, 1, true);
+    assert_eq!(run(&mut m, d0), HashMap::from([(0, 1)]));
+    // Now LOD 0 alone has data, and the selection is LOD 1: it resolves to LOD 0, the pair
+    // the landmark selected until now.
+    data(&m, 0, true);
+    data(&m, 1, false);
+    assert_eq!(run(&mut m, d1), HashMap::from([(0, 0)]));
+    m.remove_instance(id).unwrap();
+    assert!(run(&mut m, d1).is_empty());
+}

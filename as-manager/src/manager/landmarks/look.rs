@@ -452,15 +452,21 @@ impl Landmarks {
         } else {
             // The new references first, then the old ones go: a pair freed in between could
             // be one of the new ones.
+            // (Both new references before either old one goes: the old selection can be the
+            // new target, with no other user.)
             let m = self.member_of(slot);
             let old = self.members[m];
             if old.selected != sel_pair {
                 self.select_pair(m, sel_pair);
-                self.unselect_at(old.selected, old.selected_pos);
             }
             if old.target != target {
                 self.pair(target).targets += 1;
                 self.members[m].target = target;
+            }
+            if old.selected != sel_pair {
+                self.unselect_at(old.selected, old.selected_pos);
+            }
+            if old.target != target {
                 self.untarget(old.target);
                 self.rechoose.push(slot);
             }

@@ -4,6 +4,7 @@
 use super::*;
 
 impl Landmarks {
+    #[track_caller]
     pub(super) fn pair(&mut self, i: u32) -> &mut PairUse {
         self.pairs[i as usize].as_mut().expect("a live pair")
     }
