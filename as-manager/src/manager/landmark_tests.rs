@@ -39,12 +39,18 @@ fn config() -> Config {
 }
 
 fn scene(config: Config) -> Scene {
+    scene_with_meshes(config, 24)
+}
+
+/// A scene of `n` meshes: 24 share each (mesh, LOD) pair among dozens of instances; a few
+/// hundred leave most pairs to one or two instances, so pairs come and go all the time.
+fn scene_with_meshes(config: Config, n: usize) -> Scene {
     let m = AsManager::new(config, ModelBackend::lavapipe()).unwrap();
     let rng = Rng::new(0x1a4d_3a4c);
     // Radii from 0.5 m (never a candidate) to 40 m, LOD chains of 1 to 5 LODs.
-    let meshes: Vec<MeshId> = (0..24)
+    let meshes: Vec<MeshId> = (0..n)
         .map(|i| {
-            let radius = 0.5 + 40.0 * (i as f32 / 23.0).powi(2);
+            let radius = 0.5 + 40.0 * (i as f32 / (n - 1) as f32).powi(2);
             let lods = 1 + i % 5;
             m.register_mesh(MeshDesc::new(
                 format!("m{i}"),
@@ -455,6 +461,40 @@ fn lod_data_coming_and_going_resolves_as_the_rule_does() {
     }
     s.data_churn = true;
     run_and_compare(s, 400, None);
+}
+
+/// LOD data coming and going with most (mesh, LOD) pairs used by one or two landmarks: pairs
+/// are created and freed every frame, and selections fall back to other LODs all the time (a
+/// landmark whose selection resolved to another LOD selects from that one next frame, which
+/// can answer otherwise at the same distance).
+#[test]
+fn distinct_meshes_with_lod_data_coming_and_going_match_the_rule() {
+    distinct_meshes_with_data(config());
+}
+
+/// The same with memory floors too.
+#[test]
+fn distinct_meshes_with_data_and_floors_coming_and_going_match_the_rule() {
+    let mut c = config();
+    c.memory.blas_bytes = 2 << 20;
+    let fallbacks = distinct_meshes_with_data(c);
+    assert!(fallbacks > 0, "the budget forced no LOD fallback");
+}
+
+fn distinct_meshes_with_data(c: Config) -> u32 {
+    let mut s = scene_with_meshes(c, 400);
+    s.m.backend_mut().require_geometry = true;
+    for i in 0..s.meshes.len() {
+        let mesh = s.meshes[i];
+        for lod in 0..1 + i % 5 {
+            if s.rng.below(3) > 0 {
+                let _ =
+                    s.m.set_lod_geometry(mesh, lod, LodGeometry::Data(grid_geometry(8, 1.0)));
+            }
+        }
+    }
+    s.data_churn = true;
+    run_and_compare(s, 400, None)
 }
 
 #[test]

@@ -398,6 +398,22 @@ impl Landmarks {
             lod_lo + radius
         };
         let (lo, hi) = (kind.lo.max(lod_lo), kind.hi.min(lod_hi + radius));
+        // The next look selects from the LOD resolved now. After a fallback (the selection had
+        // no data) that can answer otherwise at this very distance: then it is due next frame,
+        // as the rule, applied every frame, selects again then.
+        let (lo, hi) = if lodi != selected
+            && x.lod.select(
+                mesh.errors(),
+                cand.scale,
+                surface,
+                lodi,
+                mesh.lod_floor as usize,
+            ) != selected
+        {
+            (d, d)
+        } else {
+            (lo, hi)
+        };
         if is_member
             && !cand.unsettled
             && cand.lod as usize == lodi
