@@ -57,7 +57,9 @@ fn moved_within_leaf(rng: &mut Rng, p: Vec3) -> Vec3 {
     )
 }
 
-fn side(incremental: bool) -> Side {
+/// A manager and its world; `proxy_data`: the proxies' LOD is data (a backend that builds
+/// only from data can build them).
+fn side(incremental: bool, proxy_data: bool) -> Side {
     let m = AsManager::new(config(incremental), ModelBackend::lavapipe()).unwrap();
     // Radii from 0.3 to 30 m (the large ones can be landmarks), 1 to 5 LODs; two of them
     // skinned (never candidates: the residency pass visits them beyond r2 in near leaves).
@@ -79,7 +81,14 @@ fn side(incremental: bool) -> Side {
             format!("proxy{n}"),
             MeshKind::Static,
             80.0,
-            counts_chain(500, 1, 0.0),
+            if proxy_data {
+                vec![LodDesc {
+                    geometry: LodGeometry::Data(crate::synth::grid_geometry(8, 1.0)),
+                    geometric_error: 0.0,
+                }]
+            } else {
+                counts_chain(500, 1, 0.0)
+            },
         )
     };
     let mut leaves = Vec::new();
@@ -249,8 +258,40 @@ fn cameras(frame: u64) -> Vec<Vec3> {
 
 #[test]
 fn kept_detail_matches_the_per_frame_pass_every_frame() {
-    let mut kept = side(true);
-    let mut visited = side(false);
+    compare_kept_and_visited(false);
+}
+
+/// The same with LOD data coming and going (a backend that builds only from data): LODs fall
+/// back to others, and both sides must fall back alike.
+#[test]
+fn kept_detail_matches_the_per_frame_pass_with_lod_data_coming_and_going() {
+    compare_kept_and_visited(true);
+}
+
+/// Gives a LOD data, or takes it away (counts only), on both sides.
+fn set_data(sides: [&mut Side; 2], mesh: usize, lod: usize, data: bool) {
+    for s in sides {
+        let id = s
+            .meshes
+            .get(mesh)
+            .copied()
+            .unwrap_or_else(|| s.houses[mesh - s.meshes.len()]);
+        let g = if data {
+            LodGeometry::Data(crate::synth::grid_geometry(8, 1.0))
+        } else {
+            LodGeometry::Counts {
+                vertices: 81,
+                triangles: 128,
+            }
+        };
+        // A mesh has 1 to 5 LODs: a LOD it lacks is refused alike on both sides.
+        let _ = s.m.set_lod_geometry(id, lod, g);
+    }
+}
+
+fn compare_kept_and_visited(data_churn: bool) {
+    let mut kept = side(true, data_churn);
+    let mut visited = side(false, data_churn);
     let mut script = Script {
         rng: Rng::new(0x00de_7a11),
         next_ci: 0,
@@ -259,6 +300,18 @@ fn kept_detail_matches_the_per_frame_pass_every_frame() {
         let a = script.add(kept.meshes.len());
         kept.add(a);
         visited.add(a);
+    }
+    let all_meshes = kept.meshes.len() + kept.houses.len();
+    if data_churn {
+        for s in [&mut kept, &mut visited] {
+            s.m.backend_mut().require_geometry = true;
+        }
+        for mesh in 0..all_meshes {
+            for lod in 0..5 {
+                let data = script.rng.below(3) > 0;
+                set_data([&mut kept, &mut visited], mesh, lod, data);
+            }
+        }
     }
     let (mut detail_seen, mut culled_seen, mut handovers) = (0u64, 0u64, 0u64);
     for frame in 0..520u64 {
@@ -279,6 +332,13 @@ fn kept_detail_matches_the_per_frame_pass_every_frame() {
             let t = Affine3A::from_translation(moved_within_leaf(&mut script.rng, at));
             kept.m.set_transform(kept.live[i], t).unwrap();
             visited.m.set_transform(visited.live[i], t).unwrap();
+        }
+        if data_churn && frame % 10 == 5 {
+            for _ in 0..12 {
+                let (mesh, lod) = (script.rng.below(all_meshes), script.rng.below(5));
+                let data = script.rng.below(2) == 0;
+                set_data([&mut kept, &mut visited], mesh, lod, data);
+            }
         }
         if frame == 300 {
             for s in [&mut kept, &mut visited] {

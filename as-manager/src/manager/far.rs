@@ -11,8 +11,9 @@
 //!    between); the proxies the display cut will want — and, ahead of time, those of leaves
 //!    approaching r2 and of children about to replace their parent — are requested, so they
 //!    build through the ordinary scheduler within the frame budgets.
-//! 2. `select_and_cull` counts, per leaf, the unculled instances within r2 that have no BLAS
-//!    to show yet (`unready`).
+//! 2. `select_and_cull` (and the landmark set, for the detail it keeps) counts, per leaf, the
+//!    unculled instances that have no BLAS to show yet, and those of no LOD with data or a
+//!    BLAS whatever their angle (`unready`).
 //! 3. `far_select`: a leaf wants its proxy when it is far, or when it was showing its proxy
 //!    and its detail is not complete yet (the hand-over: the proxy leaves only once every
 //!    unculled instance within r2 has its BLAS). The display cut walks the tree from the roots:
@@ -55,7 +56,8 @@ pub(crate) struct GroupNode {
     shown: u64,
     /// Leaves under this node (itself for a leaf).
     leaves: u32,
-    /// Leaf: unculled instances within r2 without a BLAS to show, this frame.
+    /// Leaf: its near instances not ready this frame (unculled without a BLAS to show, or of
+    /// no LOD with data or a BLAS).
     pub unready: u32,
     /// Proxy culled last frame (culling hysteresis).
     culled: bool,

@@ -177,6 +177,19 @@ impl<B: AsBackend> AsManager<B> {
             let (radius, slot) = (grid_entry.radius, grid_entry.slot);
             let group = if far { grid_entry.data.group } else { NO_GROUP };
             let hot = &mut grid_entry.data;
+            if !v.ready {
+                // Nothing of it can show: it holds its leaf's proxy, and counts as new (culled)
+                // once a LOD can.
+                hot.culled = true;
+                if group != NO_GROUP {
+                    self.far.add_unready(group);
+                }
+                if !v.beyond_r2 && v.center_dist - radius <= r1 {
+                    within_r1 += 1;
+                    short += 1;
+                }
+                continue;
+            }
             let tables = &mut self.tables;
             let mesh = tables.meshes[hot.mesh as usize]
                 .as_ref()
@@ -294,6 +307,7 @@ impl ResidencyPass<'_> {
             loc,
             center_dist,
             beyond_r2,
+            ready: true,
         });
         let was_visited = hot.last_visit == frame.wrapping_sub(1);
         let current = if was_visited {
@@ -311,6 +325,7 @@ impl ResidencyPass<'_> {
         // A GPU builds only from resident data: the nearest LOD that has some.
         let built = |l: usize| mesh.kind == MeshKind::Static && tables.built(mesh.lod_entry[l]);
         let Some(lodi) = mesh.with_data(lodi, self.need_data, built) else {
+            self.visits.last_mut().expect("pushed above").ready = false;
             return;
         };
         hot.lod_target = lodi as u8;

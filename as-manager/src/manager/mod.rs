@@ -191,6 +191,10 @@ pub(crate) struct Visit {
     pub center_dist: f32,
     /// Beyond r2, visited because its far-field group is near (angle culling only).
     pub beyond_r2: bool,
+    /// Some LOD of its mesh has data or a BLAS (`MeshState::with_data`). One that has none is
+    /// not ready: nothing shown, culled as if new, and it holds its leaf's proxy whatever its
+    /// angle (the hand-over waits for it).
+    pub ready: bool,
 }
 
 /// Whether the landmark set also keeps the near leaves' detail beyond r2

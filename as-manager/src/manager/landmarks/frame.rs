@@ -89,6 +89,9 @@ impl<B: AsBackend> AsManager<B> {
         }
         landmarks.scratch = due;
         landmarks.queued_scratch = queued;
+        for g in landmarks.unready.drain(..) {
+            far.add_unready(g);
+        }
         drop(looks);
         let _marks = tracing::trace_span!("pair_marks").entered();
         // The marks every landmark would set on its target and shown entries.

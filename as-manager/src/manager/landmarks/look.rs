@@ -383,7 +383,15 @@ impl Landmarks {
                 c.waiting = true;
                 self.pair(sel_pair).unusable.push(slot);
             }
-            self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
+            if kind.detail {
+                // Detail not ready: it holds its leaf's proxy, whatever its angle, as the
+                // residency pass's not-ready instances do (`Visit::ready`), this frame and
+                // every frame until it is (looked at each frame: its angle and leaf change).
+                self.unready.push(cand.group);
+                self.due_between(ci, d, d, d);
+            } else {
+                self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
+            }
             return;
         };
         // Next time `current` is this LOD: the selection holds between its switch points.

@@ -223,6 +223,9 @@ pub(crate) struct Landmarks {
     pair_index: FxHashMap<u64, u32>,
     /// Members whose shown BLAS is chosen again this frame.
     rechoose: Vec<u32>,
+    /// Leaf groups of the detail looked at this frame that is not ready (no LOD of its mesh
+    /// has data or a BLAS): their proxies wait for it (`FarField::add_unready`).
+    pub unready: Vec<u32>,
     /// Members choosing again next frame (their target is not built).
     unsettled: Vec<u32>,
     scratch: Vec<u32>,
@@ -263,6 +266,7 @@ impl Default for Landmarks {
             free_pairs: Vec::new(),
             pair_index: HashMap::default(),
             rechoose: Vec::new(),
+            unready: Vec::new(),
             unsettled: Vec::new(),
             scratch: Vec::new(),
             queued_scratch: Vec::new(),
@@ -371,6 +375,7 @@ impl Landmarks {
         self.free_pairs.clear();
         self.pair_index.clear();
         self.rechoose.clear();
+        self.unready.clear();
         self.unsettled.clear();
         self.queue.clear();
         self.hidden.clear();
