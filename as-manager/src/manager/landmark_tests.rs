@@ -582,3 +582,8 @@ fn a_landmarks_old_selection_can_become_its_target() {
     m.remove_instance(id).unwrap();
     assert!(run(&mut m, d1).is_empty());
 }
+
+#[test]
+fn distinct_meshes_after_a_failed_frame_match_the_rule_again() {
+    run_and_compare(scene_with_meshes(config(), 400), 260, Some(170));
+}
