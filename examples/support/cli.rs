@@ -68,6 +68,11 @@ pub struct RunArgs {
     /// `--instances 1100000` is the default map at ten times its density.
     #[arg(long)]
     pub instances: Option<u32>,
+    /// Districts of distinct assets, D x D levels each (`WorldPreset::districts`): every
+    /// district has its own copy of each opaque static mesh, so a BLAS per loaded mesh costs
+    /// what it does in an open world with regional assets (0: one shared library).
+    #[arg(long, default_value_t = 0)]
+    pub districts: u32,
     /// Frames to run.
     #[arg(long, default_value_t = 600)]
     pub frames: u64,
@@ -297,6 +302,10 @@ impl RunArgs {
         if let Some(n) = self.instances {
             p.instances = n;
             p.name = format!("{}-{n}", p.name);
+        }
+        if self.districts > 0 {
+            p.districts = self.districts;
+            p.name = format!("{}-d{}", p.name, self.districts);
         }
         p
     }

@@ -5,7 +5,10 @@
 //! buildings, real props (the glTF2 models of Debian's assimp-testmodels, flattened and scaled to
 //! a few metres), trees (alpha-masked), grass (world-position-offset), glass (transparent) and
 //! skinned characters (generated ones and glTF2/simple_skin). A few hundred meshes are built once
-//! (LOD chains on all cores); the instances only reference them.
+//! (LOD chains on all cores); the instances only reference them. With districts
+//! (`WorldPreset::districts`) each square of levels has its own copies of the opaque static
+//! meshes, so that the BLAS manager sees thousands of distinct meshes, as in an open world
+//! with regional assets.
 //!
 //! Why one file over 600 lines: the presets, `generate` and the mesh-library build are one pipeline
 //! whose every step depends on the preset's fields and the same seeded random stream (the output
@@ -66,6 +69,17 @@ pub struct WorldPreset {
     pub characters_per_level: u32,
     /// What the free instances are (the open map, or a dense city).
     pub style: WorldStyle,
+    /// Districts of distinct assets, as a side in levels (0: none, the default). Without
+    /// them every level draws from one library of a few hundred meshes, so a BLAS per loaded
+    /// mesh is cheap whatever the map's size. With them the map is cut into squares of
+    /// `districts` x `districts` levels and each square has its own copy of every opaque
+    /// static mesh (rocks, buildings, props), as an open world's regions have their own
+    /// assets: distinct meshes to the BLAS manager, with their own BLASes. A copy shares its
+    /// LOD chain with the library's mesh in memory and in the generator (its geometry is the
+    /// same), and is baked and streamed as a mesh of its own. Which mesh an instance draws is
+    /// unchanged: the same preset and seed give the same instances, mapped to their
+    /// district's copies.
+    pub districts: u32,
     /// Directory holding assimp-testmodels' glTF2 models.
     pub asset_dir: PathBuf,
 }
@@ -99,6 +113,7 @@ impl WorldPreset {
             character_every: 8,
             characters_per_level: 0,
             style: WorldStyle::Open,
+            districts: 0,
             asset_dir: PathBuf::from(ASSIMP_GLTF2_DIR),
         }
     }
@@ -156,6 +171,23 @@ impl WorldPreset {
     /// Side of one level cell in metres.
     pub fn cell_size(&self) -> f32 {
         self.size_m / self.grid.max(1) as f32
+    }
+
+    /// The district of level cell `(cx, cz)` (0 without districts).
+    pub fn district_of(&self, cx: u32, cz: u32) -> u32 {
+        if self.districts == 0 {
+            return 0;
+        }
+        let per_side = self.grid.div_ceil(self.districts);
+        (cz / self.districts) * per_side + cx / self.districts
+    }
+
+    /// Districts on the map (1 without districts).
+    pub fn district_count(&self) -> u32 {
+        if self.districts == 0 {
+            return 1;
+        }
+        self.grid.div_ceil(self.districts).pow(2)
     }
 }
 
@@ -286,7 +318,39 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
     let _span = tracing::info_span!("generate", preset = %preset.name).entered();
     let bar = progress(u64::from(preset.grid * preset.grid) + 1);
     bar.set_message("meshes");
-    let (meshes, kinds) = build_meshes(preset)?;
+    let (mut meshes, kinds) = build_meshes(preset)?;
+    // Each district's copies of the opaque static meshes (`WorldPreset::districts`), laid out
+    // district by district after the library: district k > 0's copy of mesh `m` is
+    // `copies[m] + (k - 1) * with_copies` (NONE: a mesh without copies).
+    const NONE: u32 = u32::MAX;
+    let base_meshes = meshes.len();
+    let mut copies = vec![NONE; base_meshes];
+    for k in 1..preset.district_count() {
+        for m in 0..base_meshes {
+            if !matches!(kinds[m], Kind::Rock | Kind::Building | Kind::Prop) {
+                continue;
+            }
+            if k == 1 {
+                copies[m] = meshes.len() as u32;
+            }
+            let id = WorldMeshId(meshes.len() as u32);
+            let base = &meshes[m];
+            let copy = Mesh {
+                id,
+                name: format!("{} (district {k})", base.name),
+                bounds: base.bounds,
+                lods: base.lods.clone(),
+            };
+            meshes.push(copy);
+        }
+    }
+    let with_copies = copies.iter().filter(|&&c| c != NONE).count() as u32;
+    let copy_of = |mesh: WorldMeshId, district: u32| -> WorldMeshId {
+        match copies[mesh.0 as usize] {
+            c if c == NONE || district == 0 => mesh,
+            c => WorldMeshId(c + (district - 1) * with_copies),
+        }
+    };
     bar.inc(1);
     bar.set_message("levels");
     let by_kind = |k: Kind| -> Vec<WorldMeshId> {
@@ -353,12 +417,13 @@ pub fn generate(preset: &WorldPreset) -> Result<GeneratedWorld> {
             -half + (cz as f32 + 0.5) * cell,
         );
         let mut instances = Vec::with_capacity(count as usize);
+        let district = preset.district_of(cx as u32, cz as u32);
         let place = |kind: Kind, rng: &mut Rng, next: &mut u32| -> Option<Instance> {
             let ids = pool(kind);
             if ids.is_empty() {
                 return None;
             }
-            let mesh = ids[rng.below(ids.len())];
+            let mesh = copy_of(ids[rng.below(ids.len())], district);
             let transform = if kind == Kind::Terrain {
                 Mat4::from_translation(origin)
             } else {

@@ -132,3 +132,57 @@ fn large_preset_generates() {
     assert!(s.instances >= 1_000_000 && s.levels >= 48_000);
     assert!(w.bytes_per_instance() <= 256.0);
 }
+
+/// Districts of distinct assets: the same instances as the world without them, each opaque
+/// static one on its district's own copy of the mesh (a distinct mesh id with the library
+/// mesh's LOD chain); everything else unchanged.
+#[test]
+fn districts_give_each_district_its_own_copies_of_the_opaque_static_meshes() {
+    common::assets();
+    let plain = WorldPreset::small(6, 7);
+    let districts = WorldPreset {
+        districts: 3,
+        ..plain.clone()
+    };
+    assert_eq!(districts.district_count(), 4);
+    let a = generate(&plain).expect("world");
+    let b = generate(&districts).expect("world with districts");
+    let library = a.meshes.len();
+    assert!(b.meshes.len() > library);
+    assert_eq!(a.levels.len(), b.levels.len());
+    // district -> library mesh -> the mesh id it became there.
+    let mut copies: std::collections::HashMap<(u32, u32), u32> = Default::default();
+    let mut copied = 0;
+    for (la, lb) in a.levels.iter().zip(&b.levels) {
+        assert_eq!(la.instances.len(), lb.instances.len());
+        let district = districts.district_of(la.cell[0] as u32, la.cell[1] as u32);
+        for (ia, ib) in la.instances.iter().zip(&lb.instances) {
+            assert_eq!(
+                (ia.id, ia.transform, ia.material, ia.motion),
+                (ib.id, ib.transform, ib.material, ib.motion)
+            );
+            let (ma, mb) = (&a.meshes[ia.mesh.0 as usize], &b.meshes[ib.mesh.0 as usize]);
+            assert_eq!(ma.bounds, mb.bounds);
+            assert!(ma.lods.len() == mb.lods.len());
+            for (x, y) in ma.lods.iter().zip(&mb.lods) {
+                assert!(**x == **y, "a copy's LODs are the library mesh's");
+            }
+            let copy = ia.material == MaterialClass::Opaque && ia.motion == Motion::Static;
+            let terrain = ma.name.contains("terrain");
+            if district == 0 || !copy || terrain {
+                assert_eq!(ia.mesh, ib.mesh, "{} in district {district}", ma.name);
+                continue;
+            }
+            assert!(ib.mesh.0 as usize >= library, "{} not copied", ma.name);
+            copied += 1;
+            let at = copies.entry((district, ia.mesh.0)).or_insert(ib.mesh.0);
+            assert_eq!(*at, ib.mesh.0, "one copy per district");
+        }
+    }
+    // Copies of one mesh in different districts are different meshes.
+    let mut ids: Vec<u32> = copies.values().copied().collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), copies.len());
+    assert!(copied > 100, "{copied} instances on copies");
+}
