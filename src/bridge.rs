@@ -13,7 +13,8 @@
 //!   and recycled on `LevelUnloaded`. The slot indexes the shading table ([`ShadingSlot`]).
 //! - Far landmarks: a `ProxyLoaded` leaf lists its large static instances (see
 //!   `rtstream_streaming::proxy`). Those whose level is not loaded are placed at once (their
-//!   mesh registered, else as soon as it is), so the manager can keep them as far landmarks
+//!   mesh registered, else as soon as it is: streaming loads the coarsest LOD of a resident
+//!   proxy's landmark meshes), so the manager can keep them as far landmarks
 //!   beside the proxy. When the level loads, the same instance (same id) is already placed and
 //!   stays; when it unloads, the instance stays while its proxy is resident; `ProxyEvicted`
 //!   removes those no loaded level holds.

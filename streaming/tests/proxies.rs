@@ -181,3 +181,105 @@ fn a_corrupt_proxy_is_a_typed_error_and_the_levels_still_stream() {
         .any(|e| matches!(e, WorldEvent::LevelLoaded { .. })));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A proxy's landmarks bring their meshes' coarsest LODs with it, as a level brings its
+/// meshes': in a world whose districts have meshes of their own, a far district's meshes are
+/// used by no loaded level, yet a resident proxy's landmarks have theirs resident (the bridge
+/// places a landmark once its mesh has a LOD). They go with the proxy unless a loaded level
+/// uses them.
+#[test]
+fn a_proxys_landmarks_bring_their_meshes_coarsest_lods() {
+    use rtstream_streaming::{bake, generate, WorldMeshId, WorldPreset};
+    use std::collections::HashMap;
+    common::assets();
+    let preset = WorldPreset {
+        districts: 2,
+        ..WorldPreset::small(8, 7)
+    };
+    let world = generate(&preset).expect("generate");
+    let dir = common::scratch("proxies-landmark-meshes");
+    bake(&world, &dir).expect("bake");
+    let config = StreamConfig {
+        apply_after_frames: Some(1),
+        load_radius: 40.0,
+        unload_radius: 60.0,
+        far_radius: 400.0,
+        ..StreamConfig::default()
+    };
+    let mut w = World::open(&dir, config).expect("open");
+    let half = preset.size_m * 0.5;
+    // Resident LODs per mesh, levels' meshes, proxies' landmark meshes, from the events.
+    let mut lods: HashMap<WorldMeshId, HashSet<u8>> = HashMap::new();
+    let mut levels: HashMap<u32, Vec<WorldMeshId>> = HashMap::new();
+    let mut proxies: HashMap<ProxyId, Vec<WorldMeshId>> = HashMap::new();
+    let mut check = |events: Vec<WorldEvent>, settled: bool| {
+        for e in events {
+            match e {
+                WorldEvent::MeshLodLoaded { mesh, lod, .. } => {
+                    assert!(lods.entry(mesh).or_default().insert(lod), "loaded twice");
+                }
+                WorldEvent::MeshLodEvicted { mesh, lod } => {
+                    assert!(lods.entry(mesh).or_default().remove(&lod), "not resident");
+                }
+                WorldEvent::LevelLoaded {
+                    level, instances, ..
+                } => {
+                    levels.insert(level.0, instances.iter().map(|i| i.mesh).collect());
+                }
+                WorldEvent::LevelUnloaded { level, .. } => {
+                    levels.remove(&level.0);
+                }
+                WorldEvent::ProxyLoaded {
+                    node, landmarks, ..
+                } => {
+                    proxies.insert(node, landmarks.iter().map(|(_, i)| i.mesh).collect());
+                }
+                WorldEvent::ProxyEvicted { node } => {
+                    proxies.remove(&node);
+                }
+                WorldEvent::LoadFailed { error, .. } => panic!("{error}"),
+            }
+        }
+        lods.retain(|_, l| !l.is_empty());
+        let by_levels: HashSet<WorldMeshId> = levels.values().flatten().copied().collect();
+        let by_proxies: HashSet<WorldMeshId> = proxies.values().flatten().copied().collect();
+        // Nothing resident that nobody wants.
+        for m in lods.keys() {
+            assert!(
+                by_levels.contains(m) || by_proxies.contains(m),
+                "{m:?} resident for nobody"
+            );
+        }
+        if settled {
+            for m in &by_proxies {
+                let coarsest = (world.meshes[m.0 as usize].lods.len() - 1) as u8;
+                assert!(
+                    lods.get(m).is_some_and(|l| l.contains(&coarsest)),
+                    "{m:?}: a landmark's mesh without its coarsest LOD"
+                );
+            }
+        }
+        by_proxies.difference(&by_levels).count()
+    };
+    // In a corner: the loaded levels are the corner's; the proxies within 400 m list
+    // landmarks of other districts.
+    let corner = [StreamFocus::from(Vec3::new(
+        -half + 10.0,
+        2.0,
+        -half + 10.0,
+    ))];
+    let mut only_landmarks = 0;
+    for f in 0..6 {
+        only_landmarks = check(w.update(f, &corner), f >= 3);
+    }
+    assert!(
+        only_landmarks > 0,
+        "no landmark mesh beyond the loaded levels"
+    );
+    // The opposite corner: the first corner's proxies leave, and with them their meshes.
+    let other = [StreamFocus::from(Vec3::new(half - 10.0, 2.0, half - 10.0))];
+    for f in 6..12 {
+        check(w.update(f, &other), f >= 9);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

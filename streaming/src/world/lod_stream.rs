@@ -56,7 +56,7 @@ impl World {
         }
         requests.sort_by(|a, b| a.0.total_cmp(&b.0));
         for (d, m, lod) in requests {
-            if self.in_flight >= self.config.max_in_flight {
+            if self.in_flight - self.landmark_in_flight >= self.config.max_in_flight {
                 break;
             }
             let bytes = self.meshes[m.0 as usize].lods[lod].0;

@@ -8,7 +8,11 @@
 //! no other loaded level uses. A level unloaded while still loading emits nothing (its late result
 //! is discarded by ticket).
 //!
-//! LOD policy: a mesh's coarsest LOD stays resident while any loaded level uses it; at most one
+//! LOD policy: a mesh's coarsest LOD stays resident while any loaded level uses it, or any
+//! resident far-field proxy lists a landmark of it (it is loaded with the proxy, after the
+//! proxy's `ProxyLoaded`: a world whose regions have meshes of their own uses none of a far
+//! region's meshes in the levels loaded, and the bridge places a landmark once its mesh has a
+//! LOD); at most one
 //! finer LOD is kept, chosen per mesh as the coarsest LOD whose world-space error is at most
 //! `lod_error_angle` x distance to the nearest loaded instance (the nearest camera). A finer LOD
 //! is evicted when it is finer than needed even at `1 / lod_evict_factor` of that distance
@@ -87,6 +91,12 @@ struct MeshSlot {
     /// Baked meshes stream their finer LODs; glTF-level meshes are all in memory.
     streamed: bool,
     refs: u32,
+    /// Resident proxies that list a landmark of this mesh: its coarsest LOD stays resident
+    /// while one does, as while a loaded level uses it.
+    landmark_refs: u32,
+    /// The ticket of its coarsest LOD's load for those landmarks (apart from `pending`,
+    /// which is LOD streaming's).
+    landmark_load: Option<u64>,
     resident: Vec<Option<Arc<MeshLod>>>,
     pending: Option<(usize, u64)>,
     failed: Vec<bool>,
@@ -168,6 +178,8 @@ pub struct World {
     next_ticket: u64,
     next_dynamic_instance: u32,
     in_flight: usize,
+    /// Of `in_flight`, the landmarks' coarsest LODs (they do not hold back LOD streaming).
+    landmark_in_flight: usize,
     in_flight_bytes: usize,
     mesh_bytes: usize,
     frame: u64,
@@ -232,6 +244,8 @@ impl World {
                 lods: e.lods.iter().map(|l| (l.bytes as usize, l.error)).collect(),
                 streamed: true,
                 refs: 0,
+                landmark_refs: 0,
+                landmark_load: None,
                 resident: vec![None; e.lods.len()],
                 pending: None,
                 failed: vec![false; e.lods.len()],
@@ -268,6 +282,7 @@ impl World {
             next_ticket: 1,
             next_dynamic_instance: 1 << 31,
             in_flight: 0,
+            landmark_in_flight: 0,
             in_flight_bytes: 0,
             mesh_bytes: 0,
             frame: 0,
@@ -425,6 +440,7 @@ impl World {
             }
         };
         let far = self.config.far_radius;
+        let (mut came, mut left) = (Vec::new(), Vec::new());
         for (i, node) in file.tree.nodes.iter().enumerate() {
             let d = cameras
                 .iter()
@@ -458,6 +474,7 @@ impl World {
                             geometry: Arc::clone(g),
                             landmarks,
                         });
+                        came.push(i);
                     }
                     Err(e) => {
                         self.proxy_state[i] = ProxyState::Failed;
@@ -472,9 +489,93 @@ impl World {
                 ProxyState::Resident if d > far * 1.1 => {
                     self.proxy_state[i] = ProxyState::Out;
                     ev.push(WorldEvent::ProxyEvicted { node: node.id });
+                    left.push(i);
                 }
                 _ => {}
             }
+        }
+        for (nodes, resident) in [(left, false), (came, true)] {
+            for i in nodes {
+                for m in self.landmark_meshes(i) {
+                    self.landmark_mesh(m, resident, ev);
+                }
+            }
+        }
+    }
+
+    /// The meshes of proxy node `i`'s landmarks, each once.
+    fn landmark_meshes(&self, i: usize) -> Vec<WorldMeshId> {
+        let Some(Ok(file)) = &self.proxies else {
+            return Vec::new();
+        };
+        let mut ms: Vec<WorldMeshId> = file.tree.nodes[i]
+            .landmarks
+            .iter()
+            .map(|l| l.mesh)
+            .filter(|m| (m.0 as usize) < self.meshes.len())
+            .collect();
+        ms.sort_unstable();
+        ms.dedup();
+        ms
+    }
+
+    /// A resident proxy lists a landmark of `mesh` (`resident`), or no longer does. The bridge
+    /// places a landmark once its mesh has a resident LOD; beyond the levels loaded, in a
+    /// world whose regions have meshes of their own, none would, so the coarsest LOD comes
+    /// with the proxy (as it does with a level) and goes when neither a level nor a proxy
+    /// wants it.
+    fn landmark_mesh(&mut self, mesh: WorldMeshId, resident: bool, ev: &mut Vec<WorldEvent>) {
+        let slot = &mut self.meshes[mesh.0 as usize];
+        if !resident {
+            slot.landmark_refs = slot.landmark_refs.saturating_sub(1);
+            if slot.landmark_refs == 0 && slot.refs == 0 {
+                self.release_mesh(mesh, false, ev);
+            }
+            return;
+        }
+        slot.landmark_refs += 1;
+        let c = slot.coarsest();
+        if !slot.streamed
+            || slot.resident[c].is_some()
+            || slot.landmark_load.is_some()
+            || slot.failed[c]
+        {
+            return;
+        }
+        let ticket = self.new_ticket();
+        self.meshes[mesh.0 as usize].landmark_load = Some(ticket);
+        self.in_flight += 1;
+        self.landmark_in_flight += 1;
+        self.pool.submit(Job::Lod {
+            mesh,
+            lod: c,
+            ticket,
+        });
+    }
+
+    /// Evicts `mesh`'s resident LODs (all, or all but the coarsest) and cancels LOD
+    /// streaming's load of it.
+    fn release_mesh(&mut self, mesh: WorldMeshId, keep_coarsest: bool, ev: &mut Vec<WorldEvent>) {
+        let slot = &mut self.meshes[mesh.0 as usize];
+        if let Some((lod, _)) = slot.pending.take() {
+            self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
+        }
+        let c = slot.coarsest();
+        for (lod, r) in slot.resident.iter_mut().enumerate() {
+            if keep_coarsest && lod == c {
+                continue;
+            }
+            if r.take().is_some() {
+                self.mesh_bytes -= slot.lods[lod].0;
+                ev.push(WorldEvent::MeshLodEvicted {
+                    mesh,
+                    lod: lod as u8,
+                });
+            }
+        }
+        if !keep_coarsest {
+            // A failed LOD may be retried once the mesh comes back.
+            slot.failed.iter_mut().for_each(|f| *f = false);
         }
     }
 
@@ -504,6 +605,7 @@ impl World {
                     tracing::error!("loader threads are gone; dropping the pending loads");
                     self.requests.clear();
                     self.in_flight = 0;
+                    self.landmark_in_flight = 0;
                     return;
                 }
             }
@@ -625,6 +727,21 @@ impl World {
         let Some(slot) = self.meshes.get_mut(mesh.0 as usize) else {
             return;
         };
+        if slot.landmark_load == Some(ticket) {
+            // The coarsest LOD for a proxy's landmarks: kept if still wanted and not brought
+            // by a level meanwhile.
+            slot.landmark_load = None;
+            self.landmark_in_flight = self.landmark_in_flight.saturating_sub(1);
+            let wanted = slot.landmark_refs > 0 || slot.refs > 0;
+            match result {
+                Ok(g) if wanted && slot.resident[lod].is_none() => {
+                    slot.arrive(mesh, lod, g, &mut self.mesh_bytes, ev)
+                }
+                Err(e) if wanted => slot.fail(mesh, lod, None, e, ev),
+                _ => {}
+            }
+            return;
+        }
         if slot.pending != Some((lod, ticket)) {
             return; // Cancelled (its bytes were released then).
         }
@@ -690,6 +807,8 @@ impl World {
                         lods: m.lods.iter().map(|g| (g.byte_size(), g.error)).collect(),
                         streamed: false,
                         refs: 0,
+                        landmark_refs: 0,
+                        landmark_load: None,
                         failed: vec![false; m.lods.len()],
                         resident: m.lods.into_iter().map(Some).collect(),
                         pending: None,
@@ -811,20 +930,9 @@ impl World {
             if slot.refs > 0 {
                 continue;
             }
-            if let Some((lod, _)) = slot.pending.take() {
-                self.in_flight_bytes = self.in_flight_bytes.saturating_sub(slot.lods[lod].0);
-            }
-            for (lod, r) in slot.resident.iter_mut().enumerate() {
-                if r.take().is_some() {
-                    self.mesh_bytes -= slot.lods[lod].0;
-                    ev.push(WorldEvent::MeshLodEvicted {
-                        mesh: m,
-                        lod: lod as u8,
-                    });
-                }
-            }
-            // A failed LOD may be retried once the mesh comes back.
-            slot.failed.iter_mut().for_each(|f| *f = false);
+            // A resident proxy's landmarks still want the coarsest LOD.
+            let keep_coarsest = slot.landmark_refs > 0;
+            self.release_mesh(m, keep_coarsest, ev);
         }
     }
 
