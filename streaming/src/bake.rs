@@ -9,11 +9,12 @@
 //! - `levels/<id>.rtl`: one framed level file per level.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use crate::error::{FormatError, Result, StreamingError};
 use crate::format::{self, Reader, Writer, MANIFEST_MAGIC};
 use crate::generate::GeneratedWorld;
-use crate::model::{Aabb, LevelId, WorldMeshId};
+use crate::model::{Aabb, LevelId, MeshLod, WorldMeshId};
 
 /// File name of the manifest inside a baked world directory.
 pub const MANIFEST_FILE: &str = "world.rtw";
@@ -108,17 +109,27 @@ pub fn bake(world: &GeneratedWorld, dir: impl AsRef<Path>) -> Result<BakeReport>
 
     let mut lib = Vec::new();
     let mut meshes = Vec::with_capacity(world.meshes.len());
+    // A LOD shared by several meshes (a district's copies share the library mesh's) is
+    // written once; their index entries name the same chunk, which names the first of them.
+    let mut written: std::collections::HashMap<(*const MeshLod, usize), LodEntry> =
+        std::collections::HashMap::new();
     for m in &world.meshes {
         let mut lods = Vec::with_capacity(m.lods.len());
         for (k, g) in m.lods.iter().enumerate() {
+            if let Some(&e) = written.get(&(Arc::as_ptr(g), k)) {
+                lods.push(e);
+                continue;
+            }
             let chunk = format::encode_lod(m.id, k, g);
-            lods.push(LodEntry {
+            let e = LodEntry {
                 offset: lib.len() as u64,
                 len: chunk.len() as u64,
                 triangles: g.triangle_count() as u32,
                 bytes: g.byte_size() as u32,
                 error: g.error,
-            });
+            };
+            written.insert((Arc::as_ptr(g), k), e);
+            lods.push(e);
             lib.extend_from_slice(&chunk);
         }
         meshes.push(MeshEntry {

@@ -75,8 +75,9 @@ pub struct WorldPreset {
     /// `districts` x `districts` levels and each square has its own copy of every opaque
     /// static mesh (rocks, buildings, props), as an open world's regions have their own
     /// assets: distinct meshes to the BLAS manager, with their own BLASes. A copy shares its
-    /// LOD chain with the library's mesh in memory and in the generator (its geometry is the
-    /// same), and is baked and streamed as a mesh of its own. Which mesh an instance draws is
+    /// LOD chain with the library's mesh in the generator and in the bake (its geometry is the
+    /// same: the mesh library is written once), and is streamed as a mesh of its own (its LODs
+    /// are read and held apart). Which mesh an instance draws is
     /// unchanged: the same preset and seed give the same instances, mapped to their
     /// district's copies.
     pub districts: u32,

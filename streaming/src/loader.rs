@@ -380,7 +380,17 @@ pub(crate) fn read_lod(shared: &LoaderShared, mesh: WorldMeshId, lod: usize) -> 
     f.seek(SeekFrom::Start(entry.offset)).map_err(io)?;
     let mut buf = vec![0u8; entry.len as usize];
     f.read_exact(&mut buf).map_err(io)?;
-    format::decode_lod(&buf, mesh, lod).map_err(|reason| StreamingError::Format { path, reason })
+    // Meshes that share a LOD (a district's copies, `WorldPreset::districts`) name one chunk,
+    // written once: the chunk names the first of them in the index.
+    let owner = shared.manifest.meshes[..=mesh.0 as usize]
+        .iter()
+        .position(|m| {
+            m.lods
+                .get(lod)
+                .is_some_and(|l| l.offset == entry.offset && l.len == entry.len)
+        })
+        .map_or(mesh, |i| WorldMeshId(i as u32));
+    format::decode_lod(&buf, owner, lod).map_err(|reason| StreamingError::Format { path, reason })
 }
 
 #[cfg(test)]

@@ -186,7 +186,7 @@ fn a_corrupt_proxy_is_a_typed_error_and_the_levels_still_stream() {
 /// meshes': in a world whose districts have meshes of their own, a far district's meshes are
 /// used by no loaded level, yet a resident proxy's landmarks have theirs resident (the bridge
 /// places a landmark once its mesh has a LOD). They go with the proxy unless a loaded level
-/// uses them.
+/// uses them. (The copies' LODs are baked once and read through the library meshes' chunks.)
 #[test]
 fn a_proxys_landmarks_bring_their_meshes_coarsest_lods() {
     use rtstream_streaming::{bake, generate, WorldMeshId, WorldPreset};
@@ -198,7 +198,18 @@ fn a_proxys_landmarks_bring_their_meshes_coarsest_lods() {
     };
     let world = generate(&preset).expect("generate");
     let dir = common::scratch("proxies-landmark-meshes");
-    bake(&world, &dir).expect("bake");
+    let report = bake(&world, &dir).expect("bake");
+    // A copy's LODs are written once, with the library mesh's: the mesh library is the
+    // plain world's, byte for byte.
+    let plain = common::scratch("proxies-landmark-meshes-plain");
+    let plain_world = generate(&WorldPreset::small(8, 7)).expect("generate");
+    let plain_report = bake(&plain_world, &plain).expect("bake");
+    assert_eq!(
+        std::fs::read(dir.join("meshes.rtm")).unwrap(),
+        std::fs::read(plain.join("meshes.rtm")).unwrap()
+    );
+    assert_eq!(report.mesh_library_bytes, plain_report.mesh_library_bytes);
+    std::fs::remove_dir_all(&plain).ok();
     let config = StreamConfig {
         apply_after_frames: Some(1),
         load_radius: 40.0,
