@@ -106,6 +106,11 @@ pub struct RunArgs {
     /// Streaming load radius, metres (what a raster engine would load).
     #[arg(long, default_value_t = 1000.0)]
     pub stream_radius: f32,
+    /// Streaming loads in flight at most (`StreamConfig::max_in_flight`, default 64): how many
+    /// finer LODs streaming can be fetching at once. With distinct meshes (`--districts`) at
+    /// the fly-through's speed, the default holds LODs back (docs/STRESS.md).
+    #[arg(long)]
+    pub loads_in_flight: Option<usize>,
     /// Score every K-th frame against the full-world ground truth (0: never). The default
     /// scores 33 frames of the 600.
     #[arg(long, default_value_t = 18)]
@@ -346,6 +351,9 @@ impl RunArgs {
         }
         c.stream.load_radius = self.stream_radius;
         c.stream.unload_radius = self.stream_radius + 100.0;
+        if let Some(n) = self.loads_in_flight {
+            c.stream.max_in_flight = n.max(1);
+        }
         let m = &mut c.managed;
         if let Some(mb) = self.budget_mb {
             m.memory.blas_bytes = (mb * 1024.0 * 1024.0) as u64;
