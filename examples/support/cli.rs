@@ -294,6 +294,10 @@ impl RunArgs {
             seed: self.seed,
             ..preset
         };
+        if self.districts > 0 {
+            preset.districts = self.districts;
+            preset.name = format!("{}-d{}", preset.name, self.districts);
+        }
         self.assets.apply(&mut preset);
         config.world_dir = self.world.clone().unwrap_or_else(|| {
             PathBuf::from(format!("out/world-{}-{:x}", preset.name, preset.seed))
