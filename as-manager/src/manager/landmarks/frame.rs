@@ -89,7 +89,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         landmarks.scratch = due;
         landmarks.queued_scratch = queued;
-        for g in landmarks.unready.drain(..) {
+        for g in landmarks.unready_leaves() {
             far.add_unready(g);
         }
         drop(looks);

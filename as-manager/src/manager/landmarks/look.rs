@@ -194,6 +194,8 @@ impl Landmarks {
     /// Looks at candidate `slot`: joins, updates or leaves the set, and says when to look next.
     pub(super) fn evaluate(&mut self, ci: u32, x: &mut Look<'_>) {
         let frame = x.p.frame;
+        // Counted as not ready until this look says so again.
+        self.set_unready(ci, false);
         let cand = self.cands[ci as usize];
         let slot = cand.slot;
         if !self.wanted(&cand) {
@@ -385,10 +387,11 @@ impl Landmarks {
             }
             if kind.detail {
                 // Detail not ready: it holds its leaf's proxy, whatever its angle, as the
-                // residency pass's not-ready instances do (`Visit::ready`), this frame and
-                // every frame until it is (looked at each frame: its angle and leaf change).
-                self.unready.push(cand.group);
-                self.due_between(ci, d, d, d);
+                // residency pass's not-ready instances do (`Visit::ready`), every frame until
+                // data or a BLAS of its mesh comes (its selection's resolution changes), its
+                // leaf flips (both events) or it comes within r2.
+                self.set_unready(ci, true);
+                self.due_between(ci, x.p.r2 + radius, f32::INFINITY, d);
             } else {
                 self.due_between(ci, f32::NEG_INFINITY, f32::INFINITY, d);
             }

@@ -89,6 +89,9 @@ struct Cand {
     unsettled: bool,
     /// Detail of a near leaf: culled by its projected angle (`InstanceCuller::cull_small`).
     culled: bool,
+    /// Detail not ready (no LOD of its mesh has data or a BLAS): counted in its leaf's
+    /// `Landmarks::unready` until its next look.
+    unready: bool,
 }
 
 /// A shown landmark (a member of the set).
@@ -223,9 +226,11 @@ pub(crate) struct Landmarks {
     pair_index: FxHashMap<u64, u32>,
     /// Members whose shown BLAS is chosen again this frame.
     rechoose: Vec<u32>,
-    /// Leaf groups of the detail looked at this frame that is not ready (no LOD of its mesh
-    /// has data or a BLAS): their proxies wait for it (`FarField::add_unready`).
-    pub unready: Vec<u32>,
+    /// Per leaf group, its detail that is not ready (no LOD of its mesh has data or a BLAS):
+    /// the leaf's proxy waits for it every frame (`FarField::add_unready`). Such detail is
+    /// looked at again only when data or a BLAS of its mesh comes (its selection's
+    /// resolution), when its leaf flips or when it comes within r2.
+    unready: FxHashMap<u32, u32>,
     /// Members choosing again next frame (their target is not built).
     unsettled: Vec<u32>,
     scratch: Vec<u32>,
@@ -266,7 +271,7 @@ impl Default for Landmarks {
             free_pairs: Vec::new(),
             pair_index: HashMap::default(),
             rechoose: Vec::new(),
-            unready: Vec::new(),
+            unready: FxHashMap::default(),
             unsettled: Vec::new(),
             scratch: Vec::new(),
             queued_scratch: Vec::new(),
@@ -302,6 +307,29 @@ impl Landmarks {
     /// Landmark records at the front of the manager's record list.
     pub fn len(&self) -> usize {
         self.record_slots.len()
+    }
+
+    /// Counts candidate `ci` as detail not ready in its leaf (`on`), or no longer.
+    fn set_unready(&mut self, ci: u32, on: bool) {
+        let c = &mut self.cands[ci as usize];
+        if c.unready == on || c.group == NO_GROUP {
+            return;
+        }
+        c.unready = on;
+        let group = c.group;
+        if on {
+            *self.unready.entry(group).or_default() += 1;
+        } else if let Some(n) = self.unready.get_mut(&group) {
+            *n -= 1;
+            if *n == 0 {
+                self.unready.remove(&group);
+            }
+        }
+    }
+
+    /// Leaf groups whose proxy waits for their detail that is not ready.
+    pub fn unready_leaves(&self) -> impl Iterator<Item = u32> + '_ {
+        self.unready.keys().copied()
     }
 
     /// Whether `slot` is a shown landmark now.
@@ -387,6 +415,7 @@ impl Landmarks {
             c.waiting = false;
             c.unsettled = false;
             c.culled = false;
+            c.unready = false;
         }
         self.all_due = true;
     }
@@ -511,6 +540,7 @@ impl Landmarks {
             sel: NONE_LOD,
             unsettled: false,
             culled: false,
+            unready: false,
         };
         let ci = slab_insert(&mut self.cands, &mut self.free_cands, cand);
         // Stamp 0 is never issued: a reused index's old entries stay stale.
@@ -535,6 +565,7 @@ impl Landmarks {
         }
         self.leave(slot, records);
         let ci = self.index[slot as usize] as usize;
+        self.set_unready(ci as u32, false);
         let c = self.cands[ci];
         if c.group != NO_GROUP {
             if let Some(v) = self.groups.get_mut(&c.group) {
@@ -611,6 +642,15 @@ impl Landmarks {
         }
         if self.record_slots.iter().any(|&s| !self.is_member(s)) {
             return Err("a landmark record of no member".into());
+        }
+        let mut unready: HashMap<u32, u32> = HashMap::new();
+        for c in self.cands.iter().filter(|c| c.slot != NONE && c.unready) {
+            *unready.entry(c.group).or_default() += 1;
+        }
+        if unready.len() != self.unready.len()
+            || unready.iter().any(|(g, n)| self.unready.get(g) != Some(n))
+        {
+            return Err("the leaves' counts of detail not ready are off".into());
         }
         Ok(())
     }
