@@ -113,13 +113,10 @@ fn main() {
     }
     let (mut times, mut cpu) = (Vec::new(), Vec::new());
     let (mut looks, mut waits, mut other) = (Vec::new(), Vec::new(), Vec::new());
-    let mut evict = vec![0u8; args.evict_mb << 20];
+    let mut caches = rtstream_as_manager::synth::CacheEvictor::new(args.evict_mb);
     for f in 300..300 + args.frames {
         let c = cameras(f);
-        for (i, chunk) in evict.chunks_mut(64).enumerate() {
-            chunk[0] = chunk[0].wrapping_add(i as u8 | 1);
-        }
-        std::hint::black_box(&mut evict);
+        caches.evict();
         let t = Instant::now();
         let thread = cpu_time::ThreadTime::now();
         m.update(FrameInput {

@@ -302,3 +302,30 @@ mod tests {
         assert!(d.instances >= 104_366 && d.skinned_instances >= 200);
     }
 }
+
+/// A buffer of `mb` MB whose every cache line [`CacheEvictor::evict`] writes: `update` then
+/// starts with cold caches, as in an engine whose other work and renderer run between two
+/// frames (`docs/PROFILE.md`, "Cold caches"). The `frame_cost` example's `--evict-mb` and the
+/// criterion bench's `_cold` cases use it, outside their timings.
+///
+/// ```
+/// let mut caches = rtstream_as_manager::synth::CacheEvictor::new(1);
+/// caches.evict();
+/// ```
+#[derive(Debug)]
+pub struct CacheEvictor(Vec<u8>);
+
+impl CacheEvictor {
+    /// An evictor writing `mb` MB (0: nothing).
+    pub fn new(mb: usize) -> Self {
+        Self(vec![0; mb << 20])
+    }
+
+    /// Writes one byte of every 64-byte line.
+    pub fn evict(&mut self) {
+        for (i, line) in self.0.chunks_mut(64).enumerate() {
+            line[0] = line[0].wrapping_add(i as u8 | 1);
+        }
+        std::hint::black_box(&mut self.0);
+    }
+}
