@@ -482,7 +482,12 @@ fn distinct_meshes_with_data_and_floors_coming_and_going_match_the_rule() {
 }
 
 fn distinct_meshes_with_data(c: Config) -> u32 {
-    let mut s = scene_with_meshes(c, 400);
+    with_data_churn(scene_with_meshes(c, 400))
+}
+
+/// Runs `s` for 400 frames on a backend that builds only from data: two LODs in three have
+/// data at the start, and data comes and goes during the run. Returns the LOD fallbacks.
+fn with_data_churn(mut s: Scene) -> u32 {
     s.m.backend_mut().require_geometry = true;
     for i in 0..s.meshes.len() {
         let mesh = s.meshes[i];
@@ -503,19 +508,7 @@ fn memory_floors_with_lod_data_coming_and_going_match_the_rule() {
     // it shows all move between pairs.
     let mut c = config();
     c.memory.blas_bytes = 160 << 10; // the data LODs are small (128 triangles)
-    let mut s = scene(c);
-    s.m.backend_mut().require_geometry = true;
-    for i in 0..s.meshes.len() {
-        let mesh = s.meshes[i];
-        for lod in 0..1 + i % 5 {
-            if s.rng.below(3) > 0 {
-                let _ =
-                    s.m.set_lod_geometry(mesh, lod, LodGeometry::Data(grid_geometry(8, 1.0)));
-            }
-        }
-    }
-    s.data_churn = true;
-    let fallbacks = run_and_compare(s, 400, None);
+    let fallbacks = with_data_churn(scene(c));
     assert!(fallbacks > 0, "the budget forced no LOD fallback");
 }
 
