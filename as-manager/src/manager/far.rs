@@ -663,8 +663,20 @@ impl<B: AsBackend> AsManager<B> {
                 grid.loc(slot).map(|_| templates[slot as usize])
             });
         self.far.covered_near = covered_near;
-        // Take the covered leaves' detail out of the TLAS list.
-        if !self.far.picks.is_empty() {
+        // Take the covered leaves' detail out of the TLAS list. Only a near leaf handing
+        // over (covered by its own proxy) or an entry of a far leaf (covered through an
+        // ancestor) can be covered; most frames have neither, and the list stays as it is.
+        let coverable = !self.far.covered_near.is_empty() || self.tlas_far_leaf_entries > 0;
+        debug_assert!(
+            coverable
+                || self
+                    .tlas_groups
+                    .iter()
+                    .flatten()
+                    .all(|&g| !self.far.is_covered(g)),
+            "an entry of a covered leaf was left in the TLAS list"
+        );
+        if !self.far.picks.is_empty() && coverable {
             // In place; neighbours in the list mostly share their leaf, so its answer is kept.
             // A near leaf is covered only by its own proxy (a parent is picked only when all
             // its leaves are far): one look at its own epoch, not a walk up the tree.

@@ -167,6 +167,7 @@ impl<B: AsBackend> AsManager<B> {
         let frame = self.frame;
         self.tlas_list.clear();
         self.tlas_groups.clear();
+        self.tlas_far_leaf_entries = 0;
         let far = self.config.far_field.enabled;
         let r1 = self.config.residency.r1;
         let mut culled_count = 0;
@@ -229,6 +230,8 @@ impl<B: AsBackend> AsManager<B> {
                     e.last_keep = frame;
                     self.tlas_list.push((slot, e.record_address(&self.backend)));
                     self.tlas_groups.push((group != NO_GROUP).then_some(group));
+                    self.tlas_far_leaf_entries +=
+                        u32::from(group != NO_GROUP && !self.far.is_near_leaf(group));
                 }
             }
         }

@@ -251,6 +251,10 @@ pub struct AsManager<B: AsBackend> {
     landmarks: landmarks::Landmarks,
     /// Leaf group of each `tlas_list` entry, for the far field.
     tlas_groups: Vec<Option<u32>>,
+    /// Entries of `tlas_list` whose leaf is on the far side of the hand-over (covered only
+    /// through an ancestor's proxy): with none, and no near leaf handing over, nothing in the
+    /// list can be covered and `far_select` leaves it as it is.
+    tlas_far_leaf_entries: u32,
     /// Near far-field leaves reaching beyond r2 (XZ boxes), for the residency query.
     near_boxes: Vec<[f32; 4]>,
     /// The same leaves' slots, when the landmark set keeps their detail.
@@ -306,6 +310,7 @@ impl<B: AsBackend> AsManager<B> {
             cost_fits: Default::default(),
             far: far::FarField::default(),
             tlas_groups: Vec::new(),
+            tlas_far_leaf_entries: 0,
             near_boxes: Vec::new(),
             near_leaves_beyond: Vec::new(),
             gpu_reserved_ms: 0.0,
