@@ -133,6 +133,35 @@ fn an_emptied_block_waits_for_the_next_range() {
     free_all(&ctx, a, quarters, before);
 }
 
+/// A block's allocator has a node per four units (at least 64), not offset-allocator's
+/// default 128 Ki (4 MB written in the frame that made the block). Ranges of one unit each run
+/// a block out of nodes before out of space: the next ones go to another block, and all of them
+/// stay disjoint and hold their bytes.
+#[test]
+fn a_block_out_of_nodes_sends_ranges_to_another() {
+    let (ctx, before, mut a) = fresh();
+    let units = BLOCK / ARENA_UNIT;
+    let n = units as usize - 16;
+    let ranges: Vec<_> = (0..n).map(|_| a.alloc(&ctx, 1).unwrap()).collect();
+    let blocks = a.allocated_bytes() / BLOCK;
+    assert!(
+        blocks >= 2,
+        "{n} one-unit ranges fit one block by space but not by nodes: {blocks} block(s)"
+    );
+    assert_eq!(ctx.live_buffers(), before + blocks as i64);
+    let mut addresses: Vec<u64> = ranges.iter().map(|r| r.address).collect();
+    addresses.sort_unstable();
+    addresses.dedup();
+    assert_eq!(addresses.len(), n, "distinct ranges");
+    for (k, r) in ranges.iter().enumerate() {
+        a.bytes_mut(r).unwrap()[0] = k as u8;
+    }
+    for (k, r) in ranges.iter().enumerate() {
+        assert_eq!(a.bytes(r).unwrap()[0], k as u8, "range {k} kept its byte");
+    }
+    free_all(&ctx, a, ranges, before);
+}
+
 #[test]
 fn acceleration_structures_share_an_arena_block() {
     let ctx = common::context();

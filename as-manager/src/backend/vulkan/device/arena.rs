@@ -25,6 +25,21 @@ use crate::backend::vulkan::error::VkResult;
 /// need 4, acceleration-structure storage 256).
 pub const UNIT: u64 = 256;
 
+/// Bounds of a block's allocator nodes (one per range and one per free hole between ranges).
+const MIN_NODES: u32 = 64;
+const MAX_NODES: u32 = 16 * 1024;
+
+/// Nodes of the allocator of a block of `units`: one per four units (ranges averaging 2 KB fill
+/// a block however fragmented), within [`MIN_NODES`, `MAX_NODES`]. `offset-allocator`'s own
+/// default is 128 Ki nodes whatever the block, 4 MB of node arrays written when the block is
+/// made: about 1.5 ms in the frame that needed the block (frames 16 and 60 of the default
+/// fly-through on lavapipe were its slowest steady ones), and 4 MB of host memory a block. A
+/// block whose nodes run out takes no more ranges (`allocate` answers `None`), and the next
+/// range goes to another block.
+fn nodes_for(units: u32) -> u32 {
+    (units / 4).clamp(MIN_NODES, MAX_NODES)
+}
+
 /// Buffers of one usage and memory kind, sub-allocated from blocks of `block_bytes`.
 pub struct BufferArena {
     name: &'static str,
@@ -120,7 +135,8 @@ impl BufferArena {
             memory: self.memory,
         })?;
         let (ranges, a) = if shared {
-            let mut ranges = Allocator::new((bytes / UNIT) as u32);
+            let block_units = (bytes / UNIT) as u32;
+            let mut ranges = Allocator::with_max_allocs(block_units, nodes_for(block_units));
             let a = ranges
                 .allocate(units as u32)
                 .expect("an empty block holds half its size");
