@@ -90,6 +90,17 @@ fn main() -> anyhow::Result<()> {
         std::fs::write(path, data.folded())
             .with_context(|| format!("writing {}", path.display()))?;
         println!("wrote {} (folded stacks, µs)", path.display());
+        // The first 60 frames stream the world in; the slowest frames after them, and what
+        // made them slow (phases 0.1 ms or more over their median).
+        println!("slowest frames from frame 60 (phases at least 0.1 ms over their median, ms):");
+        for (frame, ms, over) in data.slowest(5, 60, 4, 0.1) {
+            let phases: Vec<String> = over.iter().map(|(p, d)| format!("{p} +{d:.2}")).collect();
+            println!("  frame {frame}: {ms:.2}  {}", phases.join(", "));
+        }
+        let frames = path.with_extension("frames.csv");
+        std::fs::write(&frames, data.frames_csv(4))
+            .with_context(|| format!("writing {}", frames.display()))?;
+        println!("wrote {} (phase ms per frame)", frames.display());
     }
     if cli.output.json {
         println!("{}", report.json());

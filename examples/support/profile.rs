@@ -9,7 +9,8 @@
 //!   A derived row, `less geometry copies`, is `update` without the backend's
 //!   `upload_geometry` spans (copies of new vertex and index data into upload buffers).
 //! - `--profile FILE` in the examples writes the self times as folded stacks (microseconds)
-//!   for a flame graph, and prints the per-phase table.
+//!   for a flame graph, and prints the per-phase table; the flythrough also writes each
+//!   frame's phase times beside it (`FILE.frames.csv`), to see what makes the slowest frames.
 //!
 //! The layer only sees spans (`filter_fn(is_span)`), so the BLAS lifecycle events at `trace`
 //! stay disabled, and costs two clock reads per span: about 20 spans a frame.
@@ -24,6 +25,9 @@ use tracing::Subscriber;
 use tracing_subscriber::layer::Context;
 use tracing_subscriber::registry::LookupSpan;
 use tracing_subscriber::Layer;
+
+/// The derived row: `update` less the copies of new geometry.
+const LESS_COPIES: &str = "less geometry copies";
 
 /// What the layer gathered (shared with its owner).
 #[derive(Debug, Default)]
@@ -158,7 +162,7 @@ where
                 .filter(|(p, _)| p.ends_with(";upload_geometry"))
                 .map(|(_, ms)| ms)
                 .sum();
-            frame.insert(format!("{path};less geometry copies"), ms - copies);
+            frame.insert(format!("{path};{LESS_COPIES}"), ms - copies);
             let n = d.samples.get(&path).map_or(0, Vec::len);
             for (p, ms) in frame {
                 let v = d.samples.entry(p).or_default();
@@ -195,6 +199,81 @@ impl ProfileData {
             .iter()
             .filter(|(_, us)| **us >= 1.0)
             .map(|(p, us)| format!("{p} {}\n", us.round() as u64))
+            .collect()
+    }
+
+    /// Per frame, each phase's inclusive time (ms): a header row of the paths, then one row
+    /// per sample (the `n`-th `update` of each policy), for finding what makes the slowest
+    /// frames slow. Only paths at most `depth` spans below the policy are written.
+    pub fn frames_csv(&self, depth: usize) -> String {
+        let cols: Vec<(&String, &Vec<f64>)> = self
+            .samples
+            .iter()
+            .filter(|(p, _)| p.matches(';').count() <= depth)
+            .collect();
+        let rows = cols.iter().map(|(_, v)| v.len()).max().unwrap_or(0);
+        let mut out = String::from("sample");
+        for (p, _) in &cols {
+            out.push(',');
+            out.push_str(p);
+        }
+        out.push('\n');
+        for i in 0..rows {
+            out.push_str(&i.to_string());
+            for (_, v) in &cols {
+                out.push(',');
+                if let Some(ms) = v.get(i) {
+                    out.push_str(&format!("{ms:.4}"));
+                }
+            }
+            out.push('\n');
+        }
+        out
+    }
+
+    /// The `n` slowest samples of `update` from sample `skip` on, each with the phases (at
+    /// most `depth` spans below the policy) that took at least `min_ms` more than their median:
+    /// (sample, `update` ms, [(path, ms over the median)]).
+    pub fn slowest(
+        &self,
+        n: usize,
+        skip: usize,
+        depth: usize,
+        min_ms: f64,
+    ) -> Vec<(usize, f64, Vec<(String, f64)>)> {
+        let Some((root, total)) = self
+            .samples
+            .iter()
+            .find(|(p, _)| p.ends_with("update") && !p.contains(";update;"))
+        else {
+            return Vec::new();
+        };
+        let medians: Vec<(&String, &Vec<f64>, f64)> = self
+            .samples
+            .iter()
+            .filter(|(p, _)| p.starts_with(root.as_str()) && p.as_str() != root.as_str())
+            .filter(|(p, _)| p.matches(';').count() <= depth && !p.ends_with(LESS_COPIES))
+            .map(|(p, v)| {
+                let m = rtstream_stats::Samples::new(v.iter().skip(skip).copied()).median();
+                (p, v, m)
+            })
+            .collect();
+        let mut order: Vec<usize> = (skip..total.len()).collect();
+        order.sort_by(|&a, &b| total[b].total_cmp(&total[a]));
+        order
+            .into_iter()
+            .take(n)
+            .map(|i| {
+                let over = medians
+                    .iter()
+                    .filter_map(|(p, v, m)| {
+                        let d = v.get(i).copied().unwrap_or(0.0) - m;
+                        let name = p.trim_start_matches(root.as_str()).trim_start_matches(';');
+                        (d >= min_ms).then(|| (name.to_string(), d))
+                    })
+                    .collect();
+                (i, total[i], over)
+            })
             .collect()
     }
 
