@@ -90,6 +90,11 @@ pub struct BuildBudget {
     /// GPU AS p99 at 0.503 ms (the estimates' residuals), 0.45 at 0.483 ms with the same builds
     /// per frame and the same image error (docs/GPU.md).
     pub max_gpu_ms: f32,
+    /// BLAS builds admitted per frame, whatever their GPU cost: recording a build costs the
+    /// host too (the driver's `vkCmdBuildAccelerationStructuresKHR` and the backend's planning,
+    /// about 25 µs a build on the H200's host), and many small builds fit the GPU budget. The
+    /// first near item and the first proxy of a frame go past it, as past the GPU budget.
+    pub max_builds: u32,
     /// Priority gained per frame of waiting (world units of distance), so nothing starves.
     pub aging_per_frame: f32,
     /// Priority bonus (world units) for an item some camera looks towards.
@@ -113,6 +118,7 @@ impl Default for BuildBudget {
         Self {
             max_primitives: 200_000,
             max_gpu_ms: 0.45,
+            max_builds: u32::MAX,
             aging_per_frame: 2.0,
             in_view_bonus: 50.0,
             max_compactions: 8,
@@ -371,6 +377,7 @@ impl Config {
             ),
             (b.max_primitives > 0, "build.max_primitives must be > 0"),
             (pos(b.max_gpu_ms), "build.max_gpu_ms must be > 0"),
+            (b.max_builds > 0, "build.max_builds must be > 0"),
             (
                 nonneg(b.aging_per_frame) && nonneg(b.in_view_bonus),
                 "build.aging/in_view_bonus must be >= 0",

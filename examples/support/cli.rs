@@ -103,6 +103,9 @@ pub struct RunArgs {
     /// Triangles admitted for BLAS builds per frame.
     #[arg(long)]
     pub max_build_tris: Option<u64>,
+    /// BLAS builds admitted per frame (`BuildBudget::max_builds`).
+    #[arg(long)]
+    pub max_builds: Option<u32>,
     /// Streaming load radius, metres (what a raster engine would load).
     #[arg(long, default_value_t = 1000.0)]
     pub stream_radius: f32,
@@ -392,6 +395,9 @@ impl RunArgs {
         }
         if let Some(t) = self.max_build_tris {
             m.build.max_primitives = t;
+        }
+        if let Some(n) = self.max_builds {
+            m.build.max_builds = n;
         }
         if c.policies.is_empty() {
             bail!("--policy needs at least one policy");

@@ -155,6 +155,25 @@ impl<B: AsBackend> AsManager<B> {
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
         for &(prio, key) in &queue {
+            let proxy = is_proxy(&self.tables, key);
+            if budgeted && admitted.len() >= b.max_builds as usize {
+                // The host's share: each build costs the driver's recording and the backend's
+                // planning. Past the cap only the first proxy and the first near item of the
+                // frame still go (progress); proxies come first in the queue, so past the
+                // first near item nothing else can.
+                let first = progress
+                    && if proxy {
+                        proxy_ms == 0.0
+                    } else {
+                        detail_admitted == 0
+                    };
+                if !first {
+                    if proxy {
+                        continue;
+                    }
+                    break;
+                }
+            }
             let (mesh_ix, lod, owner, tris) = {
                 let e = &self.tables.entries[key];
                 (e.mesh, e.lod as usize, e.owner, e.triangles)
@@ -187,7 +206,6 @@ impl<B: AsBackend> AsManager<B> {
             let size = self
                 .backend
                 .blas_sizes(&geometry_ref(&geometry, pose.as_ref(), opaque), class);
-            let proxy = is_proxy(&self.tables, key);
             let oversized = !proxy && (tris as u64 > b.max_primitives || est > b.max_gpu_ms as f64);
             if budgeted && proxy {
                 // Proxies: their share of what the build budget leaves past the batch's fixed

@@ -1,6 +1,6 @@
 //! Scenario tests of the frame loop against the model backend.
 //!
-//! Why one file over 600 lines: sixteen scenario tests sharing one set of model-backend scene
+//! Why one file over 600 lines: twenty scenario tests sharing one set of model-backend scene
 //! builders; the far-field and LOD-geometry scenarios already have files of their own
 //! (`far_tests.rs`, `lod_geometry_tests.rs`).
 
@@ -178,6 +178,28 @@ fn build_budget_respected_and_oversized_alone() {
     }
     assert_eq!(oversized, 1);
     assert_eq!(m.stats().blas_count, 40);
+}
+
+#[test]
+fn build_count_cap_holds_and_everything_builds() {
+    let mut cfg = Config::default();
+    cfg.build.max_gpu_ms = 1000.0;
+    cfg.build.max_builds = 4;
+    let mut m = mgr(cfg);
+    for i in 0..40 {
+        let mesh = static_mesh(&m, 100, 1.0);
+        m.add_instance(InstanceDesc::new(mesh, at(i as f32 * 2.0, 5.0)))
+            .unwrap();
+    }
+    let c = cam(0.0, 0.0);
+    let mut at_cap = 0;
+    for f in 0..40 {
+        let s = run_frame(&mut m, f, &c).stats.clone();
+        assert!(s.builds <= 4, "frame {f}: {} builds", s.builds);
+        at_cap += u32::from(s.builds == 4);
+    }
+    assert!(at_cap >= 9, "the cap bound: {at_cap} frames at 4 builds");
+    assert_eq!(m.stats().blas_count, 40, "nothing starves");
 }
 
 #[test]
