@@ -425,6 +425,53 @@ fn run_and_compare(mut s: Scene, frames: u64, fail_at: Option<u64>) -> u32 {
     fallbacks
 }
 
+/// A backlog of builds (at most two a frame) leaves hundreds of landmarks waiting for their
+/// target BLAS. Each is looked at again only when its distance leaves its last look's band,
+/// not every frame, yet the distances that order their builds stay this frame's, exact; and
+/// the set still matches the rule.
+#[test]
+fn a_backlog_of_builds_keeps_exact_distances_without_a_look_each_frame() {
+    let mut c = config();
+    c.build.max_builds = 2;
+    let mut s = scene_with_meshes(c, 400);
+    let (mut waiting, mut looks) = (0usize, 0usize);
+    for frame in 0..120 {
+        let cams = cameras(frame);
+        let vps: Vec<Viewpoint> = cams.iter().map(|&p| Viewpoint::new(p, Vec3::X)).collect();
+        let out =
+            s.m.update(FrameInput {
+                frame,
+                cameras: &vps,
+            })
+            .unwrap();
+        let examined = out.stats.landmarks_examined as usize;
+        s.m.check_invariants().unwrap();
+        let fwds = vec![Vec3::X; cams.len()];
+        let (error, w) =
+            s.m.landmarks
+                .unbuilt_distance_error(&s.m.tables, (&cams, &fwds), frame);
+        if let Some(e) = error {
+            panic!("frame {frame}: {e}");
+        }
+        if frame >= 20 {
+            waiting += w;
+            looks += examined;
+        }
+    }
+    assert!(
+        waiting > 10_000,
+        "{waiting} landmark-frames waited for a BLAS"
+    );
+    assert!(
+        looks * 4 < waiting,
+        "{looks} looks for {waiting} landmark-frames waiting: a look each frame"
+    );
+    let frames = 400;
+    let mut c = config();
+    c.build.max_builds = 2;
+    run_and_compare(scene_with_meshes(c, 400), frames, None);
+}
+
 #[test]
 fn incremental_landmarks_match_the_rule_every_frame() {
     run_and_compare(scene(config()), 650, None);

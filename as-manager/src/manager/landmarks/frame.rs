@@ -57,10 +57,13 @@ impl<B: AsBackend> AsManager<B> {
         let mut due = std::mem::take(&mut landmarks.scratch);
         let mut queued = std::mem::take(&mut landmarks.queued_scratch);
         landmarks.collect_due(tables, p.need_data, &mut far.flipped, &mut due, &mut queued);
-        // Landmarks whose target is not built yet are looked at (the distances of unbuilt
-        // entries are exact; see the module docs) and choose their BLAS every frame.
+        // Landmarks whose target is not built yet choose their BLAS every frame, and their
+        // distances are taken (the distances of unbuilt entries are exact; see the module
+        // docs): a look only once outside their last look's band.
         landmarks.rechoose.extend_from_slice(&landmarks.unsettled);
-        due.append(&mut landmarks.unsettled);
+        let mut unsettled = std::mem::take(&mut landmarks.unsettled);
+        #[cfg(test)]
+        landmarks.waited_unlooked.clear();
         let mut look = Look {
             grid,
             tables,
@@ -82,6 +85,15 @@ impl<B: AsBackend> AsManager<B> {
                 landmarks.look_at(ci, &mut look);
             }
         }
+        for &slot in &unsettled {
+            if let Some(&ci) = landmarks.index.get(slot as usize) {
+                if !landmarks.unsettled_wait(ci, &look) {
+                    landmarks.look_at(ci, &mut look);
+                }
+            }
+        }
+        unsettled.clear();
+        landmarks.unsettled = unsettled;
         for e in &queued {
             if landmarks.is_live(e) && !landmarks.wait_if_inside(*e, look.cams) {
                 landmarks.look_at(e.ci, &mut look);

@@ -107,6 +107,10 @@ impl Landmarks {
     pub(super) fn due_between(&mut self, ci: u32, lo: f32, hi: f32, d: f32) {
         let stamp = self.bump_stamp();
         self.stamps[ci as usize] = stamp;
+        // A margin for rounding in the distances (f32) and the odometer.
+        let m = 0.01 + 1e-4 * d;
+        let band = (lo + m, hi - m);
+        self.cands[ci as usize].band = band;
         if lo <= 0.0 && hi == f32::INFINITY {
             return;
         }
@@ -118,9 +122,6 @@ impl Landmarks {
             // due at once when it settles, and that look queues it.
             return;
         }
-        // A margin for rounding in the distances (f32) and the odometer.
-        let m = 0.01 + 1e-4 * d;
-        let band = (lo + m, hi - m);
         let slack = (d - band.0).min(band.1 - d).max(0.0);
         let center = self.cands[ci as usize].center;
         let entry = Due {
@@ -130,6 +131,60 @@ impl Landmarks {
             band,
         };
         self.queue.push(self.odo + f64::from(slack), entry);
+    }
+
+    /// An unsettled landmark (`Landmarks::unsettled`) whose distance is still inside its last
+    /// look's band, with no event this frame: the look would decide the same, so only its
+    /// distance is taken, into its target pair's distances (which order that pair's build), as
+    /// the look does. Returns `false` when it needs a look (outside its band, or no longer an
+    /// unsettled landmark); `true` also when there is nothing to look at (vacant, or looked at
+    /// this frame).
+    pub(super) fn unsettled_wait(&mut self, ci: u32, x: &Look<'_>) -> bool {
+        let frame = x.p.frame;
+        let Some(&c) = self.cands.get(ci as usize) else {
+            return true;
+        };
+        if c.slot == NONE || c.seen == frame {
+            return true;
+        }
+        if c.member == NONE || !c.unsettled {
+            return false;
+        }
+        let (center, radius) = (c.center, c.radius);
+        let d = nearest2(x.cams, center).sqrt();
+        let (lo, hi) = c.band;
+        if !(d > lo && d < hi) {
+            return false;
+        }
+        self.cands[ci as usize].seen = frame;
+        self.waited += 1;
+        #[cfg(test)]
+        self.waited_unlooked.push(c.slot);
+        let target = self.members[c.member as usize].target;
+        let surface = (d - radius).max(0.0);
+        let in_view = x
+            .cams
+            .iter()
+            .zip(x.fwds)
+            .any(|(p, f)| f.dot(center - *p) >= 0.0);
+        let key = surface as f64 + self.odo;
+        let pair = self.pair(target);
+        if pair.targets == 1 {
+            pair.min_key = key;
+            pair.in_view = in_view;
+        } else {
+            pair.min_key = pair.min_key.min(key);
+            pair.in_view |= in_view;
+        }
+        crate::manager::state::merge_nearest(
+            &mut pair.frame,
+            &mut pair.frame_min,
+            &mut pair.frame_in_view,
+            frame,
+            surface,
+            in_view,
+        );
+        true
     }
 
     /// A live queue entry whose candidate's distance is still inside the band of its last

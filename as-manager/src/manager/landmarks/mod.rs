@@ -32,7 +32,10 @@
 //! - the camera count, the configuration or a failed frame changed (everything is due).
 //!
 //! A landmark whose target BLAS is not built yet (it shows a coarser one, or nothing) chooses
-//! its BLAS again every frame until it is. Per frame the set costs the due candidates plus one
+//! its BLAS again every frame until it is, and its distance is taken every frame (its target
+//! pair's, for the build order); it is looked at again only when that distance leaves its last
+//! look's band, as a queued candidate is. (Looking at every one of them every frame made a
+//! backlog of builds cost thousands of looks a frame: `docs/PROFILE.md`.) Per frame the set costs the due candidates plus one
 //! pass over the (mesh, LOD) pairs the landmarks use, which carry the residency marks every
 //! landmark would have set (a few hundred pairs for thousands of landmarks). The records of
 //! shown landmarks lead the manager's record list and change only where a landmark joined, left
@@ -87,6 +90,9 @@ struct Cand {
     sel: u8,
     /// A landmark that chooses its BLAS every frame (`Landmarks::unsettled`).
     unsettled: bool,
+    /// The centre distances between which its last look's outcome holds (margins taken off;
+    /// empty: due next frame). An unsettled landmark is looked at again only once outside.
+    band: (f32, f32),
     /// Detail of a near leaf: culled by its projected angle (`InstanceCuller::cull_small`).
     culled: bool,
     /// Detail not ready (no LOD of its mesh has data or a BLAS): counted in its leaf's
@@ -233,6 +239,10 @@ pub(crate) struct Landmarks {
     unready: FxHashMap<u32, u32>,
     /// Members choosing again next frame (their target is not built).
     unsettled: Vec<u32>,
+    /// This frame's unsettled landmarks that waited without a look (tests check their
+    /// distances).
+    #[cfg(test)]
+    waited_unlooked: Vec<u32>,
     scratch: Vec<u32>,
     queued_scratch: Vec<Due>,
     /// Candidates looked at this frame.
@@ -273,6 +283,8 @@ impl Default for Landmarks {
             rechoose: Vec::new(),
             unready: FxHashMap::default(),
             unsettled: Vec::new(),
+            #[cfg(test)]
+            waited_unlooked: Vec::new(),
             scratch: Vec::new(),
             queued_scratch: Vec::new(),
             examined: 0,
@@ -378,6 +390,68 @@ impl Landmarks {
     pub fn is_landmark(&self, slot: u32) -> bool {
         self.cand(slot)
             .is_some_and(|c| c.member != NONE && !self.members[c.member as usize].detail)
+    }
+
+    /// Checks the distances the set gives the build order (after a frame's `update`): a pair
+    /// whose entry is not built, targeted only by landmarks that waited for it this frame
+    /// without a look (`unsettled_wait`), has this frame's exact nearest surface distance over
+    /// them and whether one is in front of a camera. `None`: no difference; else the first one.
+    /// Also the number of landmarks that waited so.
+    #[cfg(test)]
+    pub fn unbuilt_distance_error(
+        &self,
+        tables: &super::state::Tables,
+        (cams, fwds): (&[Vec3], &[Vec3]),
+        frame: u64,
+    ) -> (Option<String>, usize) {
+        let before: std::collections::HashSet<u32> = self.waited_unlooked.iter().copied().collect();
+        let mut exact: FxHashMap<u32, (f32, bool)> = FxHashMap::default();
+        let mut other: std::collections::HashSet<u32> = Default::default();
+        let mut waiting = 0;
+        for m in &self.members {
+            let Some(c) = self.cand(m.slot) else { continue };
+            if !c.unsettled || c.seen != frame || !before.contains(&m.slot) {
+                // Looked at this frame, or not waiting: not what this checks.
+                other.insert(m.target);
+                continue;
+            }
+            waiting += 1;
+            let d = cams
+                .iter()
+                .map(|p| p.distance_squared(c.center))
+                .fold(f32::INFINITY, f32::min)
+                .sqrt();
+            let surface = (d - c.radius).max(0.0);
+            let view = cams
+                .iter()
+                .zip(fwds)
+                .any(|(p, f)| f.dot(c.center - *p) >= 0.0);
+            let e = exact.entry(m.target).or_insert((f32::INFINITY, false));
+            *e = (e.0.min(surface), e.1 | view);
+        }
+        for (i, p) in self.pairs.iter().enumerate() {
+            let Some(p) = p else { continue };
+            let key = tables
+                .meshes
+                .get(p.mesh as usize)
+                .and_then(|m| m.as_ref())
+                .and_then(|m| m.lod_entry[p.lod as usize]);
+            if tables.built(key) || other.contains(&(i as u32)) {
+                continue;
+            }
+            let Some(&(d, view)) = exact.get(&(i as u32)) else {
+                continue;
+            };
+            let off = (p.frame_min - d).abs() > 1e-3 * (1.0 + d);
+            if p.frame != frame || off || p.frame_in_view != view {
+                let e = format!(
+                    "pair {i} (mesh {}, LOD {}): frame {} min {} in view {}, exact {d} in view {view}",
+                    p.mesh, p.lod, p.frame, p.frame_min, p.frame_in_view
+                );
+                return (Some(e), waiting);
+            }
+        }
+        (None, waiting)
     }
 
     /// Before `invalidate`: the detail members' state goes to their instances as a visit at
@@ -539,6 +613,7 @@ impl Landmarks {
             lod: NONE_LOD,
             sel: NONE_LOD,
             unsettled: false,
+            band: (0.0, 0.0),
             culled: false,
             unready: false,
         };
