@@ -122,6 +122,7 @@ impl<B: AsBackend> AsManager<B> {
             floor_since: 0,
             instances: Vec::new(),
             proxy: false,
+            blas_epoch: 0,
         });
     }
 

@@ -90,6 +90,10 @@ impl<B: AsBackend> AsManager<B> {
                     e.bytes = c.old_bytes;
                     e.handle = Some(c.old);
                     e.address = self.backend.blas_address(c.old);
+                    let m = e.mesh as usize;
+                    if let Some(Some(m)) = self.tables.meshes.get_mut(m) {
+                        m.blas_epoch = self.frame;
+                    }
                     e.needs_compaction = true;
                     self.compact_pending.push(c.entry);
                 }
@@ -118,6 +122,10 @@ impl<B: AsBackend> AsManager<B> {
                     e.handle = None;
                     e.address = 0;
                     e.state = EntryState::Queued;
+                    let m = e.mesh as usize;
+                    if let Some(Some(m)) = self.tables.meshes.get_mut(m) {
+                        m.blas_epoch = self.frame;
+                    }
                     e.needs_compaction = false;
                     self.live_bytes -= e.bytes;
                     self.built_count -= 1;

@@ -795,6 +795,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Frees a built entry's handle (retired after this frame) and drops the entry.
     pub(crate) fn release_entry(&mut self, key: EntryKey) {
         let frame = self.frame;
+        self.tables.blas_changed(key, frame);
         let e = &mut self.tables.entries[key];
         if let Some(handle) = e.handle.take() {
             e.address = 0;

@@ -344,6 +344,7 @@ impl<B: AsBackend> AsManager<B> {
                     self.live_bytes += s.as_bytes;
                     self.built_count += 1;
                     self.journal.built.push((a.entry, handle));
+                    self.tables.blas_changed(a.entry, frame);
                     tracing::trace!(entry = ?a.entry, bytes = s.as_bytes, "blas built");
                 }
                 self.stats.builds = admitted.len() as u32;
@@ -557,6 +558,7 @@ impl<B: AsBackend> AsManager<B> {
                     e.handle = Some(new);
                     e.address = self.backend.blas_address(new);
                     e.needs_compaction = false;
+                    self.tables.blas_changed(key, frame);
                     done += 1;
                     ms += est;
                     false

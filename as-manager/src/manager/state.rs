@@ -43,6 +43,9 @@ pub(crate) struct MeshState {
     pub instances: Vec<u32>,
     /// Some group's far-field proxy (the baselines never build it).
     pub proxy: bool,
+    /// The last frame a BLAS of one of its LODs was built, compacted, released or rolled
+    /// back: what a landmark waiting for its target chooses from changed (`landmarks_cull`).
+    pub blas_epoch: u64,
 }
 
 impl MeshState {
@@ -251,6 +254,16 @@ pub(crate) struct Tables {
 
 impl Tables {
     /// Whether `key` names a live, built entry.
+    /// A BLAS of `key`'s mesh was built, compacted, released or rolled back in `frame`.
+    pub fn blas_changed(&mut self, key: EntryKey, frame: u64) {
+        let Some(e) = self.entries.get(key) else {
+            return;
+        };
+        if let Some(Some(m)) = self.meshes.get_mut(e.mesh as usize) {
+            m.blas_epoch = frame;
+        }
+    }
+
     pub fn built(&self, key: Option<EntryKey>) -> bool {
         key.and_then(|k| self.entries.get(k))
             .is_some_and(|e| e.state == EntryState::Built)

@@ -57,11 +57,14 @@ impl<B: AsBackend> AsManager<B> {
         let mut due = std::mem::take(&mut landmarks.scratch);
         let mut queued = std::mem::take(&mut landmarks.queued_scratch);
         landmarks.collect_due(tables, p.need_data, &mut far.flipped, &mut due, &mut queued);
-        // Landmarks whose target is not built yet choose their BLAS every frame, and their
-        // distances are taken (the distances of unbuilt entries are exact; see the module
-        // docs): a look only once outside their last look's band.
-        landmarks.rechoose.extend_from_slice(&landmarks.unsettled);
-        let mut unsettled = std::mem::take(&mut landmarks.unsettled);
+        // Landmarks whose target is not built yet: their distances are taken every frame (the
+        // distances of unbuilt entries are exact; see the module docs), a look only once
+        // outside their last look's band; `landmarks_cull` chooses their BLAS again when one
+        // of their mesh's changed.
+        // (`waiting` is empty unless a frame failed between the two steps.)
+        let mut spare = std::mem::take(&mut landmarks.waiting);
+        spare.clear();
+        let unsettled = std::mem::replace(&mut landmarks.unsettled, spare);
         #[cfg(test)]
         landmarks.waited_unlooked.clear();
         let mut look = Look {
@@ -92,8 +95,7 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
         }
-        unsettled.clear();
-        landmarks.unsettled = unsettled;
+        landmarks.waiting = unsettled;
         for e in &queued {
             if landmarks.is_live(e) && !landmarks.wait_if_inside(*e, look.cams) {
                 landmarks.look_at(e.ci, &mut look);
@@ -191,7 +193,38 @@ impl<B: AsBackend> AsManager<B> {
                 rechoose.extend_from_slice(&pair.showing);
             }
         }
-        for &slot in &rechoose {
+        // Landmarks waiting for their target choose again only when a BLAS of their mesh was
+        // built, compacted or released since their last choice (the choice reads nothing
+        // else); first, in the order they waited.
+        let mut waiting = std::mem::take(&mut landmarks.waiting);
+        let mut kept = std::mem::take(&mut landmarks.kept_scratch);
+        kept.clear();
+        let mut order = std::mem::take(&mut landmarks.order_scratch);
+        order.clear();
+        for &slot in &waiting {
+            let Some(c) = landmarks.cand(slot) else {
+                continue;
+            };
+            let chosen = match landmarks.members.get(c.member as usize) {
+                Some(m) if c.unsettled && m.chosen != u64::MAX => m.chosen,
+                _ => {
+                    order.push(slot);
+                    continue;
+                }
+            };
+            let epoch = tables
+                .meshes
+                .get(c.mesh as usize)
+                .and_then(|m| m.as_ref())
+                .map_or(u64::MAX, |m| m.blas_epoch);
+            if epoch <= chosen {
+                kept.push(slot);
+            } else {
+                order.push(slot);
+            }
+        }
+        order.append(&mut rechoose);
+        for &slot in &order {
             let Some(c) = landmarks.cand(slot) else {
                 continue;
             };
@@ -263,7 +296,26 @@ impl<B: AsBackend> AsManager<B> {
             });
             landmarks.put_record(mi, record, records);
         }
-        rechoose.clear();
+        // The waiting ones whose mesh's BLASes did not change (and that nothing else made
+        // choose) show what they showed; one showing nothing still holds its leaf's proxy.
+        for &slot in &kept {
+            let Some(&c) = landmarks.cand(slot) else {
+                continue;
+            };
+            let mb = landmarks.members[c.member as usize];
+            if mb.chosen == frame {
+                continue;
+            }
+            landmarks.unsettled.push(slot);
+            if mb.detail && mb.shown == NONE && !c.culled && c.group != NO_GROUP {
+                far.add_unready(c.group);
+            }
+        }
+        waiting.clear();
+        landmarks.waiting = waiting;
+        landmarks.kept_scratch = kept;
+        order.clear();
+        landmarks.order_scratch = order;
         landmarks.rechoose = rechoose;
         for pair in landmarks.pairs.iter().flatten() {
             if pair.showing.is_empty() {

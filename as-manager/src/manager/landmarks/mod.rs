@@ -239,6 +239,11 @@ pub(crate) struct Landmarks {
     unready: FxHashMap<u32, u32>,
     /// Members choosing again next frame (their target is not built).
     unsettled: Vec<u32>,
+    /// Last frame's `unsettled`, from the residency step to the cull step; and the cull step's
+    /// scratch lists.
+    waiting: Vec<u32>,
+    kept_scratch: Vec<u32>,
+    order_scratch: Vec<u32>,
     /// This frame's unsettled landmarks that waited without a look (tests check their
     /// distances).
     #[cfg(test)]
@@ -283,6 +288,9 @@ impl Default for Landmarks {
             rechoose: Vec::new(),
             unready: FxHashMap::default(),
             unsettled: Vec::new(),
+            waiting: Vec::new(),
+            kept_scratch: Vec::new(),
+            order_scratch: Vec::new(),
             #[cfg(test)]
             waited_unlooked: Vec::new(),
             scratch: Vec::new(),
@@ -392,7 +400,8 @@ impl Landmarks {
             .is_some_and(|c| c.member != NONE && !self.members[c.member as usize].detail)
     }
 
-    /// Checks the distances the set gives the build order (after a frame's `update`): a pair
+    /// Checks that no landmark waits for a target that is built, and the distances the set
+    /// gives the build order (after a frame's `update`): a pair
     /// whose entry is not built, targeted only by landmarks that waited for it this frame
     /// without a look (`unsettled_wait`), has this frame's exact nearest surface distance over
     /// them and whether one is in front of a camera. `None`: no difference; else the first one.
@@ -410,6 +419,21 @@ impl Landmarks {
         let mut waiting = 0;
         for m in &self.members {
             let Some(c) = self.cand(m.slot) else { continue };
+            // One waiting for its target shows it as soon as it is built.
+            if let Some(p) = self.pairs[m.target as usize].as_ref() {
+                let key = tables
+                    .meshes
+                    .get(p.mesh as usize)
+                    .and_then(|m| m.as_ref())
+                    .and_then(|m| m.lod_entry[p.lod as usize]);
+                if c.unsettled && tables.built(key) {
+                    let e = format!(
+                        "slot {} waits for a built target (pair {})",
+                        m.slot, m.target
+                    );
+                    return (Some(e), 0);
+                }
+            }
             if !c.unsettled || c.seen != frame || !before.contains(&m.slot) {
                 // Looked at this frame, or not waiting: not what this checks.
                 other.insert(m.target);
@@ -479,6 +503,7 @@ impl Landmarks {
         self.rechoose.clear();
         self.unready.clear();
         self.unsettled.clear();
+        self.waiting.clear();
         self.queue.clear();
         self.hidden.clear();
         self.detail_records = 0;
