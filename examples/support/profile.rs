@@ -26,6 +26,10 @@ use tracing_subscriber::layer::Context;
 use tracing_subscriber::registry::LookupSpan;
 use tracing_subscriber::Layer;
 
+/// A slow frame: its sample index, its `update` ms, and the phases over their median (path,
+/// ms over).
+pub type SlowFrame = (usize, f64, Vec<(String, f64)>);
+
 /// The derived row: `update` less the copies of new geometry.
 const LESS_COPIES: &str = "less geometry copies";
 
@@ -234,13 +238,7 @@ impl ProfileData {
     /// The `n` slowest samples of `update` from sample `skip` on, each with the phases (at
     /// most `depth` spans below the policy) that took at least `min_ms` more than their median:
     /// (sample, `update` ms, [(path, ms over the median)]).
-    pub fn slowest(
-        &self,
-        n: usize,
-        skip: usize,
-        depth: usize,
-        min_ms: f64,
-    ) -> Vec<(usize, f64, Vec<(String, f64)>)> {
+    pub fn slowest(&self, n: usize, skip: usize, depth: usize, min_ms: f64) -> Vec<SlowFrame> {
         let Some((root, total)) = self
             .samples
             .iter()
