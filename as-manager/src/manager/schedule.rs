@@ -83,27 +83,28 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Builds queued entries within the per-frame budget (`budgeted`), memory permitting.
     pub(crate) fn schedule_builds(&mut self, budgeted: bool) -> Result<()> {
-        let mut queue: Vec<(f32, EntryKey)> = self
-            .tables
-            .active
-            .iter()
-            .copied()
-            .filter(|&s| self.tables.entries[s].state == EntryState::Queued)
-            .map(|s| (self.priority(s), s))
-            .collect();
-        // Far-field proxies first, within their share of the budget; then near detail.
         let is_proxy = |tables: &Tables, key: EntryKey| {
             tables.meshes[tables.entries[key].mesh as usize]
                 .as_ref()
                 .is_some_and(|m| m.proxy)
         };
+        // (proxy, priority, entry): whether it is a proxy is read once per entry, not in every
+        // comparison of the sort (a backlog of builds queues thousands).
+        let mut queue: Vec<(bool, f32, EntryKey)> = self
+            .tables
+            .active
+            .iter()
+            .copied()
+            .filter(|&s| self.tables.entries[s].state == EntryState::Queued)
+            .map(|s| (is_proxy(&self.tables, s), self.priority(s), s))
+            .collect();
+        // Far-field proxies first, within their share of the budget; then near detail.
         queue.sort_by(|a, b| {
-            is_proxy(&self.tables, b.1)
-                .cmp(&is_proxy(&self.tables, a.1))
-                .then(a.0.total_cmp(&b.0))
+            b.0.cmp(&a.0)
+                .then(a.1.total_cmp(&b.1))
                 // Ties by key: slotmap orders keys by slot, the order the hand-written slot
                 // table broke ties in (any fixed order would do: runs must be deterministic).
-                .then(a.1.cmp(&b.1))
+                .then(a.2.cmp(&b.2))
         });
         let proxy_ms_max = f64::from(self.config.far_field.build_share.clamp(0.0, 1.0));
         let mut proxy_bytes: u64 = if budgeted && self.config.far_field.enabled {
@@ -154,8 +155,7 @@ impl<B: AsBackend> AsManager<B> {
         let build_ms = (b.max_gpu_ms as f64 - self.gpu_reserved_ms).max(0.0);
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
-        for &(prio, key) in &queue {
-            let proxy = is_proxy(&self.tables, key);
+        for &(proxy, prio, key) in &queue {
             if budgeted && admitted.len() >= b.max_builds as usize {
                 // The host's share: each build costs the driver's recording and the backend's
                 // planning. Past the cap only the first proxy and the first near item of the

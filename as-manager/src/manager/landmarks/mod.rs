@@ -100,6 +100,10 @@ struct Cand {
     unready: bool,
 }
 
+// A look at a candidate reads one cache line of it (the band added in the seventh session
+// still fits).
+const _: () = assert!(std::mem::size_of::<Cand>() <= 64);
+
 /// A shown landmark (a member of the set).
 #[derive(Debug, Clone, Copy)]
 struct Member {
