@@ -83,20 +83,21 @@ impl<B: AsBackend> AsManager<B> {
         let mut j = std::mem::take(&mut self.journal);
         for c in j.compacted.drain(..).rev() {
             let mut new_bytes = 0;
+            let mut undone = false;
             if let Some(e) = self.tables.entries.get_mut(c.entry) {
                 if e.handle == Some(c.new) {
+                    undone = true;
                     new_bytes = e.bytes;
                     self.live_bytes = self.live_bytes - e.bytes + c.old_bytes;
                     e.bytes = c.old_bytes;
                     e.handle = Some(c.old);
                     e.address = self.backend.blas_address(c.old);
-                    let m = e.mesh as usize;
-                    if let Some(Some(m)) = self.tables.meshes.get_mut(m) {
-                        m.blas_epoch = self.frame;
-                    }
                     e.needs_compaction = true;
                     self.compact_pending.push(c.entry);
                 }
+            }
+            if undone {
+                self.tables.blas_changed(c.entry, self.frame);
             }
             // The manager counted the source as retiring: it is live again.
             if let Some(i) = self
@@ -116,21 +117,22 @@ impl<B: AsBackend> AsManager<B> {
         }
         for (key, handle) in j.built.drain(..).rev() {
             let mut bytes = 0;
+            let mut undone = false;
             if let Some(e) = self.tables.entries.get_mut(key) {
                 if e.handle == Some(handle) {
+                    undone = true;
                     bytes = e.bytes;
                     e.handle = None;
                     e.address = 0;
                     e.state = EntryState::Queued;
-                    let m = e.mesh as usize;
-                    if let Some(Some(m)) = self.tables.meshes.get_mut(m) {
-                        m.blas_epoch = self.frame;
-                    }
                     e.needs_compaction = false;
                     self.live_bytes -= e.bytes;
                     self.built_count -= 1;
                     e.bytes = 0;
                 }
+            }
+            if undone {
+                self.tables.blas_changed(key, self.frame);
             }
             self.free_unsubmitted(handle, bytes);
         }

@@ -162,14 +162,17 @@ impl Landmarks {
         self.waited_unlooked.push(c.slot);
         let target = self.members[c.member as usize].target;
         let surface = (d - radius).max(0.0);
-        let in_view = x
-            .cams
-            .iter()
-            .zip(x.fwds)
-            .any(|(p, f)| f.dot(center - *p) >= 0.0);
+        self.note_target_distance(target, surface, in_view(x, center), frame);
+        true
+    }
+
+    /// A target's look (or wait) this frame: its surface distance and whether it is in front of
+    /// a camera go into its target pair's lower bound and this frame's exact figures.
+    fn note_target_distance(&mut self, target: u32, surface: f32, in_view: bool, frame: u64) {
         let key = surface as f64 + self.odo;
         let pair = self.pair(target);
         if pair.targets == 1 {
+            // Its only target: exact again.
             pair.min_key = key;
             pair.in_view = in_view;
         } else {
@@ -184,7 +187,6 @@ impl Landmarks {
             surface,
             in_view,
         );
-        true
     }
 
     /// A live queue entry whose candidate's distance is still inside the band of its last
@@ -204,6 +206,11 @@ impl Landmarks {
         self.waited += 1;
         true
     }
+}
+
+/// Whether `c` is in front of some camera (a half-space test, as the build priority's).
+fn in_view(x: &Look<'_>, c: Vec3) -> bool {
+    x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0)
 }
 
 /// Squared distance from the nearest camera to `c` (as the residency pass computes it, so
@@ -493,7 +500,7 @@ impl Landmarks {
             self.due_between(ci, lo, hi, d);
             return;
         }
-        let in_view = x.cams.iter().zip(x.fwds).any(|(p, f)| f.dot(c - *p) >= 0.0);
+        let in_view = in_view(x, c);
         if !is_member {
             // Joins: the instance's LOD and cull state as a visit leaves them (a member's
             // LOD is written back when it changes, in `landmarks_cull`).
@@ -558,24 +565,7 @@ impl Landmarks {
             }
         }
         self.pair(sel_pair).resolved = lodi as u8;
-        let key = surface as f64 + self.odo;
-        let pair = self.pair(target);
-        if pair.targets == 1 {
-            // Its only target: exact again.
-            pair.min_key = key;
-            pair.in_view = in_view;
-        } else {
-            pair.min_key = pair.min_key.min(key);
-            pair.in_view |= in_view;
-        }
-        crate::manager::state::merge_nearest(
-            &mut pair.frame,
-            &mut pair.frame_min,
-            &mut pair.frame_in_view,
-            frame,
-            surface,
-            in_view,
-        );
+        self.note_target_distance(target, surface, in_view, frame);
         let c = &mut self.cands[ci as usize];
         (c.lod, c.sel) = (lodi as u8, selected as u8);
         c.culled = kind.culled;
