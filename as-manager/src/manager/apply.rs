@@ -62,6 +62,11 @@ impl<B: AsBackend> AsManager<B> {
                     if let Some((m, _)) = proxy {
                         if let Some(Some(mesh)) = self.tables.meshes.get_mut(m.index as usize) {
                             mesh.proxy = true;
+                            for k in mesh.lod_entry.iter().flatten() {
+                                if let Some(e) = self.tables.entries.get_mut(*k) {
+                                    e.proxy = true;
+                                }
+                            }
                         }
                     }
                 }

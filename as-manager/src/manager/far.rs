@@ -43,6 +43,11 @@ pub(crate) struct GroupNode {
     children: Vec<u32>,
     /// (proxy mesh slot, error in metres).
     proxy: Option<(u32, f32)>,
+    /// The proxy's BLAS entry as of its last request (`request_proxy`): the display cut reads
+    /// the entry through it, not through the proxy mesh's state (one cold read less a node
+    /// the cut visits). Checked before use: slotmap keys are versioned, and the entry must
+    /// still be of this node's proxy mesh.
+    proxy_entry: Option<EntryKey>,
     /// Distance from the nearest camera to the bounds, as of epoch `dist_epoch`.
     dist: f32,
     dist_epoch: u64,
@@ -61,6 +66,11 @@ pub(crate) struct GroupNode {
     pub unready: u32,
     /// Proxy culled last frame (culling hysteresis).
     culled: bool,
+    /// The bounds' centre and half diagonal (the proxy's culling sphere), and its TLAS record
+    /// but for the BLAS address: fixed at registration, not derived again each frame it shows.
+    centre: Vec3,
+    radius: f32,
+    template: TlasInstance,
 }
 
 /// The group tree and last frame's picks.
@@ -130,11 +140,21 @@ impl FarField {
         self.generations[i] = id.generation;
         self.roots_dirty = true;
         self.live += usize::from(self.nodes[i].is_none());
+        let (lo, hi) = (Vec3::from(desc.bounds_min), Vec3::from(desc.bounds_max));
+        let template = TlasInstance::new(
+            &Affine3A::IDENTITY,
+            desc.custom_index,
+            desc.mask,
+            0,
+            INSTANCE_FORCE_OPAQUE,
+            0,
+        );
         self.nodes[i] = Some(GroupNode {
             desc,
             parent,
             children: Vec::new(),
             proxy: None,
+            proxy_entry: None,
             dist: f32::INFINITY,
             dist_epoch: 0,
             near: false,
@@ -143,6 +163,9 @@ impl FarField {
             leaves: 1,
             unready: 0,
             culled: false,
+            centre: 0.5 * (lo + hi),
+            radius: 0.5 * (hi - lo).length(),
+            template,
         });
         self.refresh_near_bit(id.index);
         if let Some(p) = parent {
@@ -478,7 +501,10 @@ impl<B: AsBackend> AsManager<B> {
             // most of it), the far field is covered coarsely first instead of finely near the
             // cameras and not at all farther out.
             let leaves = n.leaves.max(1) as f32;
-            self.request_proxy(mesh, dist / leaves.sqrt(), frame);
+            let key = self.request_proxy(mesh, dist / leaves.sqrt(), frame);
+            if let Some(Some(n)) = self.far.nodes.get_mut(i as usize) {
+                n.proxy_entry = key;
+            }
         }
         self.far.want = want;
     }
@@ -495,9 +521,10 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Requests a proxy's BLAS this frame; `dist` orders its build and eviction among the
     /// proxies (`far_prepare` passes a coverage-weighted distance).
-    fn request_proxy(&mut self, mesh: u32, dist: f32, frame: u64) {
+    /// Returns the proxy's entry (`None`: its mesh is gone).
+    fn request_proxy(&mut self, mesh: u32, dist: f32, frame: u64) -> Option<EntryKey> {
         let Some(Some(m)) = self.tables.meshes.get(mesh as usize) else {
-            return;
+            return None;
         };
         let tris = m.lod_tris[0];
         let key = match m.lod_entry[0] {
@@ -525,12 +552,27 @@ impl<B: AsBackend> AsManager<B> {
             e.queued_since = frame;
             e.streak_start = frame;
         }
+        Some(key)
+    }
+
+    /// The proxy's entry of a node: the one its last request found when still live and of
+    /// its proxy mesh, else through the mesh's state.
+    fn proxy_key(&self, group: u32) -> Option<EntryKey> {
+        let n = self.far.node(group);
+        let (mesh, _) = n.proxy?;
+        let cached = n
+            .proxy_entry
+            .filter(|&k| self.tables.entries.get(k).is_some_and(|e| e.mesh == mesh));
+        let through_mesh = || self.tables.meshes.get(mesh as usize)?.as_ref()?.lod_entry[0];
+        debug_assert!(
+            cached.is_none() || cached == through_mesh(),
+            "a node's cached proxy entry is its mesh's"
+        );
+        cached.or_else(through_mesh)
     }
 
     fn proxy_built(&self, group: u32) -> Option<(EntryKey, u64)> {
-        let (mesh, _) = self.far.node(group).proxy?;
-        let m = self.tables.meshes.get(mesh as usize)?.as_ref()?;
-        let key = m.lod_entry[0]?;
+        let key = self.proxy_key(group)?;
         let e = &self.tables.entries[key];
         if e.state != EntryState::Built {
             return None;
@@ -608,20 +650,19 @@ impl<B: AsBackend> AsManager<B> {
         let mut proxy_bytes = 0;
         for &(g, key, addr) in &picks {
             let n = self.far.node(g);
-            let radius =
-                0.5 * (Vec3::from(n.desc.bounds_max) - Vec3::from(n.desc.bounds_min)).length();
-            let centre = 0.5 * (Vec3::from(n.desc.bounds_max) + Vec3::from(n.desc.bounds_min));
+            let (centre, radius, was_culled) = (n.centre, n.radius, n.culled);
             let centre_dist = self
                 .cam_pos
                 .iter()
                 .map(|c| c.distance(centre))
                 .fold(f32::INFINITY, f32::min);
-            let (custom, mask, was_culled) = (n.desc.custom_index, n.desc.mask, n.culled);
             // Culling decides what is traced, not what is covered: a culled proxy's detail
             // stays out too (it is beyond r2 or handing over).
             self.far.picks.push(g);
             let culled = self.culler.cull_small(radius, centre_dist, was_culled);
-            self.far.nodes[g as usize].as_mut().expect("live").culled = culled;
+            let n = self.far.nodes[g as usize].as_mut().expect("live");
+            n.culled = culled;
+            let template = n.template;
             let e = &mut self.tables.entries[key];
             e.last_keep = frame;
             if culled {
@@ -629,14 +670,10 @@ impl<B: AsBackend> AsManager<B> {
             }
             e.last_in_tlas = Some(frame);
             proxy_bytes += e.bytes;
-            self.far.records.push(TlasInstance::new(
-                &Affine3A::IDENTITY,
-                custom,
-                mask,
-                0,
-                INSTANCE_FORCE_OPAQUE,
-                addr,
-            ));
+            self.far.records.push(TlasInstance {
+                blas_address: addr,
+                ..template
+            });
         }
         self.far.cut = picks;
         // Every leaf under a pick is covered this frame.

@@ -382,3 +382,45 @@ fn proxies_share_what_the_build_batch_fixed_cost_leaves() {
         "{covered} of {far} far leaves covered after 30 frames"
     );
 }
+
+/// A mesh named as a group's proxy after BLASes of it exist: those entries count as proxies
+/// from then on (evicted last, built within the far field's share), as the proxy's new
+/// entries do. The per-frame passes read the entry's own flag, not the mesh.
+#[test]
+fn a_mesh_named_proxy_later_marks_its_existing_entries() {
+    let mut m = AsManager::new(config(), ModelBackend::lavapipe()).unwrap();
+    let late = mesh(
+        &m,
+        "late",
+        MeshKind::Static,
+        5.0,
+        counts_chain(512, 2, 0.01),
+    );
+    m.add_instance(InstanceDesc::new(late, Affine3A::IDENTITY))
+        .unwrap();
+    let cam = [Viewpoint::new(Vec3::new(0.0, 2.0, 20.0), Vec3::NEG_Z)];
+    for f in 0..10 {
+        run_frame(&mut m, f, &cam);
+    }
+    let of_mesh = |m: &AsManager<ModelBackend>| -> Vec<bool> {
+        m.tables
+            .entries
+            .values()
+            .filter(|e| e.mesh == late.index())
+            .map(|e| e.proxy)
+            .collect()
+    };
+    let before = of_mesh(&m);
+    assert!(!before.is_empty(), "the instance's BLAS entries exist");
+    assert!(before.iter().all(|&p| !p), "not proxies yet: {before:?}");
+    proxied_group(
+        &m,
+        None,
+        ([-50.0, 0.0, -50.0], [50.0, 10.0, 50.0]),
+        7,
+        (late, 1.0),
+    );
+    run_frame(&mut m, 10, &cam);
+    let after = of_mesh(&m);
+    assert!(!after.is_empty() && after.iter().all(|&p| p), "{after:?}");
+}

@@ -17,24 +17,42 @@ impl<B: AsBackend> AsManager<B> {
     pub(crate) fn managed_frame(&mut self) -> Result<()> {
         {
             let _s = tracing::trace_span!("residency").entered();
-            self.far_prepare();
+            {
+                let _s = tracing::trace_span!("far_prepare").entered();
+                self.far_prepare();
+            }
             self.landmarks_residency();
-            self.residency_pass();
-            self.upkeep_entries();
+            {
+                let _s = tracing::trace_span!("near").entered();
+                self.residency_pass();
+            }
+            {
+                let _s = tracing::trace_span!("upkeep").entered();
+                self.upkeep_entries();
+            }
         }
         {
             let _s = tracing::trace_span!("schedule").entered();
             self.enforce_budget();
-            self.schedule_builds(true)?;
+            {
+                let _s = tracing::trace_span!("builds").entered();
+                self.schedule_builds(true)?;
+            }
             self.schedule_refits(true)?;
             self.schedule_compactions()?;
             self.relax_floors();
         }
         {
             let _s = tracing::trace_span!("cull").entered();
-            self.select_and_cull();
+            {
+                let _s = tracing::trace_span!("near_cull").entered();
+                self.select_and_cull();
+            }
             self.landmarks_cull();
-            self.far_select();
+            {
+                let _s = tracing::trace_span!("far_select").entered();
+                self.far_select();
+            }
         }
         let _s = tracing::trace_span!("assemble").entered();
         self.assemble_records();

@@ -12,9 +12,7 @@ impl<B: AsBackend> AsManager<B> {
     /// Far-field proxies come last, whatever their distance.
     fn eviction_score(&self, key: EntryKey) -> (bool, bool, f32, u64) {
         let e = &self.tables.entries[key];
-        let proxy = self.tables.meshes[e.mesh as usize]
-            .as_ref()
-            .is_some_and(|m| m.proxy);
+        let proxy = e.proxy;
         let near = e.dist_frame == self.frame;
         let age = self.frame - e.last_in_tlas.unwrap_or(0).min(self.frame);
         (

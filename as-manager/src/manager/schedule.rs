@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use super::journal::{CompactUndo, RefitUndo};
-use super::state::{EntryKey, EntryState, Tables};
+use super::state::{EntryKey, EntryState};
 use super::AsManager;
 use crate::backend::{
     AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef, NextTlas,
@@ -83,21 +83,19 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Builds queued entries within the per-frame budget (`budgeted`), memory permitting.
     pub(crate) fn schedule_builds(&mut self, budgeted: bool) -> Result<()> {
-        let is_proxy = |tables: &Tables, key: EntryKey| {
-            tables.meshes[tables.entries[key].mesh as usize]
-                .as_ref()
-                .is_some_and(|m| m.proxy)
-        };
-        // (proxy, priority, entry): whether it is a proxy is read once per entry, not in every
-        // comparison of the sort (a backlog of builds queues thousands).
-        let mut queue: Vec<(bool, f32, EntryKey)> = self
-            .tables
-            .active
-            .iter()
-            .copied()
-            .filter(|&s| self.tables.entries[s].state == EntryState::Queued)
-            .map(|s| (is_proxy(&self.tables, s), self.priority(s), s))
-            .collect();
+        // (proxy, priority, entry), and the bytes of the built proxies, in one pass over the
+        // entries (whether an entry is a proxy is its own flag: no mesh is read).
+        let count_proxies = budgeted && self.config.far_field.enabled;
+        let mut proxy_bytes: u64 = 0;
+        let mut queue: Vec<(bool, f32, EntryKey)> = Vec::new();
+        for &s in &self.tables.active {
+            let e = &self.tables.entries[s];
+            match e.state {
+                EntryState::Queued => queue.push((e.proxy, self.priority(s), s)),
+                EntryState::Built if count_proxies && e.proxy => proxy_bytes += e.bytes,
+                _ => {}
+            }
+        }
         // Far-field proxies first, within their share of the budget; then near detail.
         queue.sort_by(|a, b| {
             b.0.cmp(&a.0)
@@ -107,18 +105,6 @@ impl<B: AsBackend> AsManager<B> {
                 .then(a.2.cmp(&b.2))
         });
         let proxy_ms_max = f64::from(self.config.far_field.build_share.clamp(0.0, 1.0));
-        let mut proxy_bytes: u64 = if budgeted && self.config.far_field.enabled {
-            self.tables
-                .active
-                .iter()
-                .filter(|&&s| {
-                    self.tables.entries[s].state == EntryState::Built && is_proxy(&self.tables, s)
-                })
-                .map(|&s| self.tables.entries[s].bytes)
-                .sum()
-        } else {
-            0
-        };
         let mut proxy_ms = 0.0f64;
         let mut detail_admitted = 0usize;
         let b = self.config.build.clone();

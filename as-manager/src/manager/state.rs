@@ -164,6 +164,9 @@ pub(crate) struct RefitState {
 pub(crate) struct BlasEntry {
     pub mesh: u32,
     pub lod: u8,
+    /// Its mesh is some group's far-field proxy (`MeshState::proxy`, copied here: the
+    /// per-frame passes over the entries read it without the mesh's state).
+    pub proxy: bool,
     /// Owning instance slot for skinned BLASes, `None` for shared static ones.
     pub owner: Option<u32>,
     pub state: EntryState,
@@ -278,9 +281,11 @@ impl Tables {
         frame: u64,
     ) -> EntryKey {
         let active_index = self.active.len() as u32;
+        let proxy = matches!(self.meshes.get(mesh as usize), Some(Some(m)) if m.proxy);
         let key = self.entries.insert(BlasEntry {
             mesh,
             lod,
+            proxy,
             owner,
             state: EntryState::Idle,
             handle: None,
