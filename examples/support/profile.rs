@@ -51,8 +51,10 @@ pub struct ProfileData {
     update_of: Vec<Option<u32>>,
     /// Per path: one inclusive time (ms) per closed `update` under that policy.
     samples: Vec<Vec<f64>>,
-    /// Per path: the running frame's inclusive time (ms).
+    /// Per path: the running frame's inclusive time (ms), and whether it ran since its last
+    /// sample.
     frame: Vec<f64>,
+    ran: Vec<bool>,
     /// Per path: total self time (µs), for the folded stacks.
     self_us: Vec<f64>,
     /// (parent path, span name) -> path index.
@@ -100,6 +102,7 @@ impl ProfileData {
         self.update_of.push(if is_update { Some(i) } else { under });
         self.samples.push(Vec::new());
         self.frame.push(0.0);
+        self.ran.push(false);
         self.self_us.push(0.0);
         i
     }
@@ -116,12 +119,19 @@ impl ProfileData {
             .sum();
         let less = self.intern(u, LESS_COPIES);
         self.frame[less as usize] = self.frame[u as usize] - copies;
+        // Paths beside the updates are sampled at the first `update` to close after they ran.
         let n = self.samples[u as usize].len();
         for i in 0..self.paths.len() {
-            if matches!(self.update_of[i], Some(x) if x == u || x == OUTSIDE) {
+            let sampled = match self.update_of[i] {
+                Some(x) if x == u => true,
+                Some(OUTSIDE) => self.ran[i],
+                _ => false,
+            };
+            if sampled {
                 let v = &mut self.samples[i];
                 v.resize(n, 0.0);
                 v.push(std::mem::take(&mut self.frame[i]));
+                self.ran[i] = false;
             }
         }
     }
@@ -245,6 +255,7 @@ where
         };
         let i = path as usize;
         d.frame[i] += busy.as_secs_f64() * 1e3;
+        d.ran[i] = true;
         d.self_us[i] += busy.saturating_sub(children).as_secs_f64() * 1e6;
         if u == path {
             d.close_update(u);
