@@ -54,9 +54,6 @@ enum LevelState {
     Loaded {
         instances: Arc<[Instance]>,
         meshes: Vec<WorldMeshId>,
-        /// The instances of streamed meshes as LOD streaming reads them every frame: a
-        /// compact copy (a level's instances do not move).
-        lod_points: Vec<LodPoint>,
     },
     /// The last load failed; after `attempts` loads it may be tried again at frame `retry_at`.
     Failed {
@@ -195,6 +192,9 @@ pub struct World {
     proxy_state: Vec<ProxyState>,
     /// LOD streaming's per-mesh nearest distances, kept between frames (`lod_stream.rs`).
     lod_eff: Vec<f32>,
+    /// The loaded instances of streamed meshes as LOD streaming reads them every frame, all
+    /// levels in one array (`lod_stream::LodPoints`).
+    lod_points: lod_stream::LodPoints,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -297,6 +297,7 @@ impl World {
             ],
             proxies,
             lod_eff: Vec::new(),
+            lod_points: lod_stream::LodPoints::default(),
         })
     }
 
@@ -851,7 +852,7 @@ impl World {
             bounds: slot.bounds,
             instances: Arc::clone(&instances),
         });
-        let lod_points = instances
+        let points = instances
             .iter()
             .filter(|i| self.meshes[i.mesh.0 as usize].streamed)
             .map(|i| LodPoint {
@@ -859,14 +860,10 @@ impl World {
                 center: i.sphere.center,
                 radius: i.sphere.radius,
                 scale: i.max_scale().max(1e-6),
-            })
-            .collect();
+            });
+        self.lod_points.insert(level.0, points);
         let slot = &mut self.levels[level.0 as usize];
-        slot.state = LevelState::Loaded {
-            instances,
-            meshes,
-            lod_points,
-        };
+        slot.state = LevelState::Loaded { instances, meshes };
     }
 
     fn residency(&mut self, cameras: &[StreamFocus], ev: &mut Vec<WorldEvent>) {
@@ -917,12 +914,10 @@ impl World {
             &mut self.levels[level.0 as usize].state,
             LevelState::Unloaded,
         );
-        let LevelState::Loaded {
-            instances, meshes, ..
-        } = state
-        else {
+        let LevelState::Loaded { instances, meshes } = state else {
             return;
         };
+        self.lod_points.remove(level.0);
         ev.push(WorldEvent::LevelUnloaded { level, instances });
         for m in meshes {
             let slot = &mut self.meshes[m.0 as usize];
