@@ -189,13 +189,57 @@ fn mesh_budget_is_respected_and_lods_follow_the_camera() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The skinned instances of the loaded levels, by the events so far.
+fn loaded_skinned(loaded: &mut std::collections::BTreeSet<u64>, events: &[WorldEvent]) -> Vec<u64> {
+    for e in events {
+        match e {
+            WorldEvent::LevelLoaded { instances, .. } => loaded.extend(
+                instances
+                    .iter()
+                    .filter(|i| i.motion == rtstream_streaming::Motion::Skinned)
+                    .map(|i| u64::from(i.id.0)),
+            ),
+            WorldEvent::LevelUnloaded { instances, .. } => {
+                for i in instances.iter() {
+                    loaded.remove(&u64::from(i.id.0));
+                }
+            }
+            _ => {}
+        }
+    }
+    loaded.iter().copied().collect()
+}
+
 #[test]
 fn skinned_instances_deform_each_frame() {
-    let (_world, dir) = common::baked_small("skin", 8);
-    let mut w = World::open(&dir, StreamConfig::within(1000.0, 1100.0)).expect("open");
+    let (world, dir) = common::baked_small("skin", 8);
+    let mut w = World::open(&dir, StreamConfig::within(300.0, 350.0)).expect("open");
     let cam = [StreamFocus::from(Vec3::ZERO)];
-    let _ = common::settle(&mut w, 0, &cam);
+    let mut loaded = std::collections::BTreeSet::new();
+    let events = common::settle(&mut w, 0, &cam);
+    let want = loaded_skinned(&mut loaded, &events);
     let a = w.skin_frame(0.0, 2);
+    // Every loaded skinned instance, and only those (skin_frame keeps its own list of them).
+    let ids = |f: &[rtstream_streaming::SkinnedFrame]| {
+        let mut v: Vec<u64> = f.iter().map(|x| u64::from(x.instance.0)).collect();
+        v.sort_unstable();
+        v
+    };
+    assert_eq!(ids(&a), want);
+    // Elsewhere on the map: levels unload and load; the list follows.
+    let other = [StreamFocus::from(world.extent.max)];
+    let events = common::settle(&mut w, 1000, &other);
+    let want_there = loaded_skinned(&mut loaded, &events);
+    assert_ne!(
+        want_there, want,
+        "the move changed which skinned instances are loaded"
+    );
+    assert_eq!(ids(&w.skin_frame(0.0, 2)), want_there);
+    let events = common::settle(&mut w, 2000, &cam);
+    assert_eq!(
+        ids(&w.skin_frame(0.0, 2)),
+        loaded_skinned(&mut loaded, &events)
+    );
     let b = w.skin_frame(0.4, 2);
     assert!(!a.is_empty(), "no skinned instance loaded");
     assert_eq!(a.len(), b.len());

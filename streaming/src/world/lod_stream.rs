@@ -1,8 +1,6 @@
 //! Finer-LOD streaming under the mesh memory budget (see the `world` module header).
 
-use std::collections::HashMap;
-
-use super::{LodPoint, StreamFocus, World, WorldEvent};
+use super::{StreamFocus, World, WorldEvent};
 use crate::loader::Job;
 use crate::model::WorldMeshId;
 
@@ -16,7 +14,7 @@ impl World {
         // instance, by mesh id (infinite: no loaded instance). Every loaded instance is
         // looked at each frame: a dense array by mesh, not a hash map (hashing each instance
         // was a tenth of this pass), and the instances of all levels in one array
-        // (`LodPoints`), not one per level.
+        // (`ranges::LevelRanges`), not one per level.
         let mut eff = std::mem::take(&mut self.lod_eff);
         eff.clear();
         eff.resize(self.meshes.len(), f32::INFINITY);
@@ -153,95 +151,5 @@ impl World {
         victims.sort_by(|a, b| b.0.total_cmp(&a.0));
         self.evict_until_fits(victims, bytes, ev);
         self.mesh_bytes + self.in_flight_bytes + bytes <= budget
-    }
-}
-
-/// The loaded levels' instances of streamed meshes in one array, as LOD streaming reads them
-/// every frame. One array per level (606 of them loaded in the default world, 38 instances
-/// each) made the pass a chain of short reads at scattered addresses, each starting cold
-/// (half of the pass's time on the dev machine); one array streams. An unloaded level's range
-/// is dropped by moving the ranges after it down (a level unloads every few frames; the copy
-/// is a few hundred kilobytes at most).
-#[derive(Debug, Default)]
-pub(super) struct LodPoints {
-    points: Vec<LodPoint>,
-    /// Level -> (start, length) in `points`.
-    ranges: HashMap<u32, (usize, usize)>,
-}
-
-impl LodPoints {
-    /// Adds (or replaces) a level's instances.
-    pub(super) fn insert(&mut self, level: u32, points: impl Iterator<Item = LodPoint>) {
-        self.remove(level);
-        let start = self.points.len();
-        self.points.extend(points);
-        self.ranges
-            .insert(level, (start, self.points.len() - start));
-    }
-
-    /// Drops a level's instances (nothing if it has none).
-    pub(super) fn remove(&mut self, level: u32) {
-        let Some((start, len)) = self.ranges.remove(&level) else {
-            return;
-        };
-        self.points.drain(start..start + len);
-        for r in self.ranges.values_mut() {
-            if r.0 > start {
-                r.0 -= len;
-            }
-        }
-    }
-
-    /// Every loaded instance.
-    pub(super) fn live(&self) -> &[LodPoint] {
-        &self.points
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::model::WorldMeshId;
-    use glam::Vec3;
-
-    /// Levels coming and going in any order leave exactly the instances of the levels still
-    /// loaded, each level's in one piece.
-    #[test]
-    fn levels_in_and_out_keep_exactly_the_loaded_instances() {
-        let point = |level: u32, k: u32| LodPoint {
-            mesh: WorldMeshId(level * 1000 + k),
-            center: Vec3::new(level as f32, k as f32, 0.0),
-            radius: 1.0,
-            scale: 1.0,
-        };
-        let mut pts = LodPoints::default();
-        let mut loaded: HashMap<u32, u32> = HashMap::new();
-        let mut rng = 0x9e37_79b9u64;
-        for step in 0..2000u32 {
-            rng ^= rng << 13;
-            rng ^= rng >> 7;
-            rng ^= rng << 17;
-            let level = (rng % 40) as u32;
-            if loaded.remove(&level).is_some() {
-                pts.remove(level);
-            } else {
-                let n = (rng >> 8) as u32 % 50;
-                pts.insert(level, (0..n).map(|k| point(level, k)));
-                loaded.insert(level, n);
-            }
-            let mut want: Vec<u32> = loaded
-                .iter()
-                .flat_map(|(&l, &n)| (0..n).map(move |k| l * 1000 + k))
-                .collect();
-            let mut have: Vec<u32> = pts.points.iter().map(|p| p.mesh.0).collect();
-            want.sort_unstable();
-            have.sort_unstable();
-            assert_eq!(have, want, "step {step}");
-            for (&l, &(start, len)) in &pts.ranges {
-                assert!(pts.points[start..start + len]
-                    .iter()
-                    .all(|p| p.mesh.0 / 1000 == l));
-            }
-        }
     }
 }

@@ -43,6 +43,7 @@ use crate::model::{
 use crate::skin::{skin_parallel, SkinJob};
 
 mod lod_stream;
+mod ranges;
 mod types;
 
 pub use types::{SettleTimeout, SkinnedFrame, StreamConfig, StreamFocus, StreamStats, WorldEvent};
@@ -193,8 +194,11 @@ pub struct World {
     /// LOD streaming's per-mesh nearest distances, kept between frames (`lod_stream.rs`).
     lod_eff: Vec<f32>,
     /// The loaded instances of streamed meshes as LOD streaming reads them every frame, all
-    /// levels in one array (`lod_stream::LodPoints`).
-    lod_points: lod_stream::LodPoints,
+    /// levels in one array.
+    lod_points: ranges::LevelRanges<LodPoint>,
+    /// The loaded skinned instances (level, index in its instances), for `skin_frame`: a
+    /// few dozen among tens of thousands.
+    skinned: ranges::LevelRanges<(u32, u32)>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -297,7 +301,8 @@ impl World {
             ],
             proxies,
             lod_eff: Vec::new(),
-            lod_points: lod_stream::LodPoints::default(),
+            lod_points: ranges::LevelRanges::default(),
+            skinned: ranges::LevelRanges::default(),
         })
     }
 
@@ -862,6 +867,12 @@ impl World {
                 scale: i.max_scale().max(1e-6),
             });
         self.lod_points.insert(level.0, points);
+        let skinned = instances
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| i.motion == Motion::Skinned)
+            .map(|(k, _)| (level.0, k as u32));
+        self.skinned.insert(level.0, skinned);
         let slot = &mut self.levels[level.0 as usize];
         slot.state = LevelState::Loaded { instances, meshes };
     }
@@ -918,6 +929,7 @@ impl World {
             return;
         };
         self.lod_points.remove(level.0);
+        self.skinned.remove(level.0);
         ev.push(WorldEvent::LevelUnloaded { level, instances });
         for m in meshes {
             let slot = &mut self.meshes[m.0 as usize];
@@ -936,25 +948,27 @@ impl World {
     pub fn skin_frame(&self, time: f32, threads: usize) -> Vec<SkinnedFrame> {
         let mut meta = Vec::new();
         let mut jobs = Vec::new();
-        for l in &self.levels {
-            let LevelState::Loaded { instances, .. } = &l.state else {
+        // The loaded skinned instances, in level order (as a walk over the levels finds them).
+        let mut skinned = self.skinned.live().to_vec();
+        skinned.sort_unstable();
+        for (level, k) in skinned {
+            let LevelState::Loaded { instances, .. } = &self.levels[level as usize].state else {
                 continue;
             };
-            for inst in instances.iter().filter(|i| i.motion == Motion::Skinned) {
-                let slot = &self.meshes[inst.mesh.0 as usize];
-                let Some(lod) = slot.finest_resident() else {
-                    continue;
-                };
-                let Some(g) = slot.resident[lod].as_deref() else {
-                    continue;
-                };
-                meta.push((inst.id, inst.mesh, lod as u8));
-                jobs.push(SkinJob {
-                    geometry: g,
-                    time: crate::skin::animation_time(inst.id, time),
-                    positions: Vec::new(),
-                });
-            }
+            let inst = &instances[k as usize];
+            let slot = &self.meshes[inst.mesh.0 as usize];
+            let Some(lod) = slot.finest_resident() else {
+                continue;
+            };
+            let Some(g) = slot.resident[lod].as_deref() else {
+                continue;
+            };
+            meta.push((inst.id, inst.mesh, lod as u8));
+            jobs.push(SkinJob {
+                geometry: g,
+                time: crate::skin::animation_time(inst.id, time),
+                positions: Vec::new(),
+            });
         }
         skin_parallel(&mut jobs, threads);
         meta.into_iter()
