@@ -949,7 +949,7 @@ impl World {
         let mut meta = Vec::new();
         let mut jobs = Vec::new();
         // The loaded skinned instances, in level order (as a walk over the levels finds them).
-        let mut skinned = self.skinned.live().to_vec();
+        let mut skinned: Vec<(u32, u32)> = self.skinned.live().copied().collect();
         skinned.sort_unstable();
         for (level, k) in skinned {
             let LevelState::Loaded { instances, .. } = &self.levels[level as usize].state else {
