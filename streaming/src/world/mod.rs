@@ -26,7 +26,8 @@
 //! Why one file over 600 lines: `World` owns all streaming state on one thread, and its residency,
 //! load completion and unload paths update the same level and mesh slots in an order the event
 //! guarantees above depend on, so they read best together; LOD streaming (`lod_stream.rs`), the
-//! public types (`types.rs`) and the loader threads (`loader.rs`) are already apart.
+//! per-frame lists of what the loaded levels hold (`ranges.rs`), the public types (`types.rs`)
+//! and the loader threads (`loader.rs`) are already apart.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
