@@ -23,6 +23,14 @@
 //! frames at 0.5 m a frame (the slowest frames of `frame_cost --million --far`). By kilometre,
 //! the kilometre coming in still took 0.9–1.5 ms; by block, each 64 m of travel brings in its
 //! own 64 m.
+//!
+//! A block's move from the coarse ring to the fine one was done at once, in the frame whose
+//! travel entered the block: at 8 m a frame, every eighth frame moved a block's few thousand
+//! entries (0.2 ms more `collect_due` in the H200's slowest frames, `docs/PROFILE.md`). The
+//! fine ring now holds two blocks, the current one and the next, and the next block's
+//! entries move over while the current one is consumed, in step with the travel through it;
+//! the rest moves when the block becomes current. Entries pushed to the next block go to its
+//! coarse list behind those not moved yet, so each bucket still comes out in push order.
 
 use glam::Vec3;
 use rustc_hash::FxHashMap;
@@ -30,8 +38,10 @@ use rustc_hash::FxHashMap;
 /// Metres of camera travel per bucket of the due queue (a candidate may be looked at up to this
 /// much early, never late).
 const BUCKET_M: f64 = 1.0;
-/// Buckets per block (the fine ring holds the current block).
+/// Buckets per block (the fine ring holds the current block and the next).
 const BLOCK: u64 = 64;
+/// Buckets of the fine ring: two blocks.
+const FINE: u64 = 2 * BLOCK;
 /// Buckets ahead of the current one that the rings hold (4 km of travel); farther entries wait
 /// in the overflow list.
 const RING: u64 = 1 << 12;
@@ -58,10 +68,13 @@ type Chunk = Vec<(u64, Due)>;
 /// When each candidate is due, as camera travel (see the module docs).
 #[derive(Debug)]
 pub(super) struct DueQueue {
-    /// The current block's buckets, by bucket index modulo `BLOCK`.
+    /// The buckets of the current block, and of the next block's entries moved so far, by
+    /// bucket index modulo `FINE`.
     fine: Vec<Vec<Due>>,
-    /// (bucket, entry) of the later blocks, by block index modulo `COARSE`.
+    /// (bucket, entry) of the later blocks, by block index modulo `COARSE`. The next block's
+    /// list moves to `fine` from its front: `moved` is (chunk, entry) of the first not moved.
     coarse: Vec<Vec<Chunk>>,
+    moved: (usize, usize),
     /// Emptied chunks, for the next block that needs one.
     spare: Vec<Chunk>,
     /// Bucket index of the next bucket to pop.
@@ -76,8 +89,9 @@ pub(super) struct DueQueue {
 impl Default for DueQueue {
     fn default() -> Self {
         Self {
-            fine: (0..BLOCK).map(|_| Vec::new()).collect(),
+            fine: (0..FINE).map(|_| Vec::new()).collect(),
             coarse: (0..COARSE).map(|_| Vec::new()).collect(),
+            moved: (0, 0),
             spare: Vec::new(),
             base: 0,
             soon: Vec::new(),
@@ -95,6 +109,7 @@ impl DueQueue {
                 self.spare.push(chunk);
             }
         }
+        self.moved = (0, 0);
         self.soon.clear();
         self.overflow.clear();
     }
@@ -110,7 +125,7 @@ impl DueQueue {
         } else if b - self.base >= RING {
             self.overflow.entry(b / BLOCK).or_default().push((b, entry));
         } else if b / BLOCK == self.base / BLOCK {
-            self.fine[(b % BLOCK) as usize].push(entry);
+            self.fine[(b % FINE) as usize].push(entry);
         } else {
             let block = &mut self.coarse[((b / BLOCK) % COARSE) as usize];
             match block.last_mut() {
@@ -131,22 +146,28 @@ impl DueQueue {
     pub(super) fn pop_due(&mut self, odo: f64, out: &mut Vec<Due>) {
         let current = (odo / BUCKET_M) as u64;
         out.append(&mut self.soon);
+        if self.base > current {
+            return;
+        }
+        let left_before = BLOCK - self.base % BLOCK;
+        let mut crossed = false;
         while self.base <= current {
-            let bucket = &mut self.fine[(self.base % BLOCK) as usize];
+            let bucket = &mut self.fine[(self.base % FINE) as usize];
             out.append(bucket);
             self.base += 1;
             if self.base % BLOCK == 0 {
-                // A new block: its entries move to the fine ring, in the order pushed.
-                let block = (self.base / BLOCK) % COARSE;
-                let mut moving = std::mem::take(&mut self.coarse[block as usize]);
-                for mut chunk in moving.drain(..) {
-                    for &(b, entry) in &chunk {
-                        self.fine[(b % BLOCK) as usize].push(entry);
-                    }
+                // A new block: the rest of its entries move to the fine ring, in the order
+                // pushed, and the block after it is the next to move.
+                crossed = true;
+                let block = ((self.base / BLOCK) % COARSE) as usize;
+                self.move_from(block, usize::MAX);
+                let mut done = std::mem::take(&mut self.coarse[block]);
+                for mut chunk in done.drain(..) {
                     chunk.clear();
                     self.spare.push(chunk);
                 }
-                self.coarse[block as usize] = moving;
+                self.coarse[block] = done;
+                self.moved = (0, 0);
                 // The block that came within `RING`: its overflow joins the coarse ring
                 // (after what was pushed there directly). `base` and `RING` are whole
                 // blocks, and the overflow never holds a block within `RING` (pushes there go
@@ -159,6 +180,49 @@ impl DueQueue {
                 }
             }
         }
+        // The next block moves over in step with the travel through this one: of what is
+        // left to move, the share of this block's remaining buckets that this pop went
+        // through (the whole of it by the block's last bucket).
+        let left = BLOCK - self.base % BLOCK;
+        let went = if crossed {
+            BLOCK - left
+        } else {
+            left_before - left
+        };
+        let remaining = if crossed { BLOCK } else { left_before };
+        if went > 0 {
+            let block = ((self.base / BLOCK + 1) % COARSE) as usize;
+            let (c, e) = self.moved;
+            let waiting = self.coarse[block].iter().skip(c).map(Vec::len).sum::<usize>() - e;
+            let n = (waiting as u64 * went).div_ceil(remaining);
+            self.move_from(block, n as usize);
+        }
+    }
+
+    /// Moves up to `n` entries of coarse block `block` (the one moving: from `moved` on) to
+    /// the fine ring.
+    fn move_from(&mut self, block: usize, mut n: usize) {
+        let (mut c, mut e) = self.moved;
+        let chunks = &self.coarse[block];
+        while let Some(chunk) = chunks.get(c) {
+            if e == chunk.len() {
+                // On to the next chunk only when there is one: pushes still go to the last.
+                if c + 1 == chunks.len() {
+                    break;
+                }
+                (c, e) = (c + 1, 0);
+                continue;
+            }
+            if n == 0 {
+                break;
+            }
+            let take = n.min(chunk.len() - e);
+            for &(b, entry) in &chunk[e..e + take] {
+                self.fine[(b % FINE) as usize].push(entry);
+            }
+            (e, n) = (e + take, n - take);
+        }
+        self.moved = (c, e);
     }
 }
 
@@ -244,6 +308,8 @@ mod tests {
                     0 => (next() % 20_000) as f64,
                     1 => -((next() % 5) as f64),
                     2..=4 => (next() % 4_200) as f64 + 0.5,
+                    // Into the next block, which moves to the fine ring while it is pushed to.
+                    5 => (BLOCK as f64 - odo % BLOCK as f64) + (next() % 64) as f64,
                     _ => (next() % 70) as f64 * 0.7,
                 };
                 let e = entry(&mut ci, step);
@@ -271,6 +337,36 @@ mod tests {
             b.clear();
         }
         assert!(popped > 50_000, "{popped}");
+    }
+
+    /// The next block moves to the fine ring a share each pop, not all at once when it
+    /// becomes current (a frame's worth of travel moves a frame's share), and every entry
+    /// still comes out at its bucket.
+    #[test]
+    fn the_next_block_moves_over_in_step_with_the_travel() {
+        let mut q = DueQueue::default();
+        let mut out = Vec::new();
+        let mut ci = 0;
+        // 64,000 entries due in block 2 (buckets 128..192), pushed at odometer 0.
+        for i in 0..64_000u32 {
+            q.push(f64::from(128 + i % 64) + 0.5, entry(&mut ci, 1));
+        }
+        let in_fine = |q: &DueQueue| q.fine.iter().map(Vec::len).sum::<usize>();
+        let mut most = 0;
+        for step in 0..128u32 {
+            let before = in_fine(&q);
+            q.pop_due(f64::from(step) + 0.5, &mut out);
+            assert!(out.is_empty(), "step {step}: {} popped early", out.len());
+            most = most.max(in_fine(&q) - before);
+        }
+        // Block 2 moved while block 1 was current: about 1,000 entries a metre.
+        assert_eq!(in_fine(&q), 64_000);
+        assert!(most <= 1_100, "{most} entries moved in one pop");
+        for step in 128..192u32 {
+            q.pop_due(f64::from(step) + 0.5, &mut out);
+            assert_eq!(out.len(), 1_000, "bucket {step}");
+            out.clear();
+        }
     }
 
     /// Entries the coarse ring can hold without allocating (its chunks and the spare ones).
