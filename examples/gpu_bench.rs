@@ -22,9 +22,10 @@ use serde::Serialize;
 
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
-    build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
-    time_tlas_update, ContextDesc, GpuGeometry, SceneMesh, StaticInstance, StaticScene,
-    TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc, VulkanContext,
+    build_blas_now, compaction_sizes, time_blas_builds, time_build_recording,
+    time_refit_vs_rebuild, time_tlas_build, time_tlas_update, ContextDesc, GpuGeometry, SceneMesh,
+    StaticInstance, StaticScene, TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc,
+    VulkanContext,
 };
 use rtstream::as_manager::backend::CostOp;
 use rtstream::as_manager::{
@@ -113,6 +114,10 @@ struct Args {
     /// Accepted for symmetry with the other examples: the output is always JSON.
     #[arg(long, hide = true)]
     json: bool,
+    /// Only the host's cost of recording BLAS builds (the driver's CPU time in
+    /// vkCmdBuildAccelerationStructuresKHR, by flags, batch size and call), then stop.
+    #[arg(long)]
+    recording_only: bool,
 }
 
 impl Args {
@@ -200,6 +205,15 @@ enum Record<'a> {
         manager_update_wall_ms: f64,
         throughput_ratio: f64,
     },
+    /// Host milliseconds of recording a build call (median), apart from the GPU's time.
+    BuildRecording {
+        tris_per_blas: u32,
+        blas_count: usize,
+        flags: &'a str,
+        first_call_ms: f64,
+        second_call_ms: f64,
+        update_ms: Option<f64>,
+    },
     TlasTrace {
         flags: &'a str,
         instances: usize,
@@ -222,6 +236,57 @@ impl Record<'_> {
 }
 
 /// `x` rounded to `places` decimals (the precision the figures were always printed with).
+/// The host's cost of recording BLAS builds, small meshes as the fly-through builds them, by
+/// flags and batch size: the first call in a fresh command buffer, a second one in the same
+/// command buffer, and an update in place where the flags allow it.
+fn recording_costs(
+    ctx: &VulkanContext,
+    device: &str,
+    reps: usize,
+    md: &mut Vec<String>,
+) -> anyhow::Result<()> {
+    use vk::BuildAccelerationStructureFlagsKHR as F;
+    md.push(format!("\n### Host cost of recording BLAS builds — {device}\n\nWall ms of one vkCmdBuildAccelerationStructuresKHR call on the CPU, median of {reps}:\n\n| triangles/BLAS | BLASes | flags | first call ms | second call ms | update ms |\n|---:|---:|---|---:|---:|---:|"));
+    let variants = [
+        ("FAST_BUILD", F::PREFER_FAST_BUILD),
+        (
+            "FAST_BUILD+COMPACTION",
+            F::PREFER_FAST_BUILD | F::ALLOW_COMPACTION,
+        ),
+        (
+            "FAST_TRACE+COMPACTION",
+            F::PREFER_FAST_TRACE | F::ALLOW_COMPACTION,
+        ),
+        ("FAST_BUILD+UPDATE", F::PREFER_FAST_BUILD | F::ALLOW_UPDATE),
+    ];
+    for tris in [500usize, 5_000] {
+        let g = GpuGeometry::upload(ctx, &grid(tris, 0.0).desc())?;
+        for count in [1usize, 2, 8] {
+            for (name, flags) in variants {
+                let c = time_build_recording(ctx, &vec![&g; count], flags, reps)?;
+                Record::BuildRecording {
+                    tris_per_blas: g.triangle_count(),
+                    blas_count: count,
+                    flags: name,
+                    first_call_ms: round_to(c.first_call_ms, 4),
+                    second_call_ms: round_to(c.second_call_ms, 4),
+                    update_ms: c.update_ms.map(|u| round_to(u, 4)),
+                }
+                .print()?;
+                md.push(format!(
+                    "| {} | {count} | {name} | {:.4} | {:.4} | {} |",
+                    g.triangle_count(),
+                    c.first_call_ms,
+                    c.second_call_ms,
+                    c.update_ms.map_or("—".into(), |u| format!("{u:.4}"))
+                ));
+            }
+        }
+        g.destroy(ctx);
+    }
+    Ok(())
+}
+
 fn round_to(x: f64, places: i32) -> f64 {
     let k = 10f64.powi(places);
     (x * k).round() / k
@@ -251,6 +316,14 @@ fn main() -> anyhow::Result<()> {
         | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION;
     let fast_build = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
         | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE;
+
+    if args.recording_only {
+        recording_costs(ctx, &info.name, reps.max(20), &mut md)?;
+        if args.markdown {
+            eprintln!("{}", md.join("\n"));
+        }
+        return Ok(());
+    }
 
     // 1. BLAS build throughput.
     md.push(format!(

@@ -1,13 +1,20 @@
 //! The speed–accuracy trade-off: sweeps the managed policy's culling angle, culling distance,
-//! r1/r2, LOD pixel error and memory budget over the same deterministic path, scores every
-//! point against the full-world ground truth, and charts error against memory, TLAS instances
-//! and GPU ms with the Pareto front, the defaults, `naive` and `seed` marked.
+//! r1/r2, LOD pixel error, memory budget, far-field cut and far keep angle over the same
+//! deterministic path, scores every point against the full-world ground truth, and charts
+//! error against memory, TLAS instances, GPU ms and `update` ms with the Pareto front, the
+//! defaults, `naive` and `seed` marked.
+//!
+//! Every point of the managed policy, the default one included, runs alone on its backend, so
+//! their `update` times compare; the baselines run together in a run of their own.
 //!
 //! ```text
 //! cargo run --release --example tradeoff -- [--frames 600] [--eval-every 20] [--size 320x180]
-//!     [--out out/tradeoff] [--only angle,distance,radii,lod,budget,far] [--json]
+//!     [--render-every 1] [--out out/tradeoff] [--only angle,distance,radii,lod,budget,far,keep]
+//!     [--json]
 //! ```
-//! Writes `points.csv`, `points.json` and `error_vs_{memory,tlas,gpu}.{png,svg}` to `--out`.
+//! Writes `points.csv`, `points.json` and `error_vs_{memory,tlas,gpu,update}.{png,svg}` to
+//! `--out`. With `--render-every 1` every frame is rendered (a game's GPU load: the GPU keeps
+//! its clocks, so its AS times are a frame's), at `--size`, which is also the scoring size.
 
 #[path = "support/charts.rs"]
 mod charts;
@@ -165,9 +172,21 @@ fn main() -> anyhow::Result<()> {
     let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
     let default_config = base.managed.clone();
 
-    // The defaults and the baselines, in one run.
-    let mut runs: Vec<(String, RunConfig)> = vec![("defaults + baselines".into(), base.clone())];
-    let mut meta = vec![("default", "default".to_string(), true)];
+    // The baselines in a run of their own, then the default point and every other point of
+    // the managed policy, each alone (policies side by side share the CPU's caches, which
+    // would make the default's `update` slower than the points it is compared with).
+    let mut baseline_run = base.clone();
+    baseline_run.policies.retain(|&p| p != PolicyKind::Managed);
+    let mut alone = base.clone();
+    alone.policies = vec![PolicyKind::Managed];
+    let mut runs: Vec<(String, RunConfig)> = Vec::new();
+    let mut meta = Vec::new();
+    if !baseline_run.policies.is_empty() {
+        runs.push(("baselines".into(), baseline_run));
+        meta.push(("baseline", "-".to_string(), false));
+    }
+    runs.push(("defaults".into(), alone));
+    meta.push(("default", "default".to_string(), true));
     for &k in &knobs {
         for (value, set) in points(k) {
             let mut c = base.clone();
@@ -335,7 +354,7 @@ fn draw_charts(
     baselines: &[PolicySummary],
 ) -> anyhow::Result<Vec<PathBuf>> {
     type Cost = fn(&PolicySummary) -> f64;
-    let axes: [(&str, &str, Cost, bool); 3] = [
+    let axes: [(&str, &str, Cost, bool); 4] = [
         (
             "error_vs_memory",
             "peak BLAS MB",
@@ -349,6 +368,12 @@ fn draw_charts(
             true,
         ),
         ("error_vs_gpu", "GPU AS ms p99", |p| p.gpu_as_ms_p99, false),
+        (
+            "error_vs_update",
+            "update ms p50",
+            |p| p.update_ms_p50,
+            false,
+        ),
     ];
     let mut files = Vec::new();
     for (stem, x_label, cost, log_x) in axes {
@@ -367,6 +392,7 @@ fn draw_charts(
             "lod_px",
             "budget",
             "far_field",
+            "far_keep_angle",
         ];
         for k in knobs {
             let pts: Vec<charts::Point> = sweep

@@ -15,8 +15,8 @@ mod render;
 
 pub use super::FaultPoint;
 pub use as_backend::measure::{
-    build_blas_now, compaction_sizes, time_blas_builds, time_refit_vs_rebuild, time_tlas_build,
-    time_tlas_update, CompactionResult,
+    build_blas_now, compaction_sizes, time_blas_builds, time_build_recording,
+    time_refit_vs_rebuild, time_tlas_build, time_tlas_update, CompactionResult, RecordingCost,
 };
 pub use as_backend::{
     class_flags, Recording, TlasUpdates, VulkanBackend, VulkanBackendDesc, VulkanCounters,

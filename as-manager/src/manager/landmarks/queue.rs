@@ -193,7 +193,12 @@ impl DueQueue {
         if went > 0 {
             let block = ((self.base / BLOCK + 1) % COARSE) as usize;
             let (c, e) = self.moved;
-            let waiting = self.coarse[block].iter().skip(c).map(Vec::len).sum::<usize>() - e;
+            let waiting = self.coarse[block]
+                .iter()
+                .skip(c)
+                .map(Vec::len)
+                .sum::<usize>()
+                - e;
             let n = (waiting as u64 * went).div_ceil(remaining);
             self.move_from(block, n as usize);
         }

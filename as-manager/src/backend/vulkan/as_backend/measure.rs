@@ -116,6 +116,120 @@ pub fn time_blas_builds(
     result.map(|()| (Samples::new(times).median(), first_bytes))
 }
 
+/// What recording BLAS builds costs the host (the driver's work in
+/// vkCmdBuildAccelerationStructuresKHR, which the manager pays inside `update`): median wall
+/// milliseconds of the call, apart from the GPU's time. See [`time_build_recording`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RecordingCost {
+    /// The first call in a fresh command buffer, building every BLAS.
+    pub first_call_ms: f64,
+    /// A second call in the same command buffer, building as many other BLASes.
+    pub second_call_ms: f64,
+    /// With `ALLOW_UPDATE` in the flags: a call updating the first call's BLASes in place.
+    pub update_ms: Option<f64>,
+}
+
+/// The host's cost of recording builds of one BLAS per entry of `geoms` with `flags`: each of
+/// `reps` repetitions (after a warm-up) records two calls into one command buffer, each
+/// building its own set of BLASes (no hazard between them), times each call on the host, and
+/// submits; with `ALLOW_UPDATE`, a further submit records an update of the first set in place.
+pub fn time_build_recording(
+    ctx: &VulkanContext,
+    geoms: &[&GpuGeometry],
+    flags: vk::BuildAccelerationStructureFlagsKHR,
+    reps: usize,
+) -> VkResult<RecordingCost> {
+    let lists: Vec<&[TriangleGeometry]> = geoms
+        .iter()
+        .map(|g| std::slice::from_ref(&g.geometry))
+        .collect();
+    let first = ctx.plan_blas_batch(&lists, flags, |i| format!("recording blas a{i}"))?;
+    let first = scopeguard::guard(first, |b| b.destroy(ctx));
+    let second = ctx.plan_blas_batch(&lists, flags, |i| format!("recording blas b{i}"))?;
+    let second = scopeguard::guard(second, |b| b.destroy(ctx));
+    // The updates reuse the first set's scratch: room for the larger of build and update.
+    let room = |b: &crate::backend::vulkan::device::accel::BlasBatch| {
+        b.sizes
+            .iter()
+            .map(|s| s.build_scratch.max(s.update_scratch))
+            .max()
+            .unwrap_or(0)
+    };
+    let per = room(&first).max(room(&second));
+    let align = ctx.info().min_scratch_alignment.max(1);
+    let slot = per.div_ceil(align) * align;
+    let n = geoms.len() as u64;
+    let (scratch, base) = ctx.create_scratch("time_build_recording scratch", 2 * n * slot)?;
+    let scratch = scopeguard::guard(scratch, |b| ctx.destroy_buffer(b));
+    let inputs = |batch: &crate::backend::vulkan::device::accel::BlasBatch, at: u64| {
+        lists
+            .iter()
+            .zip(&batch.accels)
+            .enumerate()
+            .map(|(i, (g, a))| BlasBuildInput {
+                geometries: g,
+                flags,
+                dst: a.raw,
+                update_from: None,
+                scratch_address: at + i as u64 * slot,
+            })
+            .collect::<Vec<_>>()
+    };
+    let builds_a = inputs(&first, base);
+    let builds_b = inputs(&second, base + n * slot);
+    let updates: Vec<BlasBuildInput<'_>> = builds_a
+        .iter()
+        .map(|b| BlasBuildInput {
+            update_from: Some(b.dst),
+            ..*b
+        })
+        .collect();
+    let can_update = flags.contains(vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE);
+    let (mut one, mut two, mut upd) = (Vec::new(), Vec::new(), Vec::new());
+    for rep in 0..=reps {
+        let (mut a, mut b) = (0.0, 0.0);
+        ctx.submit_and_wait("time_build_recording", |_, cmd| {
+            let t = std::time::Instant::now();
+            // SAFETY: everything referenced lives until the wait; the two calls build
+            // disjoint BLASes from disjoint scratch ranges.
+            unsafe { ctx.cmd_build_blases(cmd, &builds_a) };
+            a = t.elapsed().as_secs_f64() * 1e3;
+            let t = std::time::Instant::now();
+            // SAFETY: as above.
+            unsafe { ctx.cmd_build_blases(cmd, &builds_b) };
+            b = t.elapsed().as_secs_f64() * 1e3;
+        })?;
+        if can_update {
+            let mut u = 0.0;
+            ctx.submit_and_wait("time_build_recording update", |_, cmd| {
+                let t = std::time::Instant::now();
+                // SAFETY: the first set was built with ALLOW_UPDATE by the submit waited for
+                // above; each updates in place from its own scratch range.
+                unsafe { ctx.cmd_build_blases(cmd, &updates) };
+                u = t.elapsed().as_secs_f64() * 1e3;
+            })?;
+            if rep > 0 {
+                upd.push(u);
+            }
+        }
+        if rep > 0 {
+            one.push(a);
+            two.push(b);
+        }
+    }
+    drop(updates);
+    drop(builds_a);
+    drop(builds_b);
+    ctx.destroy_buffer(scopeguard::ScopeGuard::into_inner(scratch));
+    scopeguard::ScopeGuard::into_inner(first).destroy(ctx);
+    scopeguard::ScopeGuard::into_inner(second).destroy(ctx);
+    Ok(RecordingCost {
+        first_call_ms: Samples::new(one).median(),
+        second_call_ms: Samples::new(two).median(),
+        update_ms: can_update.then(|| Samples::new(upd).median()),
+    })
+}
+
 /// Result of [`compaction_sizes`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct CompactionResult {
