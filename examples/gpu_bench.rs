@@ -1,10 +1,12 @@
 //! GPU acceleration-structure benchmark: BLAS build throughput (FAST_TRACE vs FAST_BUILD, batched
 //! vs one build per call), compaction ratios, refit vs rebuild, TLAS build times — all from GPU
 //! timestamps, on whatever device the context picks (lavapipe here, NVIDIA on the GPU machine).
+//! `--recording-only` measures instead the host's cost of recording builds (the driver's CPU
+//! time in vkCmdBuildAccelerationStructuresKHR, which the manager pays inside `update`).
 //!
 //! ```text
 //! cargo run --release --example gpu_bench -- [--quick] [--models DIR] [--total-tris N] [--reps N]
-//!     [--max-instances N] [--trace WxH] [--trace-png DIR] [--markdown]
+//!     [--max-instances N] [--trace WxH] [--trace-png DIR] [--markdown] [--recording-only]
 //! ```
 //! Prints one JSON object per measurement on stdout (a [`Record`], its `kind` first);
 //! `--markdown` adds tables on stderr.
