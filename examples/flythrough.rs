@@ -97,7 +97,15 @@ fn main() -> anyhow::Result<()> {
             let phases: Vec<String> = over.iter().map(|(p, d)| format!("{p} +{d:.2}")).collect();
             println!("  frame {frame}: {ms:.2}  {}", phases.join(", "));
         }
-        let frames = path.with_extension("frames.csv");
+        // `spans.folded` → `spans.frames.csv`; any other name gets `.frames.csv` appended (a
+        // dot in it is not an extension to replace: `p0.5` and `p0` wrote the same file).
+        let frames = if path.extension().is_some_and(|e| e == "folded") {
+            path.with_extension("frames.csv")
+        } else {
+            let mut name = path.as_os_str().to_owned();
+            name.push(".frames.csv");
+            std::path::PathBuf::from(name)
+        };
         std::fs::write(&frames, data.frames_csv(4))
             .with_context(|| format!("writing {}", frames.display()))?;
         println!("wrote {} (phase ms per frame)", frames.display());

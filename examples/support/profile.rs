@@ -10,7 +10,8 @@
 //!   `upload_geometry` spans (copies of new vertex and index data into upload buffers).
 //! - `--profile FILE` in the examples writes the self times as folded stacks (microseconds)
 //!   for a flame graph, and prints the per-phase table; the flythrough also writes each
-//!   frame's phase times beside it (`FILE.frames.csv`), to see what makes the slowest frames.
+//!   frame's phase times beside it (`FILE.frames.csv`; `NAME.folded` gives `NAME.frames.csv`),
+//!   to see what makes the slowest frames.
 //!
 //! The layer only sees spans (`filter_fn(is_span)`), so the BLAS lifecycle events at `trace`
 //! stay disabled, and costs two clock reads per span: about 20 spans a frame.
