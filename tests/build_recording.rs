@@ -6,20 +6,12 @@
 mod common;
 
 use rtstream::as_manager::backend::vulkan::ash::vk;
-use rtstream::as_manager::backend::vulkan::{time_build_recording, GpuGeometry, SceneMesh};
-use rtstream::as_manager::synth::grid_geometry;
+use rtstream::as_manager::backend::vulkan::time_build_recording;
 
 #[test]
 fn build_calls_and_an_update_are_timed_on_the_host() {
     let ctx = common::context();
-    let g = grid_geometry(4, 1.0);
-    let mesh = SceneMesh {
-        name: "grid",
-        positions: &g.positions,
-        indices: &g.indices,
-        opaque: true,
-    };
-    let geom = GpuGeometry::upload(&ctx, &mesh).unwrap();
+    let geom = common::grid_on_gpu(&ctx, 4, 1.0);
     let buffers = ctx.live_buffers();
     use vk::BuildAccelerationStructureFlagsKHR as F;
     for (flags, updates) in [

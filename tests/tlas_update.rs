@@ -5,22 +5,12 @@
 mod common;
 
 use rtstream::as_manager::backend::vulkan::ash::vk;
-use rtstream::as_manager::backend::vulkan::{
-    build_blas_now, time_tlas_update, GpuGeometry, SceneMesh,
-};
-use rtstream::as_manager::synth::grid_geometry;
+use rtstream::as_manager::backend::vulkan::{build_blas_now, time_tlas_update};
 
 #[test]
 fn a_tlas_updates_in_place_and_both_are_timed() {
     let ctx = common::context();
-    let g = grid_geometry(4, 1.0);
-    let mesh = SceneMesh {
-        name: "grid",
-        positions: &g.positions,
-        indices: &g.indices,
-        opaque: true,
-    };
-    let geom = GpuGeometry::upload(&ctx, &mesh).unwrap();
+    let geom = common::grid_on_gpu(&ctx, 4, 1.0);
     let flags = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_TRACE;
     let blas = build_blas_now(&ctx, &geom, flags, "update test blas").unwrap();
     let buffers = ctx.live_buffers();

@@ -57,6 +57,24 @@ pub fn context() -> TestContext {
     )))
 }
 
+/// A flat `n` x `n` grid mesh of `size` metres uploaded to `ctx` (opaque), for the tests that
+/// only need some real geometry on the device.
+pub fn grid_on_gpu(
+    ctx: &VulkanContext,
+    n: u32,
+    size: f32,
+) -> rtstream::as_manager::backend::vulkan::GpuGeometry {
+    let g = rtstream::as_manager::synth::grid_geometry(n, size);
+    let mesh = rtstream::as_manager::backend::vulkan::SceneMesh {
+        name: "grid",
+        positions: &g.positions,
+        indices: &g.indices,
+        opaque: true,
+    };
+    rtstream::as_manager::backend::vulkan::GpuGeometry::upload(ctx, &mesh)
+        .unwrap_or_else(|e| panic!("grid upload: {e}"))
+}
+
 /// A test's Vulkan context ([`context`]; it derefs to the `Arc`). When it goes out of scope it
 /// fails the test if the validation layer reported anything ([`assert_no_validation_messages`]),
 /// unless the test is failing already. Declared first, it is dropped last: everything the test
