@@ -6,11 +6,10 @@
 mod common;
 
 use rtstream::as_manager::backend::vulkan::{
-    build_blas_now, class_flags, live_vulkan_handles, ContextDesc, GpuGeometry, SceneMesh,
-    Validation, VulkanBackend, VulkanBackendDesc, VulkanContext, VulkanError,
+    build_blas_now, class_flags, live_vulkan_handles, ContextDesc, Validation, VulkanBackend,
+    VulkanBackendDesc, VulkanContext, VulkanError,
 };
 use rtstream::as_manager::backend::BlasClass;
-use rtstream::as_manager::synth::grid_geometry;
 
 /// Fails the test unless `result` is the failure injected at `step`.
 fn assert_injected<T>(step: &str, result: Result<T, VulkanError>) {
@@ -60,17 +59,7 @@ fn every_failed_creation_frees_what_it_made() {
         );
     }
 
-    let g = grid_geometry(8, 2.0);
-    let geom = GpuGeometry::upload(
-        &ctx,
-        &SceneMesh {
-            name: "grid",
-            positions: &g.positions,
-            indices: &g.indices,
-            opaque: true,
-        },
-    )
-    .unwrap();
+    let geom = common::grid_on_gpu(&ctx, 8, 2.0);
     let buffers = ctx.live_buffers();
     ctx.inject_failure("build_blas_now.scratch");
     let flags = class_flags(BlasClass::Static);
