@@ -25,9 +25,9 @@ use serde::Serialize;
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
     build_blas_now, compaction_sizes, time_blas_builds, time_build_recording,
-    time_refit_vs_rebuild, time_tlas_build, time_tlas_update, ContextDesc, GpuGeometry, SceneMesh,
-    StaticInstance, StaticScene, TriangleGeometry, Validation, VulkanBackend, VulkanBackendDesc,
-    VulkanContext,
+    time_refit_vs_rebuild, time_tlas_beside_builds, time_tlas_build, time_tlas_update, ContextDesc,
+    GpuGeometry, SceneMesh, StaticInstance, StaticScene, TriangleGeometry, Validation,
+    VulkanBackend, VulkanBackendDesc, VulkanContext,
 };
 use rtstream::as_manager::backend::CostOp;
 use rtstream::as_manager::{
@@ -120,6 +120,10 @@ struct Args {
     /// vkCmdBuildAccelerationStructuresKHR, by flags, batch size and call), then stop.
     #[arg(long)]
     recording_only: bool,
+    /// Only a frame's TLAS beside BLAS builds it does not reference: alone, after a barrier,
+    /// without one, and in one call (GPU time, by TLAS size and batch), then stop.
+    #[arg(long)]
+    beside_only: bool,
 }
 
 impl Args {
@@ -216,6 +220,21 @@ enum Record<'a> {
         second_call_ms: f64,
         update_ms: Option<f64>,
     },
+    /// GPU ms of a TLAS beside BLAS builds it does not reference (medians).
+    Beside {
+        tlas_records: usize,
+        tris_per_blas: u32,
+        blas_count: usize,
+        builds_ms: f64,
+        tlas_ms: f64,
+        serial_ms: f64,
+        no_barrier_ms: f64,
+        one_call_ms: f64,
+        tlas_first_ms: f64,
+        tlas_first_mid_ms: f64,
+        builds_first_ms: f64,
+        builds_first_mid_ms: f64,
+    },
     TlasTrace {
         flags: &'a str,
         instances: usize,
@@ -289,6 +308,70 @@ fn recording_costs(
     Ok(())
 }
 
+/// A frame's TLAS beside BLAS builds it does not reference (FAST_BUILD TLAS, FAST_BUILD +
+/// COMPACTION BLASes: the manager's defaults), by TLAS size and batch: each alone, the batch
+/// then a barrier then the TLAS, the two calls without the barrier, and one call.
+fn beside_builds(
+    ctx: &VulkanContext,
+    device: &str,
+    reps: usize,
+    md: &mut Vec<String>,
+) -> anyhow::Result<()> {
+    use vk::BuildAccelerationStructureFlagsKHR as F;
+    md.push(format!("\n### A TLAS beside BLAS builds it does not reference — {device}\n\nGPU ms, median of {reps} submits x 8 (each way timed alone, in rotating order, a barrier after each):\n\n| TLAS records | triangles/BLAS | BLASes | builds alone | TLAS alone | builds, barrier, TLAS | no barrier | one call | TLAS, timestamp, builds (to the timestamp) | builds, timestamp, TLAS (to the timestamp) |\n|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"));
+    let small = GpuGeometry::upload(ctx, &grid(1_000, 0.0).desc())?;
+    let blas = build_blas_now(ctx, &small, F::PREFER_FAST_TRACE, "beside bench blas")?;
+    for n in [13_000usize, 104_000] {
+        let transforms = grid_transforms(n);
+        for tris in [500usize, 5_000] {
+            let g = GpuGeometry::upload(ctx, &grid(tris, 0.0).desc())?;
+            for count in [1usize, 2, 8] {
+                let r = time_tlas_beside_builds(
+                    ctx,
+                    &blas,
+                    &transforms,
+                    &vec![&g; count],
+                    F::PREFER_FAST_BUILD | F::ALLOW_COMPACTION,
+                    F::PREFER_FAST_BUILD,
+                    reps,
+                )?;
+                Record::Beside {
+                    tlas_records: n,
+                    tris_per_blas: g.triangle_count(),
+                    blas_count: count,
+                    builds_ms: round_to(r.builds_ms, 4),
+                    tlas_ms: round_to(r.tlas_ms, 4),
+                    serial_ms: round_to(r.serial_ms, 4),
+                    no_barrier_ms: round_to(r.no_barrier_ms, 4),
+                    one_call_ms: round_to(r.one_call_ms, 4),
+                    tlas_first_ms: round_to(r.tlas_first_ms, 4),
+                    tlas_first_mid_ms: round_to(r.tlas_first_mid_ms, 4),
+                    builds_first_ms: round_to(r.builds_first_ms, 4),
+                    builds_first_mid_ms: round_to(r.builds_first_mid_ms, 4),
+                }
+                .print()?;
+                md.push(format!(
+                    "| {n} | {} | {count} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} ({:.3}) | {:.3} ({:.3}) |",
+                    g.triangle_count(),
+                    r.builds_ms,
+                    r.tlas_ms,
+                    r.serial_ms,
+                    r.no_barrier_ms,
+                    r.one_call_ms,
+                    r.tlas_first_ms,
+                    r.tlas_first_mid_ms,
+                    r.builds_first_ms,
+                    r.builds_first_mid_ms
+                ));
+            }
+            g.destroy(ctx);
+        }
+    }
+    ctx.destroy_accel(blas);
+    small.destroy(ctx);
+    Ok(())
+}
+
 fn round_to(x: f64, places: i32) -> f64 {
     let k = 10f64.powi(places);
     (x * k).round() / k
@@ -319,6 +402,13 @@ fn main() -> anyhow::Result<()> {
     let fast_build = vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
         | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE;
 
+    if args.beside_only {
+        beside_builds(ctx, &info.name, reps.max(10), &mut md)?;
+        if args.markdown {
+            eprintln!("{}", md.join("\n"));
+        }
+        return Ok(());
+    }
     if args.recording_only {
         recording_costs(ctx, &info.name, reps.max(20), &mut md)?;
         if args.markdown {

@@ -22,7 +22,8 @@ fn scene(ctx: &Arc<rtstream::as_manager::backend::vulkan::VulkanContext>) -> Sce
     Scene::new(ctx, VulkanBackendDesc::default(), c, 6)
 }
 
-/// Frame `frame`: a new pose, a camera walking along the rows.
+/// Frame `frame`: a new pose, a camera walking along the rows. Returns the frame's TLAS
+/// records plus its builds (a frame's builds show from the next frame on).
 fn update(s: &mut Scene, frame: u64) -> Result<usize, AsError> {
     s.pose(frame);
     let cams = [Viewpoint::new(
@@ -33,7 +34,7 @@ fn update(s: &mut Scene, frame: u64) -> Result<usize, AsError> {
         frame,
         cameras: &cams,
     })
-    .map(|o| o.instances.len())
+    .map(|o| o.instances.len() + o.stats.builds as usize)
 }
 
 #[test]

@@ -659,8 +659,9 @@ fn a_mesh_skinned_on_the_gpu_refits_without_upload_and_renders_like_cpu_poses() 
         assert_eq!(cc.refits, c.refits);
         drop(m);
         for (f, (a, b)) in gpu.iter().zip(&cpu).enumerate() {
+            // Frame 0 builds the cloth; a frame's builds show from the next one.
             assert!(
-                a.hit_fraction() > 0.2,
+                f == 0 || a.hit_fraction() > 0.2,
                 "frame {f} shows the cloth: {}",
                 a.hit_fraction()
             );

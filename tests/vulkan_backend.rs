@@ -373,3 +373,59 @@ fn a_stale_tlas_handle_resolves_to_nothing() {
         }
     }
 }
+
+/// The managed frame schedules its builds after its records, so the backend records them
+/// beside its TLAS (no barrier between: the TLAS names none of them; they show from the next
+/// frame). The naive baseline builds before its records, which name the new BLASes: its
+/// builds go first, then a barrier, then the TLAS. Both trace only what their TLAS holds.
+#[test]
+fn builds_run_beside_the_tlas_unless_a_record_names_one() {
+    let ctx = common::context();
+    for (policy, beside) in [
+        (rtstream::as_manager::PolicyKind::Managed, true),
+        (rtstream::as_manager::PolicyKind::Naive, false),
+    ] {
+        let mut config = config();
+        config.policy = policy;
+        let mut s = scene(&ctx, VulkanBackendDesc::default(), config);
+        let mut renderer = Renderer::new(ctx.clone()).expect("renderer");
+        let (mut hits_total, mut built_frames) = (0usize, 0u64);
+        for frame in 0..40u64 {
+            let eye = Vec3::new(-40.0 + frame as f32 * 2.0, 2.0, 30.0);
+            let cams = [Viewpoint::new(eye, Vec3::Z)];
+            let out = s
+                .manager
+                .update(FrameInput {
+                    frame,
+                    cameras: &cams,
+                })
+                .expect("frame never fails");
+            let (tlas, records) = (out.tlas, out.instances.to_vec());
+            built_frames += u64::from(out.stats.builds > 0);
+            let live: std::collections::HashSet<u32> =
+                records.iter().map(|r| r.custom_index()).collect();
+            let hits = render(&mut s, &mut renderer, tlas, &records, eye);
+            assert!(
+                hits.iter().all(|h| live.contains(h)),
+                "{policy:?} frame {frame}: a hit on an instance not in the TLAS"
+            );
+            hits_total += hits.len();
+        }
+        let c = s.manager.backend().counters();
+        assert!(built_frames > 0, "{policy:?}: {c:?}");
+        if beside {
+            assert_eq!(
+                (c.builds_beside_tlas, c.builds_before_tlas),
+                (built_frames, 0),
+                "{policy:?}: {c:?}"
+            );
+        } else {
+            assert_eq!(
+                (c.builds_beside_tlas, c.builds_before_tlas),
+                (0, built_frames),
+                "{policy:?}: {c:?}"
+            );
+        }
+        assert!(hits_total > 100, "{policy:?}: {hits_total} hits");
+    }
+}

@@ -68,6 +68,12 @@ pub struct CostModel {
     pub tlas_ms_per_kinst: f64,
     /// TLAS update in place, per thousand instances.
     pub tlas_update_ms_per_kinst: f64,
+    /// A frame's TLAS and its BLAS builds side by side (the TLAS references none of them, so
+    /// the backend records no barrier between them): the share of the shorter of the two that
+    /// the frame still pays. 1 means one after the other (lavapipe builds on the CPU); the
+    /// H200 runs them together and pays 0.02–0.14 of the shorter (docs/GPU.md, "A TLAS beside
+    /// the frame's builds").
+    pub beside_tlas: f64,
 }
 
 impl SizeModel {
@@ -262,6 +268,7 @@ impl CostModel {
             tlas_ms_per_kinst: 0.2,
             // An update costs about a build on lavapipe (docs/GPU.md).
             tlas_update_ms_per_kinst: 0.2,
+            beside_tlas: 1.0,
         }
     }
 
@@ -292,6 +299,34 @@ impl CostModel {
             compact_ms_per_mib: 0.0015,
             tlas_ms_per_kinst: 0.00145,
             tlas_update_ms_per_kinst: 0.00027,
+            beside_tlas: 0.15,
+        }
+    }
+
+    /// GPU ms of a TLAS (`tlas` ms) and a batch of BLAS builds (`builds` ms) recorded side by
+    /// side: the longer plus [`Self::beside_tlas`] of the shorter.
+    pub fn beside(&self, tlas: f64, builds: f64) -> f64 {
+        let share = self.beside_tlas.clamp(0.0, 1.0);
+        tlas.max(builds) + share * tlas.min(builds)
+    }
+
+    /// The most build ms that fit beside a TLAS of `tlas` ms within `room` ms
+    /// ([`Self::beside`] at most `room`); 0 when the TLAS alone fills it.
+    pub fn builds_beside(&self, tlas: f64, room: f64) -> f64 {
+        if tlas >= room {
+            return 0.0;
+        }
+        let share = self.beside_tlas.clamp(0.0, 1.0);
+        // Builds longer than the TLAS: builds + share * tlas <= room.
+        let longer = room - share * tlas;
+        if longer >= tlas {
+            return longer;
+        }
+        // Shorter: tlas + share * builds <= room.
+        if share <= 0.0 {
+            tlas
+        } else {
+            ((room - tlas) / share).min(tlas)
         }
     }
 
@@ -368,11 +403,12 @@ impl CostModel {
             self.tlas_ms_per_kinst,
             self.tlas_update_ms_per_kinst,
         ];
-        if all.iter().all(|v| v.is_finite() && *v >= 0.0) {
+        if all.iter().all(|v| v.is_finite() && *v >= 0.0) && (0.0..=1.0).contains(&self.beside_tlas)
+        {
             Ok(())
         } else {
             Err(AsError::InvalidConfig(
-                "cost model coefficients must be finite and >= 0".into(),
+                "cost model coefficients must be finite and >= 0 (beside_tlas within 0..=1)".into(),
             ))
         }
     }
@@ -487,6 +523,38 @@ impl Default for CostModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn builds_beside_a_tlas_fill_the_room_and_no_more() {
+        for share in [0.0, 0.15, 0.5, 1.0] {
+            let c = CostModel {
+                beside_tlas: share,
+                ..CostModel::nvidia()
+            };
+            for tlas in [0.0, 0.05, 0.2, 0.36, 0.45, 0.5, 0.7] {
+                let room = 0.5;
+                let b = c.builds_beside(tlas, room);
+                if tlas >= room {
+                    assert_eq!(b, 0.0);
+                    continue;
+                }
+                // Within the room, and nothing more fits (but when the TLAS alone is the
+                // limit at share 0: builds up to the TLAS are free).
+                assert!(c.beside(tlas, b) <= room + 1e-9, "{share} {tlas}: {b}");
+                assert!(
+                    c.beside(tlas, b + 1e-3) > room - 1e-9 || share == 0.0,
+                    "{share} {tlas}: {b} leaves room"
+                );
+                // One after the other (share 1) is the old sum.
+                if share == 1.0 {
+                    assert!((b - (room - tlas)).abs() < 1e-9);
+                }
+            }
+        }
+        // The H200's: a 0.36 ms TLAS (10x density) leaves 0.45 ms of builds in 0.5 ms.
+        let c = CostModel::nvidia();
+        assert!((c.builds_beside(0.36, 0.5) - 0.446).abs() < 1e-9);
+    }
 
     #[test]
     fn fitting_recovers_a_linear_driver() {

@@ -167,6 +167,11 @@ pub struct Measurement {
     pub items: u32,
     /// Measured GPU milliseconds.
     pub gpu_ms: f64,
+    /// Timed beside the frame's BLAS builds (a TLAS that names none of them runs with them,
+    /// no barrier between): `gpu_ms` is what this batch added to the frame after the builds
+    /// timed just before it, not its own time, so the cost model does not learn from it.
+    /// The frame's measurements still add up to its acceleration-structure time.
+    pub beside: bool,
 }
 
 /// Backend failures the manager reacts to.
@@ -317,6 +322,9 @@ pub trait AsBackend: Send {
     /// Sizes of a BLAS for this geometry and class, before building.
     fn blas_sizes(&self, geometry: &GeometryRef<'_>, class: BlasClass) -> BlasSizes;
     /// Records one batched build of `builds`; returns their handles in order. All or nothing.
+    /// The frame's TLAS may name them (the builds then finish before it); when it names none
+    /// (the managed policy builds after its records), a backend may run them beside the TLAS
+    /// (the Vulkan backend does: no barrier between them; `CostModel::beside_tlas`).
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>>;
     /// Records one batch of skinned refits/rebuilds (in place).
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()>;

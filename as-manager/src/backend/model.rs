@@ -58,6 +58,8 @@ pub struct ModelCounters {
     pub peak_bytes: u64,
     /// Simulated OOM failures returned.
     pub oom_failures: u64,
+    /// TLASes recorded beside the frame's builds (no record named one of them).
+    pub builds_beside_tlas: u64,
 }
 
 /// The GPU-less backend.
@@ -90,6 +92,8 @@ pub struct ModelBackend {
     tlas_updates_since: Option<u32>,
     /// BLAS triangles built this frame.
     frame_build_triangles: u64,
+    /// GPU ms of the current frame's builds (the TLAS may run beside them).
+    frame_build_ms: f64,
     blases: FxHashMap<BlasHandle, ModelBlas>,
     retiring: VecDeque<(u64, BlasHandle)>,
     next_handle: u64,
@@ -159,18 +163,23 @@ impl RecordRefs {
 
 impl ModelBackend {
     /// The model's timings of a frame's batches, (op, units, items) each; empty ones skipped.
-    fn measure_batches<const N: usize>(&mut self, batches: [(CostOp, u64, u32); N]) {
+    /// Returns their GPU ms.
+    fn measure_batches<const N: usize>(&mut self, batches: [(CostOp, u64, u32); N]) -> f64 {
+        let mut total = 0.0;
         for (op, units, items) in batches {
             if units > 0 {
                 let gpu_ms = self.costs.estimate_batch(op, units);
+                total += gpu_ms;
                 self.measurements.push(Measurement {
                     op,
                     units,
                     items,
                     gpu_ms,
+                    beside: false,
                 });
             }
         }
+        total
     }
 
     /// A backend with the given models and 2 frames in flight.
@@ -187,6 +196,7 @@ impl ModelBackend {
             light_frame_triangles: u64::MAX,
             tlas_updates_since: None,
             frame_build_triangles: 0,
+            frame_build_ms: 0.0,
             blases: FxHashMap::default(),
             retiring: VecDeque::new(),
             next_handle: 1,
@@ -329,6 +339,7 @@ impl AsBackend for ModelBackend {
         self.lost()?;
         self.frame = frame;
         self.frame_build_triangles = 0;
+        self.frame_build_ms = 0.0;
         self.tlas_marks.clear();
         if frame >= self.frames_in_flight {
             let done = frame - self.frames_in_flight;
@@ -406,7 +417,7 @@ impl AsBackend for ModelBackend {
             self.counters.builds += 1;
         }
         self.frame_build_triangles += st + sk;
-        self.measure_batches([
+        self.frame_build_ms += self.measure_batches([
             (CostOp::BuildStatic, st, n_st),
             (CostOp::BuildSkinned, sk, n_sk),
         ]);
@@ -433,7 +444,7 @@ impl AsBackend for ModelBackend {
                 self.counters.refits += 1;
             }
         }
-        self.measure_batches([(CostOp::Refit, rf, n_rf), (CostOp::BuildSkinned, rb, n_rb)]);
+        let _ = self.measure_batches([(CostOp::Refit, rf, n_rf), (CostOp::BuildSkinned, rb, n_rb)]);
         Ok(())
     }
 
@@ -473,6 +484,7 @@ impl AsBackend for ModelBackend {
             units: src.bytes,
             items: 1,
             gpu_ms,
+            beside: false,
         });
         Ok(h)
     }
@@ -511,9 +523,11 @@ impl AsBackend for ModelBackend {
         // Every BLAS the records name is used by this frame (a dead one is a violation per
         // record naming it): one look per BLAS, not per record.
         self.counters.lifetime_violations += self.refs.unknown;
+        let mut names_new = false;
         for &h in &self.refs.named {
             match self.blases.get_mut(&BlasHandle(h)) {
                 Some(b) => {
+                    names_new |= b.built_frame == frame;
                     self.tlas_marks.push((BlasHandle(h), b.last_tlas));
                     b.last_tlas = Some(frame);
                 }
@@ -541,12 +555,22 @@ impl AsBackend for ModelBackend {
                 _ => Some(0),
             };
         }
-        let gpu_ms = self.costs.estimate_batch(op, units);
+        // As the Vulkan backend records it: beside the frame's builds when no record names
+        // one of them (the TLAS's measurement is what it adds past the builds).
+        let own = self.costs.estimate_batch(op, units);
+        let beside = self.frame_build_ms > 0.0 && !names_new;
+        let gpu_ms = if beside {
+            self.counters.builds_beside_tlas += 1;
+            self.costs.beside(own, self.frame_build_ms) - self.frame_build_ms
+        } else {
+            own
+        };
         self.measurements.push(Measurement {
             op,
             units,
             items: instances.len() as u32,
             gpu_ms,
+            beside,
         });
         Ok(TlasHandle::new(0, self.frame))
     }

@@ -98,6 +98,7 @@ impl<B: AsBackend> AsManager<B> {
     /// with a built BLAS (skinned: its own).
     pub(crate) fn naive_frame(&mut self) -> Result<()> {
         self.naive_residency();
+        self.reserve_gpu(false);
         self.schedule_builds(false)?;
         self.schedule_refits(false)?;
         self.tlas_list.clear();
@@ -227,6 +228,7 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
         }
+        self.reserve_gpu(false);
         self.schedule_builds(false)?;
         self.schedule_refits(false)?;
         let culler = InstanceCuller::new(&CullConfig {

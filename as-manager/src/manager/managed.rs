@@ -34,12 +34,7 @@ impl<B: AsBackend> AsManager<B> {
         {
             let _s = tracing::trace_span!("schedule").entered();
             self.enforce_budget();
-            {
-                let _s = tracing::trace_span!("builds").entered();
-                self.schedule_builds(true)?;
-            }
             self.schedule_refits(true)?;
-            self.schedule_compactions()?;
             self.relax_floors();
         }
         {
@@ -54,10 +49,19 @@ impl<B: AsBackend> AsManager<B> {
                 self.far_select();
             }
         }
-        let _s = tracing::trace_span!("assemble").entered();
-        self.assemble_records();
-        self.records.extend_from_slice(&self.far.records);
-        Ok(())
+        {
+            let _s = tracing::trace_span!("assemble").entered();
+            self.assemble_records();
+            self.records.extend_from_slice(&self.far.records);
+        }
+        // The builds and compactions come after the records: this frame's TLAS names none of
+        // their BLASes (they enter the next frame's), so the backend records the builds beside
+        // it, with no barrier between (docs/GPU.md, "A TLAS beside the frame's builds"), and
+        // the GPU budget counts the two side by side.
+        let _s = tracing::trace_span!("builds").entered();
+        self.reserve_gpu(true);
+        self.schedule_builds(true)?;
+        self.schedule_compactions()
     }
 
     /// Visits instances within r2 of any camera (and beyond it in near far-field leaves);

@@ -264,6 +264,12 @@ pub struct AsManager<B: AsBackend> {
     /// Last frame's TLAS instances and refitted triangles.
     prev_tlas_instances: u32,
     prev_refit_prims: u64,
+    /// The GPU ms this frame's builds may take, and whether they run beside the TLAS
+    /// (`reserve_gpu`).
+    build_room_ms: f64,
+    builds_beside: bool,
+    /// The TLAS's share of `gpu_reserved_ms`.
+    reserved_tlas_ms: f64,
     /// Estimated GPU ms of this frame's compactions.
     compaction_estimated_ms: f64,
     visits: Vec<Visit>,
@@ -316,6 +322,9 @@ impl<B: AsBackend> AsManager<B> {
             gpu_reserved_ms: 0.0,
             prev_tlas_instances: 0,
             prev_refit_prims: 0,
+            build_room_ms: 0.0,
+            builds_beside: false,
+            reserved_tlas_ms: 0.0,
             compaction_estimated_ms: 0.0,
             config,
             backend,
@@ -642,6 +651,8 @@ impl<B: AsBackend> AsManager<B> {
         };
         self.compaction_estimated_ms = 0.0;
         self.gpu_reserved_ms = 0.0;
+        self.reserved_tlas_ms = 0.0;
+        self.builds_beside = false;
         self.backend.begin_frame(frame)?;
         self.journal.clear();
         let tlas = match self.frame_body(input) {
@@ -666,13 +677,17 @@ impl<B: AsBackend> AsManager<B> {
         } else {
             0.0
         };
-        self.stats.as_estimated_ms = (self.stats.build_estimated_ms as f64
-            + refit_ms
-            + self.compaction_estimated_ms
-            + self
-                .costs
-                .estimate_batch(CostOp::Tlas, self.records.len() as u64))
-            as f32;
+        let tlas_ms = self
+            .costs
+            .estimate_batch(CostOp::Tlas, self.records.len() as u64);
+        let build_ms = self.stats.build_estimated_ms as f64;
+        let tlas_and_builds = if self.builds_beside {
+            self.costs.beside(tlas_ms, build_ms)
+        } else {
+            tlas_ms + build_ms
+        };
+        self.stats.as_estimated_ms =
+            (tlas_and_builds + refit_ms + self.compaction_estimated_ms) as f32;
         self.stats.blas_count = self.built_count;
         self.stats.blas_bytes = self.live_bytes;
         self.stats.retiring_bytes = self.retiring_bytes;
@@ -753,7 +768,9 @@ impl<B: AsBackend> AsManager<B> {
             if matches!(m.op, CostOp::Tlas | CostOp::TlasUpdate) {
                 self.stats.measured_tlas_ms += m.gpu_ms;
             }
-            if self.config.freeze_cost_model {
+            // A TLAS timed beside its frame's builds reports what it added past them, not its
+            // own time: the fit learns the TLAS from the frames without builds.
+            if self.config.freeze_cost_model || m.beside {
                 continue;
             }
             self.cost_fits

@@ -81,6 +81,49 @@ impl<B: AsBackend> AsManager<B> {
         dist - bonus - b.aging_per_frame * self.frame.saturating_sub(e.queued_since) as f32
     }
 
+    /// Sets aside the GPU ms of this frame's TLAS and refits (`gpu_reserved_ms`) and what the
+    /// builds may take (`build_room_ms`). The TLAS is estimated from the larger of the
+    /// instances visited within r2 and the records (last frame's before this frame's are
+    /// assembled: `records_known` false), and the builds are counted after it; once the
+    /// managed frame has assembled its records, the builds, which that TLAS does not name, run
+    /// beside it ([`CostModel::builds_beside`]) within what the refits and compactions leave.
+    pub(crate) fn reserve_gpu(&mut self, records_known: bool) {
+        let tlas_op = match self.backend.next_tlas() {
+            NextTlas::Update => CostOp::TlasUpdate,
+            NextTlas::BuildEveryFrame | NextTlas::Rebuild => CostOp::Tlas,
+        };
+        // The instances visited within r2 may all show once built (a frame's builds make the
+        // next frames' TLAS larger): the TLAS is counted at the larger size.
+        let visited = self.costs.estimate_batch(tlas_op, self.visits.len() as u64);
+        let known = if records_known {
+            self.records.len() as u64
+        } else {
+            u64::from(self.prev_tlas_instances)
+        };
+        let tlas = visited.max(self.costs.estimate_batch(tlas_op, known));
+        // This frame's refits when they are scheduled already (the managed frame), else last
+        // frame's.
+        let refit_prims = if self.stats.refit_primitives > 0 {
+            self.stats.refit_primitives
+        } else {
+            self.prev_refit_prims
+        };
+        let refits = if refit_prims > 0 {
+            self.costs.estimate_batch(CostOp::Refit, refit_prims)
+        } else {
+            0.0
+        };
+        self.gpu_reserved_ms = tlas + refits;
+        self.reserved_tlas_ms = tlas;
+        let max = f64::from(self.config.build.max_gpu_ms);
+        self.builds_beside = records_known;
+        self.build_room_ms = if records_known {
+            self.costs.builds_beside(tlas, max - refits)
+        } else {
+            (max - self.gpu_reserved_ms).max(0.0)
+        };
+    }
+
     /// Builds queued entries within the per-frame budget (`budgeted`), memory permitting.
     pub(crate) fn schedule_builds(&mut self, budgeted: bool) -> Result<()> {
         // (proxy, priority, entry), and the bytes of the built proxies, in one pass over the
@@ -112,33 +155,16 @@ impl<B: AsBackend> AsManager<B> {
         let build_budget =
             (self.budget() as f64 * (1.0 - self.config.memory.compaction_headroom as f64)) as u64;
         let (mut prims, mut ms, mut bytes) = (0u64, 0f64, 0u64);
-        // The GPU budget covers all acceleration-structure work: builds get what the TLAS and
-        // the refits (estimated from last frame) leave.
-        // The TLAS holds at most the instances within r2 this frame (visited above). A backend
-        // that updates its TLAS in place says whether this frame's is an update or a build; a
-        // build after updates takes no build that the budget does not hold (the frames after
-        // it update, so nothing starves), which keeps the rebuild and the builds apart.
-        let next = self.backend.next_tlas();
-        let tlas_op = match next {
-            NextTlas::Update => CostOp::TlasUpdate,
-            NextTlas::BuildEveryFrame | NextTlas::Rebuild => CostOp::Tlas,
-        };
-        let progress = next != NextTlas::Rebuild;
-        let tlas_now = self.costs.estimate_batch(tlas_op, self.visits.len() as u64);
-        let tlas_before = self
-            .costs
-            .estimate_batch(tlas_op, u64::from(self.prev_tlas_instances));
-        let refits = if self.prev_refit_prims > 0 {
-            self.costs
-                .estimate_batch(CostOp::Refit, self.prev_refit_prims)
-        } else {
-            0.0
-        };
-        self.gpu_reserved_ms = tlas_now.max(tlas_before) + refits;
+        // The GPU budget covers all acceleration-structure work: builds get what the TLAS,
+        // the refits and the compactions leave (`reserve_gpu`). A backend that updates its
+        // TLAS in place says whether this frame's is an update or a build; a build after
+        // updates takes no build that the budget does not hold (the frames after it update,
+        // so nothing starves), which keeps the rebuild and the builds apart.
+        let progress = self.backend.next_tlas() != NextTlas::Rebuild;
         // The builds are one batch: its fixed cost is the static one once any static build
         // is in it, else the skinned one (counted as the first item of each class goes).
         let mut batch_fixed = 0.0f64;
-        let build_ms = (b.max_gpu_ms as f64 - self.gpu_reserved_ms).max(0.0);
+        let build_ms = self.build_room_ms;
         let mut admitted: Vec<Admitted> = Vec::new();
         let mut sizes = Vec::new();
         for &(proxy, prio, key) in &queue {
@@ -330,7 +356,10 @@ impl<B: AsBackend> AsManager<B> {
                     self.live_bytes += s.as_bytes;
                     self.built_count += 1;
                     self.journal.built.push((a.entry, handle));
-                    self.tables.blas_changed(a.entry, frame);
+                    // Beside the TLAS, the BLAS shows from the next frame on: its mesh's
+                    // landmarks choose again then (they chose this frame already).
+                    let shows_from = frame + u64::from(self.builds_beside);
+                    self.tables.blas_changed(a.entry, shows_from);
                     tracing::trace!(entry = ?a.entry, bytes = s.as_bytes, "blas built");
                 }
                 self.stats.builds = admitted.len() as u32;
@@ -493,9 +522,16 @@ impl<B: AsBackend> AsManager<B> {
             return Ok(());
         }
         let b = &self.config.build;
-        // Compaction takes what the GPU budget has left after builds, refits and the TLAS.
-        let left =
-            b.max_gpu_ms as f64 - self.stats.build_estimated_ms as f64 - self.gpu_reserved_ms;
+        // Compaction takes what the GPU budget has left after builds, refits and the TLAS
+        // (the builds side by side with the TLAS when they run beside it).
+        let builds = self.stats.build_estimated_ms as f64;
+        let refits = self.gpu_reserved_ms - self.reserved_tlas_ms;
+        let tlas_and_builds = if self.builds_beside {
+            self.costs.beside(self.reserved_tlas_ms, builds)
+        } else {
+            self.reserved_tlas_ms + builds
+        };
+        let left = b.max_gpu_ms as f64 - refits - tlas_and_builds;
         let (max_n, max_ms) = (b.max_compactions, (b.max_compaction_ms as f64).min(left));
         let mut pending = std::mem::take(&mut self.compact_pending);
         let mut failure: Option<BackendError> = None;
@@ -544,7 +580,9 @@ impl<B: AsBackend> AsManager<B> {
                     e.handle = Some(new);
                     e.address = self.backend.blas_address(new);
                     e.needs_compaction = false;
-                    self.tables.blas_changed(key, frame);
+                    // Beside the TLAS the copy shows from the next frame (see the builds).
+                    self.tables
+                        .blas_changed(key, frame + u64::from(self.builds_beside));
                     done += 1;
                     ms += est;
                     false

@@ -94,13 +94,21 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
     let out = run_frame(&mut m, 1, &c);
     assert_eq!(out.stats.builds, 1);
     assert_eq!(out.stats.blas_count, 1, "50 instances share one BLAS");
+    // The frame's builds run beside its TLAS: they show from the next frame.
+    assert_eq!(
+        out.instances.len(),
+        0,
+        "built this frame, shown from the next"
+    );
+    let out = run_frame(&mut m, 2, &c);
+    assert_eq!(out.stats.builds, 0);
     assert_eq!(out.instances.len(), 50);
     let recs = out.instances.to_vec();
     check_records(&m, &recs);
     // fly away: released after release_threshold frames beyond r2
     let far = cam(5000.0, 0.0);
     let mut released_at = None;
-    for f in 2..100 {
+    for f in 3..100 {
         let out = run_frame(&mut m, f, &far);
         assert!(out.instances.is_empty());
         if out.stats.releases > 0 {
@@ -111,8 +119,8 @@ fn near_instances_get_one_shared_blas_after_threshold_and_release_later() {
     let r = released_at.expect("released");
     assert_eq!(
         r,
-        1 + Config::default().residency.release_threshold as u64 + 1,
-        "last kept at frame 1"
+        2 + Config::default().residency.release_threshold as u64 + 1,
+        "last kept at frame 2"
     );
 }
 
@@ -505,6 +513,11 @@ fn a_manager_learns_its_devices_fixed_costs() {
     for f in 0..400 {
         run_frame(&mut m, f, &cam(f as f32 * 4.0, 0.0));
     }
+    // A TLAS beside its frame's builds does not report its own time: the TLAS is learned
+    // from frames without builds (the camera stops at the end of the walk).
+    for f in 400..480 {
+        run_frame(&mut m, f, &cam(1596.0, 0.0));
+    }
     let learned = m.cost_model();
     for (op, units) in [
         (CostOp::BuildStatic, 1_000u64),
@@ -617,18 +630,28 @@ fn frames_to_build_forty_on(
 #[test]
 fn the_gpu_budget_covers_the_tlas_and_refits_before_builds() {
     // A TLAS estimated at most of the budget leaves builds one item per frame; a cheap TLAS
-    // leaves them the whole budget.
+    // leaves them the whole budget. The frame's builds enter the next frame's TLAS: the
+    // frame's estimate is its own TLAS beside its builds (one after the other with this
+    // prior, `beside_tlas` 1), within the budget whenever it builds more than one.
     let frames_to_build = |tlas_ms_per_instance: f64| {
         let mut costs = Config::default().cost_prior;
         costs.build_static_ms_per_mtri = 10.0; // 0.01 ms per 1k-triangle mesh
         costs.tlas_ms_per_kinst = tlas_ms_per_instance * 1e3;
         costs.batch_ms = Default::default();
+        assert_eq!(costs.beside_tlas, 1.0);
+        let budget = f64::from(Config::default().build.max_gpu_ms);
         frames_to_build_forty(costs, |frame, s| {
             assert!(
                 s.builds <= 1 || f64::from(s.build_estimated_ms) <= 1.0 + 1e-6,
                 "frame {frame}: {} builds, {} ms",
                 s.builds,
                 s.build_estimated_ms
+            );
+            assert!(
+                s.builds <= 1 || f64::from(s.as_estimated_ms) <= budget + 1e-6,
+                "frame {frame}: {} builds, {} ms with the TLAS",
+                s.builds,
+                s.as_estimated_ms
             );
         })
     };

@@ -26,8 +26,10 @@ pub trait Probe: AsBackend {
     /// BLASes freed or destroyed while a frame used them, as the backend saw it (the Vulkan
     /// backend leaves this to the synchronization validation layer: 0 here).
     fn lifetime_violations(&self) -> u64;
-    /// Whether a TLAS record's address names a live BLAS.
-    fn is_live_address(&self, address: u64) -> bool;
+    /// Whether frame `frame`'s TLAS may name the BLAS at `address`: live, or freed after that
+    /// frame's records (the managed frame's evictions and compactions) and kept until it
+    /// completes.
+    fn is_usable_address(&self, address: u64, frame: u64) -> bool;
     /// Bytes of BLAS storage not yet destroyed (retiring included).
     fn blas_allocated(&self) -> u64;
     /// Live BLASes.
@@ -58,7 +60,8 @@ impl Probe for ModelBackend {
     fn lifetime_violations(&self) -> u64 {
         self.counters().lifetime_violations
     }
-    fn is_live_address(&self, address: u64) -> bool {
+    fn is_usable_address(&self, address: u64, _frame: u64) -> bool {
+        // Kept until destroyed; a use after its last frame counts in `lifetime_violations`.
         ModelBackend::is_live_address(self, address)
     }
     fn blas_allocated(&self) -> u64 {
@@ -78,8 +81,8 @@ impl Probe for VulkanBackend {
     fn lifetime_violations(&self) -> u64 {
         0
     }
-    fn is_live_address(&self, address: u64) -> bool {
-        self.is_live_blas_address(address)
+    fn is_usable_address(&self, address: u64, frame: u64) -> bool {
+        self.is_blas_address_usable(address, frame)
     }
     fn blas_allocated(&self) -> u64 {
         // AS storage only: the static BLASes' input buffers kept for shading lookups are
@@ -356,7 +359,7 @@ impl<B: Probe> Harness<B> {
         // TLAS references only live, built BLASes.
         for a in addrs {
             prop_assert!(
-                self.m.backend().is_live_address(a),
+                self.m.backend().is_usable_address(a, f),
                 "frame {f}: dead BLAS in TLAS"
             );
         }

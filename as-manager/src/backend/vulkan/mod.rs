@@ -16,13 +16,14 @@ mod render;
 pub use super::FaultPoint;
 pub use as_backend::measure::{
     build_blas_now, compaction_sizes, time_blas_builds, time_build_recording,
-    time_refit_vs_rebuild, time_tlas_build, time_tlas_update, CompactionResult, RecordingCost,
+    time_refit_vs_rebuild, time_tlas_beside_builds, time_tlas_build, time_tlas_update,
+    BesideBuilds, CompactionResult, RecordingCost,
 };
 pub use as_backend::{
     class_flags, Recording, TlasUpdates, VulkanBackend, VulkanBackendDesc, VulkanCounters,
 };
 pub use device::accel::{
-    align_up, AccelStorage, AccelStruct, AsSizes, BlasBuildInput, TriangleGeometry,
+    align_up, AccelStorage, AccelStruct, AsSizes, BlasBuildInput, TlasBuildInput, TriangleGeometry,
     ACCEL_STORAGE_USAGE, BUILD_INPUT_USAGE,
 };
 pub use device::arena::{ArenaRange, BufferArena, UNIT as ARENA_UNIT};

@@ -430,7 +430,12 @@ impl Landmarks {
                     .get(p.mesh as usize)
                     .and_then(|m| m.as_ref())
                     .and_then(|m| m.lod_entry[p.lod as usize]);
-                if c.unsettled && tables.built(key) {
+                // (A target built this frame shows from the next: the frame's builds come
+                // after its records.)
+                let built_before = key.and_then(|k| tables.entries.get(k)).is_some_and(|e| {
+                    e.state == super::state::EntryState::Built && e.created < frame
+                });
+                if c.unsettled && built_before {
                     let e = format!(
                         "slot {} waits for a built target (pair {})",
                         m.slot, m.target

@@ -34,7 +34,8 @@ impl VulkanBackend {
         if builds.is_empty() {
             return Ok(Vec::new());
         }
-        let cmd = self.cmd()?;
+        // A frame is being recorded (the builds are recorded with its TLAS).
+        self.cmd()?;
         struct Planned {
             geoms: Vec<TriangleGeometry>,
             accels: Vec<AccelStruct>,
@@ -191,49 +192,36 @@ impl VulkanBackend {
             }
             return Err(e);
         }
-        let mut raw_builds = Vec::new();
-        let mut addrs = Vec::new();
-        for p in &planned {
-            for (g, (a, s)) in p.geoms.iter().zip(p.accels.iter().zip(&p.scratch)) {
-                addrs.push((g, a.raw, *s));
-            }
-        }
-        for (g, dst, s) in addrs {
-            let scratch_address = self.scratch_alloc(s);
-            raw_builds.push(BlasBuildInput {
-                geometries: std::slice::from_ref(g),
-                flags: vk::BuildAccelerationStructureFlagsKHR::empty(),
-                dst,
-                update_from: None,
-                scratch_address,
-            });
-        }
-        // Flags per build (raw_builds was filled in plan order).
-        let mut k = 0;
+        // Recorded with the frame's TLAS (`record_pending_builds`): beside it when no record
+        // names these BLASes.
+        let mut k = 0usize;
         for (b, p) in builds.iter().zip(&planned) {
-            for _ in &p.accels {
-                raw_builds[k].flags = self.blas_flags(b.class);
+            let flags = self.blas_flags(b.class);
+            for (g, (a, sc)) in p.geoms.iter().zip(p.accels.iter().zip(&p.scratch)) {
+                let scratch_address = self.scratch_alloc(*sc);
+                self.pending
+                    .inputs
+                    .push((*g, flags, a.raw, scratch_address));
+                self.pending.addresses.push(a.address);
                 k += 1;
             }
         }
+        debug_assert!(k > 0);
+        self.pending.addresses.sort_unstable();
         let tris: u64 = builds
             .iter()
             .map(|b| u64::from(b.geometry.triangle_count))
             .sum();
-        let op = if builds.iter().all(|b| b.class == BlasClass::Skinned) {
-            CostOp::BuildSkinned
-        } else {
+        let any_static = builds.iter().any(|b| b.class != BlasClass::Skinned)
+            || self.pending.op == Some(CostOp::BuildStatic);
+        self.pending.op = Some(if any_static {
             CostOp::BuildStatic
-        };
+        } else {
+            CostOp::BuildSkinned
+        });
+        self.pending.triangles += tris;
+        self.pending.blases += builds.len() as u32;
         self.frame_build_triangles += tris;
-        let t = self.timestamp_begin(op, tris, builds.len() as u32);
-        let recording = tracing::trace_span!("cmd_build").entered();
-        // SAFETY: cmd is recording; inputs are the BLASes' own buffers, retired with them after
-        // the frame completes; scratch ranges are disjoint and aligned.
-        unsafe { self.ctx.cmd_build_blases(cmd, &raw_builds) };
-        drop(recording);
-        self.timestamp_end(t);
-        drop(raw_builds);
         // Compacted-size queries for static BLASes (single-part only).
         let statics: Vec<usize> = (0..builds.len())
             .filter(|&i| builds[i].class == BlasClass::Static && planned[i].accels.len() == 1)
@@ -291,26 +279,95 @@ impl VulkanBackend {
             handles.push(h);
             self.counters.built += 1;
         }
-        if !query_targets.is_empty() {
-            let s = &mut self.slots[self.current];
-            let room = (COMPACT_QUERIES_PER_SLOT as usize).saturating_sub(s.compact_queries.len());
-            query_targets.truncate(room);
-            if !query_targets.is_empty() {
-                let first = s.compact_queries.len() as u32;
-                let raws: Vec<_> = query_targets.iter().map(|(_, r)| *r).collect();
-                // SAFETY: recording; the barrier orders the builds before the queries, which
-                // were reset in begin_frame and are written once.
-                unsafe {
-                    self.ctx.cmd_accel_barrier(cmd);
-                    s.compact_pool
-                        .cmd_compacted_sizes(&self.ctx, cmd, &raws, first);
-                }
-                for (k, (h, _)) in query_targets.into_iter().enumerate() {
-                    s.compact_queries.push((h, first + k as u32));
-                }
-            }
-        }
+        self.pending.queries.extend(query_targets);
         Ok(handles)
+    }
+
+    /// Whether a TLAS over `records` (changed since the last call where `delta` says) names
+    /// a BLAS built this frame: then the builds must finish before it.
+    pub(super) fn records_name_pending(
+        &self,
+        records: &[TlasInstance],
+        delta: TlasDelta<'_>,
+    ) -> bool {
+        let pending = &self.pending.addresses;
+        if pending.is_empty() {
+            return false;
+        }
+        let named = |r: &TlasInstance| pending.binary_search(&r.blas_address).is_ok();
+        // Records before `stable` and not listed are last call's: none can name a BLAS that
+        // did not exist then.
+        let from = delta.stable.min(records.len());
+        records[from..].iter().any(named)
+            || delta
+                .changed
+                .iter()
+                .filter_map(|&i| records.get(i as usize))
+                .any(named)
+    }
+
+    /// Records the frame's pending BLAS builds (timed), then a barrier and their compacted-size
+    /// queries: before a TLAS that names them, or at the end of a frame without a TLAS.
+    pub(super) fn record_pending_builds(&mut self, cmd: vk::CommandBuffer) {
+        self.record_pending_builds_beside(cmd);
+        self.record_compacted_size_queries(cmd);
+    }
+
+    /// Records the frame's pending BLAS builds (timed) with no barrier after them: the TLAS
+    /// that follows names none of them and runs beside them (its timestamp pair starts where
+    /// theirs ends); `record_compacted_size_queries` follows it.
+    pub(super) fn record_pending_builds_beside(&mut self, cmd: vk::CommandBuffer) {
+        let Some(op) = self.pending.op.take() else {
+            return;
+        };
+        let inputs = std::mem::take(&mut self.pending.inputs);
+        self.pending.addresses.clear();
+        let raw: Vec<BlasBuildInput<'_>> = inputs
+            .iter()
+            .map(|(g, flags, dst, scratch_address)| BlasBuildInput {
+                geometries: std::slice::from_ref(g),
+                flags: *flags,
+                dst: *dst,
+                update_from: None,
+                scratch_address: *scratch_address,
+            })
+            .collect();
+        let (triangles, blases) = (self.pending.triangles, self.pending.blases);
+        self.pending.triangles = 0;
+        self.pending.blases = 0;
+        let t = self.timestamp_begin(op, triangles, blases);
+        let recording = tracing::trace_span!("cmd_build").entered();
+        // SAFETY: cmd is recording; inputs are the BLASes' own buffers (or the engine's,
+        // which it keeps until the frame completes), retired with them after the frame
+        // completes; scratch ranges are disjoint and aligned, and the frame's scratch is not
+        // reused before it completes.
+        unsafe { self.ctx.cmd_build_blases(cmd, &raw) };
+        drop(recording);
+        self.timestamp_end(t);
+    }
+
+    /// After the frame's builds (and the TLAS beside them): a barrier, then the compacted-size
+    /// queries of its static single-part BLASes.
+    pub(super) fn record_compacted_size_queries(&mut self, cmd: vk::CommandBuffer) {
+        let mut queries = std::mem::take(&mut self.pending.queries);
+        let s = &mut self.slots[self.current];
+        let room = (COMPACT_QUERIES_PER_SLOT as usize).saturating_sub(s.compact_queries.len());
+        queries.truncate(room);
+        if queries.is_empty() {
+            return;
+        }
+        let first = s.compact_queries.len() as u32;
+        let raws: Vec<_> = queries.iter().map(|(_, r)| *r).collect();
+        // SAFETY: recording; the barrier orders the builds before the queries, which were
+        // reset in begin_frame and are written once.
+        unsafe {
+            self.ctx.cmd_accel_barrier(cmd);
+            s.compact_pool
+                .cmd_compacted_sizes(&self.ctx, cmd, &raws, first);
+        }
+        for (k, (h, _)) in queries.into_iter().enumerate() {
+            s.compact_queries.push((h, first + k as u32));
+        }
     }
 
     pub(super) fn record_refits(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
@@ -563,6 +620,10 @@ impl VulkanBackend {
         };
         if e.parts.len() > 1 {
             self.split_parts.remove(&e.parts[0].address);
+        }
+        if e.shading_plain {
+            self.retired_shading
+                .insert(e.parts[0].address, (last_used_frame, e.shading));
         }
         let objects: Vec<Retired> = e.into_owned().collect();
         // Keep the queue ordered by frame: frees of older frames may arrive late, and go in

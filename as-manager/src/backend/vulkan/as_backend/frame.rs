@@ -232,10 +232,28 @@ impl VulkanBackend {
         if !timestamps || first + 2 > room {
             return None;
         }
-        s.timed.push((op, units, items, first));
+        s.timed.push(Timed {
+            op,
+            units,
+            items,
+            first,
+            beside: false,
+        });
         // SAFETY: the slot's command buffer is recording; the query was reset in begin_frame.
         unsafe { s.timestamps.cmd_timestamp(&self.ctx, s.cmd, first) };
         Some(first)
+    }
+
+    /// Marks the pair begun by `first` as timing a batch beside the builds timed before it.
+    pub(super) fn timed_beside(&mut self, first: Option<u32>) {
+        if let Some(t) = first.and_then(|f| {
+            self.slots[self.current]
+                .timed
+                .iter_mut()
+                .find(|t| t.first == f)
+        }) {
+            t.beside = true;
+        }
     }
 
     pub(super) fn timestamp_end(&self, first: Option<u32>) {
@@ -256,13 +274,15 @@ impl VulkanBackend {
             .then(|| words[base..base + s.compact_queries.len()].to_vec());
         let s = &mut self.slots[slot];
         if let Some(ticks) = ticks {
-            for &(op, units, items, first) in &s.timed {
-                let dt = ticks[first as usize + 1].saturating_sub(ticks[first as usize]);
+            for t in &s.timed {
+                let first = t.first as usize;
+                let dt = ticks[first + 1].saturating_sub(ticks[first]);
                 let m = Measurement {
-                    op,
-                    units,
-                    items,
+                    op: t.op,
+                    units: t.units,
+                    items: t.items,
                     gpu_ms: s.timestamps.ticks_to_ms(dt),
+                    beside: t.beside,
                 };
                 self.measurements.push(m);
                 if self.log.len() == 256 {
@@ -320,6 +340,9 @@ impl VulkanBackend {
             self.completed = Some(self.completed.map_or(reached - 1, |c| c.max(reached - 1)));
         }
         let retire = tracing::trace_span!("retire").entered();
+        if let Some(done) = self.completed {
+            self.retired_shading.retain(|_, &mut (last, _)| last > done);
+        }
         while let Some((f, _)) = self.retiring.front() {
             if self.completed.is_some_and(|c| c >= *f) {
                 let (_, r) = self.retiring.pop_front().expect("front exists");
@@ -373,6 +396,8 @@ impl VulkanBackend {
         let cmd = self.cmd()?;
         let value = frame + 1;
         let engine = self.desc.recording == Recording::Engine;
+        // Builds of a frame without a TLAS.
+        self.record_pending_builds(cmd);
         let r = (|| {
             let s = &self.slots[self.current];
             // SAFETY: recording; the queries were reset at begin_frame and written by commands

@@ -5,7 +5,7 @@ use ash::vk;
 use rtstream_stats::Samples;
 
 use crate::backend::vulkan::device::accel::{
-    AccelStruct, BlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
+    align_up, AccelStruct, BlasBuildInput, TlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
@@ -435,6 +435,178 @@ pub fn time_tlas_build(
     ctx.destroy_buffer(ibuf);
     ts.destroy(ctx);
     result
+}
+
+/// GPU medians of a frame's TLAS build beside a batch of BLAS builds the TLAS does not
+/// reference, recorded several ways ([`time_tlas_beside_builds`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BesideBuilds {
+    /// The BLAS batch alone.
+    pub builds_ms: f64,
+    /// The TLAS alone.
+    pub tlas_ms: f64,
+    /// The batch, a barrier, then the TLAS (the order a TLAS that uses the new BLASes needs).
+    pub serial_ms: f64,
+    /// The batch, then the TLAS in another call, no barrier between them.
+    pub no_barrier_ms: f64,
+    /// The batch and the TLAS in one vkCmdBuildAccelerationStructuresKHR.
+    pub one_call_ms: f64,
+    /// The TLAS, a timestamp, then the batch (no barrier): the whole span, and the span to
+    /// the middle timestamp (whether a timestamp between them keeps them apart).
+    pub tlas_first_ms: f64,
+    /// The middle timestamp of `tlas_first_ms`.
+    pub tlas_first_mid_ms: f64,
+    /// The batch, a timestamp, then the TLAS (no barrier): the whole span and to the middle.
+    pub builds_first_ms: f64,
+    /// The middle timestamp of `builds_first_ms`.
+    pub builds_first_mid_ms: f64,
+}
+
+/// What a frame's TLAS costs beside its BLAS builds, when the TLAS need not wait for them (its
+/// records reference other BLASes): a TLAS over `transforms` (instances of `blas`, built
+/// before) and one new BLAS per entry of `geoms`, timed alone and together several ways (see
+/// [`BesideBuilds`]). Each of `reps` submits (after a warm-up) records every way 8 times, in
+/// rotating order, with three timestamps and a barrier around each, so the GPU stays busy (its
+/// clocks up) and the ways share its state. Medians.
+pub fn time_tlas_beside_builds(
+    ctx: &VulkanContext,
+    blas: &AccelStruct,
+    transforms: &[[f32; 16]],
+    geoms: &[&GpuGeometry],
+    blas_flags: vk::BuildAccelerationStructureFlagsKHR,
+    tlas_flags: vk::BuildAccelerationStructureFlagsKHR,
+    reps: usize,
+) -> VkResult<BesideBuilds> {
+    const WAYS: usize = 7;
+    const INNER: usize = 8;
+    const QUERIES: u32 = (3 * WAYS * INNER) as u32;
+    let n = transforms.len() as u32;
+    let records: Vec<TlasInstance> = transforms
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            TlasInstance::new(
+                &glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(t)),
+                (i as u32) & 0xff_ffff,
+                0xff,
+                0,
+                INSTANCE_FORCE_OPAQUE,
+                blas.address,
+            )
+        })
+        .collect();
+    let lists: Vec<&[TriangleGeometry]> = geoms
+        .iter()
+        .map(|g| std::slice::from_ref(&g.geometry))
+        .collect();
+    let batch = ctx.plan_blas_batch(&lists, blas_flags, |i| format!("beside blas {i}"))?;
+    let batch = scopeguard::guard(batch, |b| b.destroy(ctx));
+    let s = ctx.tlas_sizes(n, tlas_flags);
+    let ibuf = ctx.create_buffer_with_data(
+        "beside tlas instances",
+        BUILD_INPUT_USAGE,
+        bytemuck::cast_slice(&records),
+    )?;
+    let ibuf = scopeguard::guard(ibuf, |b| ctx.destroy_buffer(b));
+    let tlas = create_tlas(ctx, s.storage, "beside tlas")?;
+    let tlas = scopeguard::guard(tlas, |t| ctx.destroy_accel(t));
+    let align = ctx.info().min_scratch_alignment.max(1);
+    let blas_scratch = align_up(batch.scratch.total(), align);
+    let (scratch, base) =
+        ctx.create_scratch("beside scratch", blas_scratch + s.build_scratch.max(1))?;
+    let _scratch = scopeguard::guard(scratch, |b| ctx.destroy_buffer(b));
+    let ts = QueryPool::new(ctx, QueryKind::Timestamp, QUERIES, "beside timestamps")?;
+    let ts = scopeguard::guard(ts, |t| t.destroy(ctx));
+    let builds = batch.inputs(&lists, blas_flags, base);
+    let tlas_in = TlasBuildInput {
+        dst: tlas.raw,
+        flags: tlas_flags,
+        instances_address: ibuf.address,
+        instance_count: n,
+        scratch_address: base + blas_scratch,
+    };
+    let mut span: [Vec<f64>; WAYS] = Default::default();
+    let mut mid: [Vec<f64>; WAYS] = Default::default();
+    for rep in 0..=reps {
+        ts.reset(ctx);
+        ctx.submit_and_wait("time_tlas_beside_builds", |_, cmd| {
+            for i in 0..INNER {
+                for k in 0..WAYS {
+                    let way = (k + i + rep) % WAYS;
+                    let q = ((i * WAYS + way) * 3) as u32;
+                    // SAFETY: cmd is recording; the pool was reset above and holds every
+                    // index; the BLAS of the records was built before (the caller's
+                    // contract), everything referenced lives until the wait, the scratch
+                    // ranges are disjoint, and the TLAS references none of the batch's BLASes
+                    // (which the ways without a barrier between them need); the barrier after
+                    // each way orders its writes before the next way's.
+                    unsafe {
+                        let tlas_only =
+                            |cmd| ctx.cmd_build_blases_with_tlas(cmd, &[], Some(&tlas_in));
+                        ts.cmd_timestamp(ctx, cmd, q);
+                        match way {
+                            0 => {
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                ctx.cmd_build_blases(cmd, &builds);
+                            }
+                            1 => {
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                tlas_only(cmd);
+                            }
+                            2 => {
+                                ctx.cmd_build_blases(cmd, &builds);
+                                ctx.cmd_accel_barrier(cmd);
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                tlas_only(cmd);
+                            }
+                            3 => {
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                ctx.cmd_build_blases(cmd, &builds);
+                                tlas_only(cmd);
+                            }
+                            4 => {
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                ctx.cmd_build_blases_with_tlas(cmd, &builds, Some(&tlas_in));
+                            }
+                            5 => {
+                                tlas_only(cmd);
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                ctx.cmd_build_blases(cmd, &builds);
+                            }
+                            _ => {
+                                ctx.cmd_build_blases(cmd, &builds);
+                                ts.cmd_timestamp(ctx, cmd, q + 1);
+                                tlas_only(cmd);
+                            }
+                        }
+                        ts.cmd_timestamp(ctx, cmd, q + 2);
+                        ctx.cmd_accel_barrier(cmd);
+                    }
+                }
+            }
+        })?;
+        let t = ts.read(ctx, 0, QUERIES)?;
+        if rep > 0 {
+            for (q, tri) in t.chunks_exact(3).enumerate() {
+                span[q % WAYS].push(ts.ticks_to_ms(tri[2].saturating_sub(tri[0])));
+                mid[q % WAYS].push(ts.ticks_to_ms(tri[1].saturating_sub(tri[0])));
+            }
+        }
+    }
+    drop(builds);
+    let span = span.map(|v| Samples::new(v).median());
+    let mid = mid.map(|v| Samples::new(v).median());
+    Ok(BesideBuilds {
+        builds_ms: span[0],
+        tlas_ms: span[1],
+        serial_ms: span[2],
+        no_barrier_ms: span[3],
+        one_call_ms: span[4],
+        tlas_first_ms: span[5],
+        tlas_first_mid_ms: mid[5],
+        builds_first_ms: span[6],
+        builds_first_mid_ms: mid[6],
+    })
 }
 
 /// Median GPU ms of a TLAS build and of an update in place over `transforms` (instances of

@@ -339,8 +339,8 @@ struct Slot {
     /// This frame's scratch ranges in `scratch` (the same layout as every BLAS planner's).
     scratch_used: ScratchLayout,
     timestamps: QueryPool,
-    /// (op, units, first query) of timestamp pairs recorded this frame.
-    timed: Vec<(CostOp, u64, u32, u32)>,
+    /// Timestamp pairs recorded this frame.
+    timed: Vec<Timed>,
     compact_pool: QueryPool,
     /// (handle, query index) of compacted-size queries recorded this frame.
     compact_queries: Vec<(BlasHandle, u32)>,
@@ -352,6 +352,38 @@ struct Slot {
     quality: Option<GpuBuffer>,
     /// The quality dispatches recorded this frame.
     quality_jobs: Vec<gpu_quality::QualityJob>,
+}
+
+/// A timestamp pair of a frame: what it timed (op, units, items), its first query, and whether
+/// the batch ran beside the BLAS builds timed just before it (`Measurement::beside`).
+#[derive(Debug, Clone, Copy)]
+struct Timed {
+    op: CostOp,
+    units: u64,
+    items: u32,
+    first: u32,
+    beside: bool,
+}
+
+/// The frame's BLAS builds, planned by `build_blases` and recorded with the TLAS
+/// (`builds.rs`, `record_pending_builds`): beside it when no record names them.
+#[derive(Debug, Default)]
+struct PendingBuilds {
+    /// (geometry, flags, destination, scratch address) per BLAS part.
+    inputs: Vec<(
+        TriangleGeometry,
+        vk::BuildAccelerationStructureFlagsKHR,
+        vk::AccelerationStructureKHR,
+        vk::DeviceAddress,
+    )>,
+    /// Every part's device address, sorted: a TLAS record naming one waits for the builds.
+    addresses: Vec<u64>,
+    /// The timestamp's op, triangles and BLASes.
+    op: Option<CostOp>,
+    triangles: u64,
+    blases: u32,
+    /// Static single-part BLASes whose compacted size is queried after the builds.
+    queries: Vec<(BlasHandle, vk::AccelerationStructureKHR)>,
 }
 
 /// Counters of what the backend did (for tests and stats).
@@ -396,6 +428,12 @@ pub struct VulkanCounters {
     /// Of them, those that found no parked slot in or next to their 64 m cell (see
     /// `TlasUpdates::max_misplaced`).
     pub tlas_slots_misplaced: u64,
+    /// Frames whose BLAS builds ran beside their TLAS (no record named them, so no barrier
+    /// between them).
+    pub builds_beside_tlas: u64,
+    /// Frames whose TLAS named a BLAS built in the same frame: the builds ran first, then a
+    /// barrier, then the TLAS.
+    pub builds_before_tlas: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.
@@ -413,6 +451,10 @@ pub struct VulkanBackend {
     split_parts: FxHashMap<u64, Vec<(u64, u32)>>,
     /// First-part address -> blas slot (shading lookups by instance record).
     by_address: FxHashMap<u64, BlasKey>,
+    /// Freed BLASes that a frame in flight may still name (the managed frame frees after its
+    /// records: an eviction for a build, a compaction's source): first-part address -> (last
+    /// frame that may use it, its shading buffers), until that frame completes.
+    retired_shading: FxHashMap<u64, (u64, (u64, u64))>,
     retiring: VecDeque<(u64, Retired)>,
     completed: Option<u64>,
     measurements: Vec<Measurement>,
@@ -440,6 +482,8 @@ pub struct VulkanBackend {
     slot_keeper: tlas_slots::SlotKeeper,
     /// Triangles of the BLAS builds recorded in the current frame.
     frame_build_triangles: u64,
+    /// The current frame's builds, recorded with its TLAS (or at its end).
+    pending: PendingBuilds,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
@@ -619,6 +663,7 @@ impl VulkanBackend {
             blases: slotmap::SlotMap::with_key(),
             split_parts: FxHashMap::default(),
             by_address: FxHashMap::default(),
+            retired_shading: FxHashMap::default(),
             retiring: VecDeque::new(),
             completed: None,
             measurements: Vec::new(),
@@ -635,6 +680,7 @@ impl VulkanBackend {
             parking: None,
             slot_keeper: Default::default(),
             frame_build_triangles: 0,
+            pending: PendingBuilds::default(),
             bases: Vec::new(),
             faults: Vec::new(),
             engine_done: None,
@@ -691,6 +737,19 @@ impl VulkanBackend {
                 .blases
                 .values()
                 .any(|e| e.parts.first().is_some_and(|p| p.address == address))
+    }
+
+    /// Whether a TLAS of frame `frame` may name the BLAS at `address`: live, or freed with
+    /// `frame` at most its last frame of use (not destroyed before that frame completes).
+    pub fn is_blas_address_usable(&self, address: u64, frame: u64) -> bool {
+        self.is_live_blas_address(address)
+            || self
+                .retired_shading
+                .get(&address)
+                .is_some_and(|&(last, _)| last >= frame)
+            || self.retiring.iter().any(|(last, r)| {
+                *last >= frame && matches!(r, Retired::BlasAccel(a) if a.address == address)
+            })
     }
 
     /// Bytes of acceleration-structure storage of BLASes not yet destroyed (live and
@@ -845,6 +904,7 @@ impl AsBackend for VulkanBackend {
             }
         }
         self.slots.iter_mut().for_each(|s| s.instances_call = 0);
+        self.pending = PendingBuilds::default();
         let s = &mut self.slots[self.current];
         // The command buffer is reset by the next begin_frame of this slot; the queries
         // recorded into it were never written, so nothing may wait on them.

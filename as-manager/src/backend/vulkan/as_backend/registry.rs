@@ -263,7 +263,10 @@ impl VulkanBackend {
     /// addresses, when it is `f32x3` 12 bytes apart with `u32` indices; in any other format or
     /// stride the answer is `None` (the engine shades from its own vertex data).
     pub fn shading_geometry(&self, blas_address: u64) -> Option<(u64, u64)> {
-        let key = *self.by_address.get(&blas_address)?;
+        let Some(&key) = self.by_address.get(&blas_address) else {
+            // Freed, but a frame in flight may still name it.
+            return self.retired_shading.get(&blas_address).map(|&(_, s)| s);
+        };
         self.blases
             .get(key)
             .filter(|e| e.shading_plain)

@@ -653,17 +653,37 @@ impl VulkanBackend {
             count,
             updates,
         });
+        // The frame's BLAS builds: beside the TLAS when no record names them (the manager
+        // schedules its builds after its records), else before it.
+        let beside = self.pending.op.is_some() && !self.records_name_pending(instances, delta);
+        if !beside {
+            self.record_pending_builds(cmd);
+        }
+        // SAFETY: recording; the barrier orders this frame's refits, compactions, the parking
+        // BLAS and builds the records name (and an earlier frame's TLAS build or update,
+        // `from`, in submission order) before the TLAS build and the builds beside it.
+        unsafe { self.ctx.cmd_accel_barrier(cmd) };
+        if beside {
+            self.counters.builds_beside_tlas += 1;
+            self.record_pending_builds_beside(cmd);
+        } else if self.frame_build_triangles > 0 {
+            self.counters.builds_before_tlas += 1;
+        }
         let t = self.timestamp_begin(op, u64::from(count), count);
-        // SAFETY: recording; the barrier orders this frame's BLAS builds/refits/compactions
-        // (and an earlier frame's TLAS build or update, `from`, in submission order) before
-        // the TLAS build; every referenced BLAS is live until its retirement frame, the
-        // parking BLAS until the backend is dropped; `from` is only read.
+        if beside {
+            self.timed_beside(t);
+        }
+        // SAFETY: recording; every referenced BLAS is live until its retirement frame (none is
+        // built beside this TLAS: checked above), the parking BLAS until the backend is
+        // dropped; `from` is only read.
         unsafe {
-            self.ctx.cmd_accel_barrier(cmd);
             self.ctx
                 .cmd_build_tlas(cmd, tlas, from, flags, iaddr, count, scratch);
         }
         self.timestamp_end(t);
+        if beside {
+            self.record_compacted_size_queries(cmd);
+        }
         Ok(TlasHandle::new(s as u32, self.slots[s].frame))
     }
 }

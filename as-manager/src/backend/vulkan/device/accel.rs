@@ -195,6 +195,22 @@ pub struct BlasBuildInput<'a> {
     pub scratch_address: vk::DeviceAddress,
 }
 
+/// A TLAS build to record beside BLAS builds in one call
+/// ([`VulkanContext::cmd_build_blases_with_tlas`]).
+#[derive(Debug, Clone, Copy)]
+pub struct TlasBuildInput {
+    /// Destination.
+    pub dst: vk::AccelerationStructureKHR,
+    /// Build flags.
+    pub flags: vk::BuildAccelerationStructureFlagsKHR,
+    /// The 64-byte instance records.
+    pub instances_address: vk::DeviceAddress,
+    /// How many records.
+    pub instance_count: u32,
+    /// Scratch address (aligned as a BLAS's).
+    pub scratch_address: vk::DeviceAddress,
+}
+
 impl VulkanContext {
     /// Sizes of a BLAS over `geometries` with `flags`.
     pub fn blas_sizes(
@@ -290,14 +306,34 @@ impl VulkanContext {
     /// `cmd` is recording; every address and handle in `builds` is valid until the command
     /// completes, and the scratch ranges do not overlap.
     pub unsafe fn cmd_build_blases(&self, cmd: vk::CommandBuffer, builds: &[BlasBuildInput<'_>]) {
-        if builds.is_empty() {
+        // SAFETY: guaranteed by the caller.
+        unsafe { self.cmd_build_blases_with_tlas(cmd, builds, None) }
+    }
+
+    /// Records the BLAS builds of `builds` and, when given, a TLAS build in ONE
+    /// vkCmdBuildAccelerationStructuresKHR: the call implies no order between its builds, so
+    /// the TLAS must reference none of the BLASes built beside it (they enter a later TLAS).
+    ///
+    /// # Safety
+    /// As [`Self::cmd_build_blases`]; the TLAS's records reference BLASes built before this
+    /// command, none of `builds`, and its scratch range overlaps none of theirs.
+    pub unsafe fn cmd_build_blases_with_tlas(
+        &self,
+        cmd: vk::CommandBuffer,
+        builds: &[BlasBuildInput<'_>],
+        tlas: Option<&TlasBuildInput>,
+    ) {
+        if builds.is_empty() && tlas.is_none() {
             return;
         }
+        let tlas_geoms = [instances_geometry(tlas.map_or(0, |t| t.instances_address))];
+        let tlas_range = [vk::AccelerationStructureBuildRangeInfoKHR::default()
+            .primitive_count(tlas.map_or(0, |t| t.instance_count))];
         let geoms: Vec<Vec<vk::AccelerationStructureGeometryKHR<'static>>> = builds
             .iter()
             .map(|b| b.geometries.iter().map(triangles).collect())
             .collect();
-        let infos: Vec<_> = builds
+        let mut infos: Vec<_> = builds
             .iter()
             .zip(&geoms)
             .map(|(b, g)| {
@@ -329,8 +365,22 @@ impl VulkanContext {
                     .collect()
             })
             .collect();
-        let range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> =
+        let mut range_refs: Vec<&[vk::AccelerationStructureBuildRangeInfoKHR]> =
             ranges.iter().map(Vec::as_slice).collect();
+        if let Some(t) = tlas {
+            infos.push(
+                vk::AccelerationStructureBuildGeometryInfoKHR::default()
+                    .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)
+                    .flags(t.flags)
+                    .mode(vk::BuildAccelerationStructureModeKHR::BUILD)
+                    .dst_acceleration_structure(t.dst)
+                    .geometries(&tlas_geoms)
+                    .scratch_data(vk::DeviceOrHostAddressKHR {
+                        device_address: t.scratch_address,
+                    }),
+            );
+            range_refs.push(&tlas_range);
+        }
         // SAFETY: guaranteed by the caller; infos and ranges are parallel arrays.
         unsafe {
             self.accel
