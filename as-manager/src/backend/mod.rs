@@ -167,10 +167,12 @@ pub struct Measurement {
     pub items: u32,
     /// Measured GPU milliseconds.
     pub gpu_ms: f64,
-    /// Timed beside the frame's BLAS builds (a TLAS that names none of them runs with them,
-    /// no barrier between): `gpu_ms` is what this batch added to the frame after the builds
-    /// timed just before it, not its own time, so the cost model does not learn from it.
-    /// The frame's measurements still add up to its acceleration-structure time.
+    /// Timed together with the frame's BLAS builds, which ran beside it (a TLAS that names
+    /// none of them, no barrier between; a timestamp between them would serialize them): the
+    /// TLAS's `gpu_ms` covers both, and the builds, reported just before it, are 0. The
+    /// frame's measurements still add up to its acceleration-structure time; the cost model
+    /// learns the TLAS from frames without builds, and builds from such a pair only when
+    /// they clearly outlast the TLAS.
     pub beside: bool,
 }
 

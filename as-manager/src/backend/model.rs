@@ -92,8 +92,10 @@ pub struct ModelBackend {
     tlas_updates_since: Option<u32>,
     /// BLAS triangles built this frame.
     frame_build_triangles: u64,
-    /// GPU ms of the current frame's builds (the TLAS may run beside them).
+    /// GPU ms of the current frame's builds (the TLAS may run beside them), and where their
+    /// measurements are.
     frame_build_ms: f64,
+    frame_build_measurements: Vec<usize>,
     blases: FxHashMap<BlasHandle, ModelBlas>,
     retiring: VecDeque<(u64, BlasHandle)>,
     next_handle: u64,
@@ -197,6 +199,7 @@ impl ModelBackend {
             tlas_updates_since: None,
             frame_build_triangles: 0,
             frame_build_ms: 0.0,
+            frame_build_measurements: Vec::new(),
             blases: FxHashMap::default(),
             retiring: VecDeque::new(),
             next_handle: 1,
@@ -340,6 +343,7 @@ impl AsBackend for ModelBackend {
         self.frame = frame;
         self.frame_build_triangles = 0;
         self.frame_build_ms = 0.0;
+        self.frame_build_measurements.clear();
         self.tlas_marks.clear();
         if frame >= self.frames_in_flight {
             let done = frame - self.frames_in_flight;
@@ -417,10 +421,13 @@ impl AsBackend for ModelBackend {
             self.counters.builds += 1;
         }
         self.frame_build_triangles += st + sk;
+        let before = self.measurements.len();
         self.frame_build_ms += self.measure_batches([
             (CostOp::BuildStatic, st, n_st),
             (CostOp::BuildSkinned, sk, n_sk),
         ]);
+        self.frame_build_measurements
+            .extend(before..self.measurements.len());
         Ok(out)
     }
 
@@ -556,12 +563,19 @@ impl AsBackend for ModelBackend {
             };
         }
         // As the Vulkan backend records it: beside the frame's builds when no record names
-        // one of them (the TLAS's measurement is what it adds past the builds).
+        // one of them, in one timestamp pair (the TLAS's measurement covers both, the
+        // builds' are 0).
         let own = self.costs.estimate_batch(op, units);
         let beside = self.frame_build_ms > 0.0 && !names_new;
         let gpu_ms = if beside {
             self.counters.builds_beside_tlas += 1;
-            self.costs.beside(own, self.frame_build_ms) - self.frame_build_ms
+            for &i in &self.frame_build_measurements {
+                if let Some(m) = self.measurements.get_mut(i) {
+                    m.gpu_ms = 0.0;
+                    m.beside = true;
+                }
+            }
+            self.costs.beside(own, self.frame_build_ms)
         } else {
             own
         };

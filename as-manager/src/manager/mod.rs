@@ -763,18 +763,38 @@ impl<B: AsBackend> AsManager<B> {
     /// fixed cost and its cost per unit (`OpFit`), unless the model is frozen.
     fn refine_costs(&mut self) {
         self.measured = self.backend.take_measurements();
+        // Builds timed with the TLAS beside them (reported at 0 just before it).
+        let mut beside_builds: Option<(CostOp, u64)> = None;
         for &m in &self.measured {
             self.stats.measured_gpu_ms += m.gpu_ms;
-            if matches!(m.op, CostOp::Tlas | CostOp::TlasUpdate) {
+            let tlas = matches!(m.op, CostOp::Tlas | CostOp::TlasUpdate);
+            if tlas {
                 self.stats.measured_tlas_ms += m.gpu_ms;
             }
-            // A TLAS timed beside its frame's builds reports what it added past them, not its
-            // own time: the fit learns the TLAS from the frames without builds.
-            if self.config.freeze_cost_model || m.beside {
+            if self.config.freeze_cost_model {
                 continue;
             }
-            self.cost_fits
-                .learn(&mut self.costs, m.op, m.units, m.gpu_ms);
+            if !m.beside {
+                self.cost_fits
+                    .learn(&mut self.costs, m.op, m.units, m.gpu_ms);
+                continue;
+            }
+            if !tlas {
+                beside_builds = Some((m.op, m.units));
+                continue;
+            }
+            // The pair's time is the longer of the TLAS and the builds plus `beside_tlas` of
+            // the shorter: builds that clearly outlast the TLAS's estimate give their own
+            // time; otherwise the pair says little about either (the TLAS is learned on
+            // frames without builds).
+            if let Some((op, units)) = beside_builds.take() {
+                let t = self.costs.estimate_batch(m.op, m.units);
+                let share = self.costs.beside_tlas.clamp(0.0, 1.0);
+                if m.gpu_ms > t * (1.0 + share) * 1.25 {
+                    let own = m.gpu_ms - share * t;
+                    self.cost_fits.learn(&mut self.costs, op, units, own);
+                }
+            }
         }
     }
 

@@ -498,12 +498,18 @@ fn a_manager_learns_its_devices_fixed_costs() {
     // The "device" has the H200's fixed batch costs; the manager starts from the lavapipe
     // prior, which has none. A camera walking past meshes of 500 to 20,000 triangles makes
     // build batches of many sizes and a TLAS of a changing size: after the walk, the learned
-    // model prices a small static batch, a large one and the TLAS as the device does.
+    // model prices a frame's TLAS, and a frame's TLAS beside a small or a large static batch,
+    // as the device does. (A small batch beside the TLAS hides inside it: what it costs
+    // alone is not observable there, nor needed.)
     use crate::backend::model::CostModel;
     use crate::backend::CostOp;
     let device = CostModel::nvidia();
     let backend = ModelBackend::new(crate::backend::model::SizeModel::nvidia(), device);
-    let mut m = AsManager::new(Config::default(), backend).unwrap();
+    // How much of the shorter of a TLAS and the builds beside it the device pays is a
+    // property of the driver that the prior states (`beside_tlas`), not learned.
+    let mut config = Config::default();
+    config.cost_prior.beside_tlas = device.beside_tlas;
+    let mut m = AsManager::new(config, backend).unwrap();
     for i in 0..400u32 {
         let tris = 500 + (i * 7919) % 19_500;
         let mesh = static_mesh(&m, tris, 2.0);
@@ -519,18 +525,19 @@ fn a_manager_learns_its_devices_fixed_costs() {
         run_frame(&mut m, f, &cam(1596.0, 0.0));
     }
     let learned = m.cost_model();
-    for (op, units) in [
-        (CostOp::BuildStatic, 1_000u64),
-        (CostOp::BuildStatic, 20_000),
-        (CostOp::Tlas, 300),
-    ] {
-        let (want, got) = (
-            device.estimate_batch(op, units),
-            learned.estimate_batch(op, units),
-        );
+    let frame = |c: &CostModel, tris: u64| {
+        let tlas = c.estimate_batch(CostOp::Tlas, 300);
+        if tris == 0 {
+            tlas
+        } else {
+            c.beside(tlas, c.estimate_batch(CostOp::BuildStatic, tris))
+        }
+    };
+    for tris in [0, 1_000u64, 20_000, 60_000] {
+        let (want, got) = (frame(&device, tris), frame(learned, tris));
         assert!(
             (got - want).abs() <= 0.15 * want,
-            "{op:?} of {units}: learned {got:.4} ms, the device takes {want:.4} ms"
+            "a TLAS of 300 beside {tris} triangles: learned {got:.4} ms, the device takes {want:.4} ms"
         );
     }
     // The prior's lines were far off for the large batch and the TLAS.

@@ -309,17 +309,21 @@ impl VulkanBackend {
     /// Records the frame's pending BLAS builds (timed), then a barrier and their compacted-size
     /// queries: before a TLAS that names them, or at the end of a frame without a TLAS.
     pub(super) fn record_pending_builds(&mut self, cmd: vk::CommandBuffer) {
-        self.record_pending_builds_beside(cmd);
+        self.record_builds(cmd, true);
         self.record_compacted_size_queries(cmd);
     }
 
-    /// Records the frame's pending BLAS builds (timed) with no barrier after them: the TLAS
-    /// that follows names none of them and runs beside them (its timestamp pair starts where
-    /// theirs ends); `record_compacted_size_queries` follows it.
-    pub(super) fn record_pending_builds_beside(&mut self, cmd: vk::CommandBuffer) {
-        let Some(op) = self.pending.op.take() else {
-            return;
-        };
+    /// Records the frame's pending BLAS builds with no barrier after them, for the TLAS that
+    /// follows (it names none of them) to run beside them; `timed` false leaves them out of
+    /// the timestamps (the TLAS's pair, begun before them, covers both: a timestamp between
+    /// them would make the GPU finish the builds first, `docs/GPU.md`). Returns what they
+    /// were (op, triangles, BLASes). `record_compacted_size_queries` follows the TLAS.
+    pub(super) fn record_builds(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        timed: bool,
+    ) -> Option<(CostOp, u64, u32)> {
+        let op = self.pending.op.take()?;
         let inputs = std::mem::take(&mut self.pending.inputs);
         self.pending.addresses.clear();
         let raw: Vec<BlasBuildInput<'_>> = inputs
@@ -335,7 +339,11 @@ impl VulkanBackend {
         let (triangles, blases) = (self.pending.triangles, self.pending.blases);
         self.pending.triangles = 0;
         self.pending.blases = 0;
-        let t = self.timestamp_begin(op, triangles, blases);
+        let t = if timed {
+            self.timestamp_begin(op, triangles, blases)
+        } else {
+            None
+        };
         let recording = tracing::trace_span!("cmd_build").entered();
         // SAFETY: cmd is recording; inputs are the BLASes' own buffers (or the engine's,
         // which it keeps until the frame completes), retired with them after the frame
@@ -344,6 +352,7 @@ impl VulkanBackend {
         unsafe { self.ctx.cmd_build_blases(cmd, &raw) };
         drop(recording);
         self.timestamp_end(t);
+        Some((op, triangles, blases))
     }
 
     /// After the frame's builds (and the TLAS beside them): a barrier, then the compacted-size

@@ -237,22 +237,23 @@ impl VulkanBackend {
             units,
             items,
             first,
-            beside: false,
+            beside: None,
         });
         // SAFETY: the slot's command buffer is recording; the query was reset in begin_frame.
         unsafe { s.timestamps.cmd_timestamp(&self.ctx, s.cmd, first) };
         Some(first)
     }
 
-    /// Marks the pair begun by `first` as timing a batch beside the builds timed before it.
-    pub(super) fn timed_beside(&mut self, first: Option<u32>) {
+    /// Notes that the pair begun by `first` also times `builds` (op, triangles, BLASes),
+    /// recorded beside its batch inside it.
+    pub(super) fn timed_beside(&mut self, first: Option<u32>, builds: (CostOp, u64, u32)) {
         if let Some(t) = first.and_then(|f| {
             self.slots[self.current]
                 .timed
                 .iter_mut()
                 .find(|t| t.first == f)
         }) {
-            t.beside = true;
+            t.beside = Some(builds);
         }
     }
 
@@ -277,18 +278,29 @@ impl VulkanBackend {
             for t in &s.timed {
                 let first = t.first as usize;
                 let dt = ticks[first + 1].saturating_sub(ticks[first]);
+                // Builds beside the batch: reported first, at 0 ms; the batch carries the
+                // pair's time, theirs included.
+                let builds = t.beside.map(|(op, units, items)| Measurement {
+                    op,
+                    units,
+                    items,
+                    gpu_ms: 0.0,
+                    beside: true,
+                });
                 let m = Measurement {
                     op: t.op,
                     units: t.units,
                     items: t.items,
                     gpu_ms: s.timestamps.ticks_to_ms(dt),
-                    beside: t.beside,
+                    beside: t.beside.is_some(),
                 };
-                self.measurements.push(m);
-                if self.log.len() == 256 {
-                    self.log.pop_front();
+                for m in builds.into_iter().chain([m]) {
+                    self.measurements.push(m);
+                    if self.log.len() == 256 {
+                        self.log.pop_front();
+                    }
+                    self.log.push_back(m);
                 }
-                self.log.push_back(m);
             }
         }
         s.timed.clear();

@@ -354,15 +354,16 @@ struct Slot {
     quality_jobs: Vec<gpu_quality::QualityJob>,
 }
 
-/// A timestamp pair of a frame: what it timed (op, units, items), its first query, and whether
-/// the batch ran beside the BLAS builds timed just before it (`Measurement::beside`).
+/// A timestamp pair of a frame: what it timed (op, units, items), its first query, and the BLAS
+/// builds (op, triangles, BLASes) that ran beside it inside the same pair (a timestamp between
+/// them would make the GPU finish one before starting the other: `Measurement::beside`).
 #[derive(Debug, Clone, Copy)]
 struct Timed {
     op: CostOp,
     units: u64,
     items: u32,
     first: u32,
-    beside: bool,
+    beside: Option<(CostOp, u64, u32)>,
 }
 
 /// The frame's BLAS builds, planned by `build_blases` and recorded with the TLAS

@@ -657,21 +657,23 @@ impl VulkanBackend {
         // schedules its builds after its records), else before it.
         let beside = self.pending.op.is_some() && !self.records_name_pending(instances, delta);
         if !beside {
+            if self.pending.op.is_some() {
+                self.counters.builds_before_tlas += 1;
+            }
             self.record_pending_builds(cmd);
         }
         // SAFETY: recording; the barrier orders this frame's refits, compactions, the parking
         // BLAS and builds the records name (and an earlier frame's TLAS build or update,
         // `from`, in submission order) before the TLAS build and the builds beside it.
         unsafe { self.ctx.cmd_accel_barrier(cmd) };
-        if beside {
-            self.counters.builds_beside_tlas += 1;
-            self.record_pending_builds_beside(cmd);
-        } else if self.frame_build_triangles > 0 {
-            self.counters.builds_before_tlas += 1;
-        }
+        // Beside: one timestamp pair around the builds and the TLAS (a timestamp between
+        // them would serialize them), the builds recorded first.
         let t = self.timestamp_begin(op, u64::from(count), count);
         if beside {
-            self.timed_beside(t);
+            self.counters.builds_beside_tlas += 1;
+            if let Some(builds) = self.record_builds(cmd, false) {
+                self.timed_beside(t, builds);
+            }
         }
         // SAFETY: recording; every referenced BLAS is live until its retirement frame (none is
         // built beside this TLAS: checked above), the parking BLAS until the backend is
