@@ -142,6 +142,25 @@ fn render(
         .collect()
 }
 
+/// Renders the frame (`render`) and checks that every hit is on an instance its TLAS holds;
+/// returns the hits. `what` names the frame in the failure.
+fn render_hits_in_tlas(
+    scene: &mut Scene,
+    renderer: &mut Renderer,
+    tlas: rtstream::as_manager::backend::TlasHandle,
+    records: &[rtstream::as_manager::record::TlasInstance],
+    eye: Vec3,
+    what: &str,
+) -> usize {
+    let live: std::collections::HashSet<u32> = records.iter().map(|r| r.custom_index()).collect();
+    let hits = render(scene, renderer, tlas, records, eye);
+    assert!(
+        hits.iter().all(|h| live.contains(h)),
+        "{what}: a hit on an instance not in the TLAS"
+    );
+    hits.len()
+}
+
 #[test]
 fn camera_path_creates_refits_evicts_and_destroys_with_every_frame_traced() {
     let ctx = common::context();
@@ -187,14 +206,14 @@ fn camera_path_creates_refits_evicts_and_destroys_with_every_frame_traced() {
         releases += stats.releases;
         refits += stats.refits;
         rebuilds += stats.rebuilds;
-        let live: std::collections::HashSet<u32> =
-            records.iter().map(|r| r.custom_index()).collect();
-        let hits = render(&mut s, &mut renderer, tlas, &records, eye);
-        assert!(
-            hits.iter().all(|h| live.contains(h)),
-            "frame {frame}: a hit on an instance not in the TLAS"
+        traced_hits += render_hits_in_tlas(
+            &mut s,
+            &mut renderer,
+            tlas,
+            &records,
+            eye,
+            &format!("frame {frame}"),
         );
-        traced_hits += hits.len();
     }
     let c = s.manager.backend().counters();
     eprintln!("counters {c:?}; peak {peak} B; evictions+fallbacks {evictions}; releases {releases}; refits {refits}; rebuilds {rebuilds}; hits {traced_hits}");
@@ -402,14 +421,14 @@ fn builds_run_beside_the_tlas_unless_a_record_names_one() {
                 .expect("frame never fails");
             let (tlas, records) = (out.tlas, out.instances.to_vec());
             built_frames += u64::from(out.stats.builds > 0);
-            let live: std::collections::HashSet<u32> =
-                records.iter().map(|r| r.custom_index()).collect();
-            let hits = render(&mut s, &mut renderer, tlas, &records, eye);
-            assert!(
-                hits.iter().all(|h| live.contains(h)),
-                "{policy:?} frame {frame}: a hit on an instance not in the TLAS"
+            hits_total += render_hits_in_tlas(
+                &mut s,
+                &mut renderer,
+                tlas,
+                &records,
+                eye,
+                &format!("{policy:?} frame {frame}"),
             );
-            hits_total += hits.len();
         }
         let c = s.manager.backend().counters();
         assert!(built_frames > 0, "{policy:?}: {c:?}");

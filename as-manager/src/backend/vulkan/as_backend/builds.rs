@@ -194,7 +194,6 @@ impl VulkanBackend {
         }
         // Recorded with the frame's TLAS (`record_pending_builds`): beside it when no record
         // names these BLASes.
-        let mut k = 0usize;
         for (b, p) in builds.iter().zip(&planned) {
             let flags = self.blas_flags(b.class);
             for (g, (a, sc)) in p.geoms.iter().zip(p.accels.iter().zip(&p.scratch)) {
@@ -203,10 +202,8 @@ impl VulkanBackend {
                     .inputs
                     .push((*g, flags, a.raw, scratch_address));
                 self.pending.addresses.push(a.address);
-                k += 1;
             }
         }
-        debug_assert!(k > 0);
         self.pending.addresses.sort_unstable();
         let tris: u64 = builds
             .iter()

@@ -384,20 +384,7 @@ pub fn time_tlas_build(
     reps: usize,
 ) -> VkResult<(f64, u64)> {
     let n = transforms.len() as u32;
-    let records: Vec<TlasInstance> = transforms
-        .iter()
-        .enumerate()
-        .map(|(i, t)| {
-            TlasInstance::new(
-                &glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(t)),
-                (i as u32) & 0xff_ffff,
-                0xff,
-                0,
-                INSTANCE_FORCE_OPAQUE,
-                blas.address,
-            )
-        })
-        .collect();
+    let records = instance_records(blas, transforms);
     let s = ctx.tlas_sizes(n, flags);
     let ibuf = ctx.create_buffer_with_data(
         "tlas bench instances",
@@ -481,20 +468,7 @@ pub fn time_tlas_beside_builds(
     const INNER: usize = 8;
     const QUERIES: u32 = (3 * WAYS * INNER) as u32;
     let n = transforms.len() as u32;
-    let records: Vec<TlasInstance> = transforms
-        .iter()
-        .enumerate()
-        .map(|(i, t)| {
-            TlasInstance::new(
-                &glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(t)),
-                (i as u32) & 0xff_ffff,
-                0xff,
-                0,
-                INSTANCE_FORCE_OPAQUE,
-                blas.address,
-            )
-        })
-        .collect();
+    let records = instance_records(blas, transforms);
     let lists: Vec<&[TriangleGeometry]> = geoms
         .iter()
         .map(|g| std::slice::from_ref(&g.geometry))
@@ -696,6 +670,24 @@ pub fn time_tlas_update(
 }
 
 /// A TLAS of `storage` bytes in a buffer of its own.
+/// One opaque TLAS record of `blas` per transform (custom index: its position).
+fn instance_records(blas: &AccelStruct, transforms: &[[f32; 16]]) -> Vec<TlasInstance> {
+    transforms
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            TlasInstance::new(
+                &glam::Affine3A::from_mat4(glam::Mat4::from_cols_array(t)),
+                (i as u32) & 0xff_ffff,
+                0xff,
+                0,
+                INSTANCE_FORCE_OPAQUE,
+                blas.address,
+            )
+        })
+        .collect()
+}
+
 fn create_tlas(ctx: &VulkanContext, storage: u64, name: &str) -> VkResult<AccelStruct> {
     ctx.create_accel(vk::AccelerationStructureTypeKHR::TOP_LEVEL, storage, name)
 }
