@@ -13,6 +13,8 @@
 //! into the manager's API, as an engine would with its own streaming; `examples/flythrough.rs`
 //! (the main job) drives it across the 4 km map.
 
+#![warn(missing_docs)]
+
 pub use rtstream_as_manager as as_manager;
 pub use rtstream_renderer as renderer;
 pub use rtstream_stats as stats;

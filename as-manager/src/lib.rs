@@ -62,6 +62,8 @@
 //! - Each frame: `update(FrameInput { frame, cameras })` → `FrameOutput { tlas, instances,
 //!   stats }`; the renderer takes the TLAS from the backend (`backend()`).
 
+#![warn(missing_docs)]
+
 pub mod backend;
 pub mod config;
 pub mod cull;

@@ -26,11 +26,18 @@ pub enum RenderError {
     /// A recorded frame needs the resources of frame `waiting_for`, which has not completed
     /// (more frames in flight than `RECORDED_SETS`), or the frame was recorded already.
     #[error("frame {frame} needs frame {waiting_for} to be done first")]
-    FrameInFlight { frame: u64, waiting_for: u64 },
+    FrameInFlight {
+        /// The frame being recorded.
+        frame: u64,
+        /// The frame that last used the resources it needs.
+        waiting_for: u64,
+    },
     /// Writing an image failed.
     #[error("{path}: cannot write image: {source}")]
     Image {
+        /// The image file that could not be written.
         path: PathBuf,
+        /// The image encoder's error.
         #[source]
         source: image::ImageError,
     },

@@ -24,6 +24,8 @@
 //! - Metrics ([`FrameMetrics`]) are pure Rust over [`Frame`]s and compare instance identity, so
 //!   a coarser LOD of the right instance counts as a match.
 
+#![warn(missing_docs)]
+
 mod camera;
 mod error;
 mod frame;

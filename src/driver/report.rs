@@ -62,14 +62,16 @@ pub struct FrameRow {
     pub within_r1: u32,
     /// Of those, instances short of their target LOD (0: full coverage).
     pub short_of_target: u32,
-    /// The build budget in triangles, and whether this frame's admitted builds exceeded it
-    /// (allowed only for one oversized item alone).
+    /// The build budget in triangles.
     pub build_budget: u64,
+    /// Whether this frame's admitted builds exceeded the build budget (allowed only for one
+    /// oversized item alone).
     pub over_build_budget: bool,
-    /// Far-field landmark records in the TLAS, the candidates looked at this frame, and the
-    /// queued candidates found still inside their band (they only waited again).
+    /// Far-field landmark records in the TLAS.
     pub landmark_instances: u32,
+    /// Landmark candidates looked at this frame.
     pub landmarks_examined: u32,
+    /// Queued landmark candidates found still inside their band (they only waited again).
     pub landmarks_waited: u32,
     /// Bytes of new geometry (vertices, indices, skinned poses) copied from the CPU into
     /// upload buffers by this frame's `update` (the copies `update`'s time includes).
@@ -300,14 +302,15 @@ pub struct PolicySummary {
     /// `update` wall time, 99th percentile.
     pub update_ms_p99: f64,
     /// CPU time of the thread that called `update`, during it (`FrameRow::update_cpu_ms`),
-    /// median and 99th percentile: on a shared machine, less of the other processes' load.
+    /// median: on a shared machine, less of the other processes' load.
     pub update_cpu_ms_p50: f64,
+    /// CPU time of the thread that called `update`, during it, 99th percentile.
     pub update_cpu_ms_p99: f64,
     /// Peak far-field landmark records in the TLAS.
     pub peak_landmark_instances: u32,
-    /// Landmark candidates looked at per frame, median and 99th percentile (the landmarks are
-    /// kept incrementally).
+    /// Landmark candidates looked at per frame, median (the landmarks are kept incrementally).
     pub landmarks_examined_p50: f64,
+    /// Landmark candidates looked at per frame, 99th percentile.
     pub landmarks_examined_p99: f64,
     /// New geometry copied from the CPU per frame (vertices, indices, skinned poses), mean MB
     /// (`update`'s time includes these copies; the examples' `--profile` shows them apart).

@@ -15,6 +15,8 @@
 //! - Its own crate because `streaming` and `as-manager` do not know each other and both need it.
 //!   For the same reason it holds the one seeded random source both generators use ([`Rng`]).
 
+#![warn(missing_docs)]
+
 use serde::Serialize;
 
 mod rng;

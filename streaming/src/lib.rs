@@ -39,6 +39,7 @@
 //! - Each frame, [`World::skin_frame`] gives skinned instances' deformed positions to refit from.
 
 #![forbid(unsafe_code)]
+#![warn(missing_docs)]
 
 pub mod bake;
 mod error;

@@ -194,11 +194,19 @@ pub enum BackendError {
     /// (`frame_done`): more frames in flight than the backend was created with. Nothing was
     /// recorded; report the frame done and call again.
     #[error("frame {frame} needs frame {waiting_for} to be done (report it with frame_done)")]
-    FrameInFlight { frame: u64, waiting_for: u64 },
+    FrameInFlight {
+        /// The frame the call was for.
+        frame: u64,
+        /// The earlier frame that holds the slot, not yet reported done.
+        waiting_for: u64,
+    },
     /// Engine-recorded mode: frame `frame` was ended but never handed to the engine's command
     /// buffer (`VulkanBackend::record`); a later frame would depend on builds that never ran.
     #[error("frame {frame} was not recorded into the engine's command buffer (call record)")]
-    FrameNotRecorded { frame: u64 },
+    FrameNotRecorded {
+        /// The frame that was ended but not recorded.
+        frame: u64,
+    },
     /// The Vulkan backend's own error, kept typed (any `VulkanError` other than out of memory
     /// or device lost, which have their variants above): match on `.0.error()`.
     #[cfg(feature = "vulkan")]

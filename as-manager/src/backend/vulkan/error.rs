@@ -13,40 +13,60 @@ has VK_KHR_acceleration_structure and VK_KHR_ray_query; bookworm's own 22.3 has 
 pub enum VulkanError {
     /// libvulkan could not be loaded.
     #[error("no Vulkan loader (libvulkan.so.1) could be loaded: {reason}; {hint}", hint = INSTALL_HINT)]
-    NoLoader { reason: String },
+    NoLoader {
+        /// Why loading failed, in the loader's words.
+        reason: String,
+    },
     /// The validation layer was required but is not installed.
     #[error("validation was required but VK_LAYER_KHRONOS_validation is not installed (apt-get install vulkan-validationlayers)")]
     NoValidationLayer,
     /// No physical device offers what rtstream needs. `devices` says what each one lacked.
     #[error("no suitable Vulkan device: {}; {hint}", describe_devices(.devices), hint = INSTALL_HINT)]
-    NoSuitableDevice { devices: Vec<(String, String)> },
+    NoSuitableDevice {
+        /// Each physical device passed over: its name and what it lacked.
+        devices: Vec<(String, String)>,
+    },
     /// The engine's device (see `VulkanContext::from_external`) lacks what rtstream needs:
     /// device extensions or features the engine did not enable, or, in `unsupported`, why the
     /// physical device itself cannot run rtstream.
     #[error("the engine's device {device} lacks what rtstream needs: {}", describe_missing(.extensions, .features, .unsupported))]
     MissingDeviceSupport {
+        /// The device's name.
         device: String,
+        /// Device extensions rtstream needs that the engine did not enable.
         extensions: Vec<String>,
+        /// Device features rtstream needs that the engine did not enable.
         features: Vec<String>,
+        /// Why the physical device itself cannot run rtstream, if it cannot.
         unsupported: Option<String>,
     },
     /// The device ran out of memory (VK_ERROR_OUT_OF_DEVICE_MEMORY or an allocator failure
     /// for lack of memory). Callers may free something and retry.
     #[error("out of device memory during {op}")]
-    OutOfDeviceMemory { op: &'static str },
+    OutOfDeviceMemory {
+        /// The operation that ran out of memory.
+        op: &'static str,
+    },
     /// The device was lost (driver crash, GPU reset, or a hang the driver gave up on).
     #[error("device lost during {op}")]
-    DeviceLost { op: &'static str },
+    DeviceLost {
+        /// The operation during which the device was lost.
+        op: &'static str,
+    },
     /// Any other Vulkan error code.
     #[error("{op} failed: {result}")]
     Vk {
+        /// The operation that failed.
         op: &'static str,
+        /// The error code Vulkan returned.
         result: vk::Result,
     },
     /// gpu-allocator failed for a reason other than lack of memory.
     #[error("device-memory allocation for {op} failed: {source}")]
     Allocation {
+        /// The operation the memory was for.
         op: &'static str,
+        /// The allocator's error.
         #[source]
         source: gpu_allocator::AllocationError,
     },
@@ -57,10 +77,18 @@ pub enum VulkanError {
     /// later frame, or a BLAS that was freed (its slot may hold a newer BLAS of another
     /// generation, which a stale handle never resolves to).
     #[error("stale {what} handle: {detail}")]
-    StaleHandle { what: &'static str, detail: String },
+    StaleHandle {
+        /// The kind of handle ("BLAS" or "TLAS").
+        what: &'static str,
+        /// Which object the handle named and what became of it.
+        detail: String,
+    },
     /// A failure injected by a test at a named step (see `VulkanContext::inject_failure`).
     #[error("injected failure at {at}")]
-    Injected { at: &'static str },
+    Injected {
+        /// The step the failure was injected at.
+        at: &'static str,
+    },
 }
 
 fn describe_missing(
