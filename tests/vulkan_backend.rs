@@ -393,10 +393,11 @@ fn a_stale_tlas_handle_resolves_to_nothing() {
     }
 }
 
-/// The managed frame schedules its builds after its records, so the backend records them
-/// beside its TLAS (no barrier between: the TLAS names none of them; they show from the next
-/// frame). The naive baseline builds before its records, which name the new BLASes: its
-/// builds go first, then a barrier, then the TLAS. Both trace only what their TLAS holds.
+/// The managed frame schedules its builds and compactions after its records, so the backend
+/// records them beside its TLAS (no barrier between: the TLAS names none of them; they show
+/// from the next frame). The naive baseline builds before its records, which name the new
+/// BLASes: its builds go first, then a barrier, then the TLAS. Both trace only what their
+/// TLAS holds, the compacted copies included.
 #[test]
 fn builds_run_beside_the_tlas_unless_a_record_names_one() {
     let ctx = common::context();
@@ -406,6 +407,8 @@ fn builds_run_beside_the_tlas_unless_a_record_names_one() {
     ] {
         let mut config = config();
         config.policy = policy;
+        // Lavapipe's compacted sizes save little: compact whatever saves anything.
+        config.build.min_compaction_saving = 0.0;
         let mut s = scene(&ctx, VulkanBackendDesc::default(), config);
         let mut renderer = Renderer::new(ctx.clone()).expect("renderer");
         let (mut hits_total, mut built_frames) = (0usize, 0u64);
@@ -436,6 +439,13 @@ fn builds_run_beside_the_tlas_unless_a_record_names_one() {
             assert_eq!(
                 (c.builds_beside_tlas, c.builds_before_tlas),
                 (built_frames, 0),
+                "{policy:?}: {c:?}"
+            );
+            // Every compaction was recorded beside a TLAS, and the frames after traced the
+            // copies (the hits above).
+            assert!(c.compactions > 0, "{policy:?}: {c:?}");
+            assert_eq!(
+                c.compactions_beside_tlas, c.compactions,
                 "{policy:?}: {c:?}"
             );
         } else {

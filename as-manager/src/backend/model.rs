@@ -60,6 +60,8 @@ pub struct ModelCounters {
     pub oom_failures: u64,
     /// TLASes recorded beside the frame's builds (no record named one of them).
     pub builds_beside_tlas: u64,
+    /// Compactions recorded beside the frame's TLAS (with its builds).
+    pub compactions_beside_tlas: u64,
 }
 
 /// The GPU-less backend.
@@ -486,6 +488,10 @@ impl AsBackend for ModelBackend {
         });
         self.counters.compactions += 1;
         let gpu_ms = self.costs.estimate_batch(CostOp::Compact, src.bytes);
+        // As the Vulkan backend records them: with the frame's builds, beside the TLAS when
+        // no record names the copy (`build_tlas`).
+        self.frame_build_ms += gpu_ms;
+        self.frame_build_measurements.push(self.measurements.len());
         self.measurements.push(Measurement {
             op: CostOp::Compact,
             units: src.bytes,
@@ -568,11 +574,16 @@ impl AsBackend for ModelBackend {
         let own = self.costs.estimate_batch(op, units);
         let beside = self.frame_build_ms > 0.0 && !names_new;
         let gpu_ms = if beside {
-            self.counters.builds_beside_tlas += 1;
+            if self.frame_build_triangles > 0 {
+                self.counters.builds_beside_tlas += 1;
+            }
             for &i in &self.frame_build_measurements {
                 if let Some(m) = self.measurements.get_mut(i) {
                     m.gpu_ms = 0.0;
                     m.beside = true;
+                    if m.op == CostOp::Compact {
+                        self.counters.compactions_beside_tlas += 1;
+                    }
                 }
             }
             self.costs.beside(own, self.frame_build_ms)

@@ -681,13 +681,14 @@ impl<B: AsBackend> AsManager<B> {
             .costs
             .estimate_batch(CostOp::Tlas, self.records.len() as u64);
         let build_ms = self.stats.build_estimated_ms as f64;
-        let tlas_and_builds = if self.builds_beside {
-            self.costs.beside(tlas_ms, build_ms)
+        // Beside the TLAS, the frame's compactions run with its builds.
+        let as_ms = if self.builds_beside {
+            self.costs
+                .beside(tlas_ms, build_ms + self.compaction_estimated_ms)
         } else {
-            tlas_ms + build_ms
+            tlas_ms + build_ms + self.compaction_estimated_ms
         };
-        self.stats.as_estimated_ms =
-            (tlas_and_builds + refit_ms + self.compaction_estimated_ms) as f32;
+        self.stats.as_estimated_ms = (as_ms + refit_ms) as f32;
         self.stats.blas_count = self.built_count;
         self.stats.blas_bytes = self.live_bytes;
         self.stats.retiring_bytes = self.retiring_bytes;
@@ -780,7 +781,11 @@ impl<B: AsBackend> AsManager<B> {
                 continue;
             }
             if !tlas {
-                beside_builds = Some((m.op, m.units));
+                // Compactions beside the TLAS are not learned (their copies hide under it);
+                // builds may be (below).
+                if m.op != CostOp::Compact {
+                    beside_builds = Some((m.op, m.units));
+                }
                 continue;
             }
             // The pair's time is the longer of the TLAS and the builds plus `beside_tlas` of
@@ -794,6 +799,13 @@ impl<B: AsBackend> AsManager<B> {
                     let own = m.gpu_ms - share * t;
                     self.cost_fits.learn(&mut self.costs, op, units, own);
                 }
+            } else {
+                // Only compactions beside it: a few copies of small BLASes, which add
+                // `beside_tlas` of their time to the TLAS's. The pair is learned as the TLAS
+                // (a slight overestimate), so that the TLAS is still learned on the frames
+                // that compact (most frames that do not build).
+                self.cost_fits
+                    .learn(&mut self.costs, m.op, m.units, m.gpu_ms);
             }
         }
     }

@@ -522,17 +522,26 @@ impl<B: AsBackend> AsManager<B> {
             return Ok(());
         }
         let b = &self.config.build;
-        // Compaction takes what the GPU budget has left after builds, refits and the TLAS
-        // (the builds side by side with the TLAS when they run beside it).
+        // Compaction takes what the GPU budget has left after builds, refits and the TLAS.
+        // Beside the TLAS, the compactions join the builds there (the backend records them
+        // together, docs/GPU.md): what they add is what they make the pair longer by.
         let builds = self.stats.build_estimated_ms as f64;
         let refits = self.gpu_reserved_ms - self.reserved_tlas_ms;
-        let tlas_and_builds = if self.builds_beside {
-            self.costs.beside(self.reserved_tlas_ms, builds)
+        let (beside, tlas) = (self.builds_beside, self.reserved_tlas_ms);
+        let tlas_and_builds = if beside {
+            self.costs.beside(tlas, builds)
         } else {
-            self.reserved_tlas_ms + builds
+            tlas + builds
         };
         let left = b.max_gpu_ms as f64 - refits - tlas_and_builds;
-        let (max_n, max_ms) = (b.max_compactions, (b.max_compaction_ms as f64).min(left));
+        let extra = |costs: &crate::backend::model::CostModel, ms: f64| {
+            if beside {
+                costs.beside(tlas, builds + ms) - tlas_and_builds
+            } else {
+                ms
+            }
+        };
+        let (max_n, max_ms) = (b.max_compactions, b.max_compaction_ms as f64);
         let mut pending = std::mem::take(&mut self.compact_pending);
         let mut failure: Option<BackendError> = None;
         let mut done = 0u32;
@@ -556,7 +565,8 @@ impl<B: AsBackend> AsManager<B> {
             }
             // Each compaction is a command of its own.
             let est = self.costs.estimate_batch(CostOp::Compact, e.bytes);
-            if done >= max_n || max_ms <= 0.0 || (done > 0 && ms + est > max_ms) {
+            let over = ms + est > max_ms || extra(&self.costs, ms + est) > left;
+            if done >= max_n || max_ms.min(left) <= 0.0 || (done > 0 && over) {
                 return true;
             }
             if self.memory_in_use() + size > self.budget() {

@@ -303,26 +303,74 @@ impl VulkanBackend {
                 .any(named)
     }
 
-    /// Records the frame's pending BLAS builds (timed), then a barrier and their compacted-size
-    /// queries: before a TLAS that names them, or at the end of a frame without a TLAS.
+    /// Records the frame's pending BLAS builds and compactions (timed), then a barrier and the
+    /// builds' compacted-size queries: before a TLAS that names one of them, or at the end of a
+    /// frame without a TLAS.
     pub(super) fn record_pending_builds(&mut self, cmd: vk::CommandBuffer) {
         self.record_builds(cmd, true);
         self.record_compacted_size_queries(cmd);
     }
 
-    /// Records the frame's pending BLAS builds with no barrier after them, for the TLAS that
-    /// follows (it names none of them) to run beside them; `timed` false leaves them out of
-    /// the timestamps (the TLAS's pair, begun before them, covers both: a timestamp between
-    /// them would make the GPU finish the builds first, `docs/GPU.md`). Returns what they
-    /// were (op, triangles, BLASes). `record_compacted_size_queries` follows the TLAS.
+    /// Records the frame's pending BLAS builds, then its compactions, with no barrier after
+    /// them, for the TLAS that follows (it names none of them) to run beside them; `timed`
+    /// false leaves them out of the timestamps (the TLAS's pair, begun before them, covers
+    /// them all: a timestamp between them would make the GPU finish them first,
+    /// `docs/GPU.md`). Returns what the builds were (op, triangles, BLASes), or with no build
+    /// what the compactions were (`CostOp::Compact`, source bytes, count).
+    /// `record_compacted_size_queries` follows the TLAS.
     pub(super) fn record_builds(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        timed: bool,
+    ) -> Option<(CostOp, u64, u32)> {
+        let builds = self.record_pending_blas_builds(cmd, timed);
+        let compactions = self.record_compactions(cmd, timed);
+        self.pending.addresses.clear();
+        builds.or(compactions)
+    }
+
+    /// The pending compactions, after the builds: each timed on its own (`timed`), else
+    /// untimed inside the TLAS's pair. Returns (op, source bytes, count) when any.
+    fn record_compactions(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        timed: bool,
+    ) -> Option<(CostOp, u64, u32)> {
+        let compactions = std::mem::take(&mut self.pending.compactions);
+        if compactions.is_empty() {
+            return None;
+        }
+        let mut bytes = 0;
+        for &(src, dst, b) in &compactions {
+            let t = if timed {
+                self.timestamp_begin(CostOp::Compact, b, 1)
+            } else {
+                self.counters.compactions_beside_tlas += 1;
+                None
+            };
+            // SAFETY: recording; the source was built in an earlier, completed frame (its
+            // size query was read) and begin_frame's barrier orders it; dst is at least the
+            // compacted size, and nothing this frame reads it before a barrier (a TLAS that
+            // names it is recorded after one: `records_name_pending`).
+            unsafe { self.ctx.cmd_compact(cmd, src, dst) };
+            self.timestamp_end(t);
+            bytes += b;
+        }
+        let n = compactions.len() as u32;
+        let mut compactions = compactions;
+        compactions.clear();
+        self.pending.compactions = compactions;
+        Some((CostOp::Compact, bytes, n))
+    }
+
+    /// The pending BLAS builds (see `record_builds`).
+    fn record_pending_blas_builds(
         &mut self,
         cmd: vk::CommandBuffer,
         timed: bool,
     ) -> Option<(CostOp, u64, u32)> {
         let op = self.pending.op.take()?;
         let inputs = std::mem::take(&mut self.pending.inputs);
-        self.pending.addresses.clear();
         let raw: Vec<BlasBuildInput<'_>> = inputs
             .iter()
             .map(|(g, flags, dst, scratch_address)| BlasBuildInput {
@@ -573,7 +621,8 @@ impl VulkanBackend {
 
     pub(super) fn record_compaction(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
         self.fault(FaultPoint::CompactBlas)?;
-        let cmd = self.cmd()?;
+        // A frame is recording (the copy is recorded with its builds).
+        self.cmd()?;
         let e = self
             .entry(blas)
             .ok_or_else(|| BackendError::Other(format!("compaction of unknown {blas:?}")))?;
@@ -583,17 +632,18 @@ impl VulkanBackend {
         let (src, class, sizes, shading, shading_plain) =
             (e.parts[0].raw, e.class, e.sizes, e.shading, e.shading_plain);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
-        let t = self.timestamp_begin(CostOp::Compact, entry_storage_bytes(self.entry(blas)), 1);
+        let bytes = entry_storage_bytes(self.entry(blas));
         // The compacted copy takes over the input buffers (shading reads them).
         let inputs = {
             self.blases
                 .get_mut(key_of(blas))
                 .and_then(|e| e.static_inputs.take())
         };
-        // SAFETY: recording; the source was built in an earlier, completed frame (its size query
-        // was read), and begin_frame's barrier orders it; dst is at least the compacted size.
-        unsafe { self.ctx.cmd_compact(cmd, src, dst.raw) };
-        self.timestamp_end(t);
+        // Recorded with the frame's builds (`record_builds`): beside the TLAS when no record
+        // names the copy.
+        self.pending.compactions.push((src, dst.raw, bytes));
+        let at = self.pending.addresses.partition_point(|&a| a < dst.address);
+        self.pending.addresses.insert(at, dst.address);
         self.counters.compactions += 1;
         Ok(self.insert(BlasEntry {
             parts: vec![dst],

@@ -385,6 +385,20 @@ struct PendingBuilds {
     blases: u32,
     /// Static single-part BLASes whose compacted size is queried after the builds.
     queries: Vec<(BlasHandle, vk::AccelerationStructureKHR)>,
+    /// Compactions (source, destination, the source's bytes), recorded after the builds: beside
+    /// the TLAS with them, or before it (timed each) when a record names a pending BLAS.
+    compactions: Vec<(
+        vk::AccelerationStructureKHR,
+        vk::AccelerationStructureKHR,
+        u64,
+    )>,
+}
+
+impl PendingBuilds {
+    /// Whether builds or compactions wait to be recorded.
+    fn has_work(&self) -> bool {
+        self.op.is_some() || !self.compactions.is_empty()
+    }
 }
 
 /// Counters of what the backend did (for tests and stats).
@@ -435,6 +449,8 @@ pub struct VulkanCounters {
     /// Frames whose TLAS named a BLAS built in the same frame: the builds ran first, then a
     /// barrier, then the TLAS.
     pub builds_before_tlas: u64,
+    /// Compactions recorded beside the frame's TLAS (untimed, inside its timestamp pair).
+    pub compactions_beside_tlas: u64,
 }
 
 /// The manager's backend on a Vulkan device. Only the thread that owns the manager uses it.

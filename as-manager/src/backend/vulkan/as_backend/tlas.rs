@@ -655,22 +655,25 @@ impl VulkanBackend {
         });
         // The frame's BLAS builds: beside the TLAS when no record names them (the manager
         // schedules its builds after its records), else before it.
-        let beside = self.pending.op.is_some() && !self.records_name_pending(instances, delta);
+        let beside = self.pending.has_work() && !self.records_name_pending(instances, delta);
         if !beside {
             if self.pending.op.is_some() {
                 self.counters.builds_before_tlas += 1;
             }
             self.record_pending_builds(cmd);
         }
-        // SAFETY: recording; the barrier orders this frame's refits, compactions, the parking
-        // BLAS and builds the records name (and an earlier frame's TLAS build or update,
-        // `from`, in submission order) before the TLAS build and the builds beside it.
+        // SAFETY: recording; the barrier orders this frame's refits, the parking BLAS and the
+        // builds and compactions when the records name one (and an earlier frame's TLAS build
+        // or update, `from`, in submission order) before the TLAS build and the builds and
+        // compactions beside it.
         unsafe { self.ctx.cmd_accel_barrier(cmd) };
         // Beside: one timestamp pair around the builds and the TLAS (a timestamp between
         // them would serialize them), the builds recorded first.
         let t = self.timestamp_begin(op, u64::from(count), count);
         if beside {
-            self.counters.builds_beside_tlas += 1;
+            if self.pending.op.is_some() {
+                self.counters.builds_beside_tlas += 1;
+            }
             if let Some(builds) = self.record_builds(cmd, false) {
                 self.timed_beside(t, builds);
             }
