@@ -1,9 +1,11 @@
 //! Soak: a small baked world streamed along random teleports (one every 30 frames, seeded,
 //! cycling through ten places) into the manager on lavapipe, validation on, two frames in
-//! flight, a tiny render every 10th frame. `SOAK_FRAMES` frames (1,000 in the suite; 10,000 by
+//! flight, a tiny render every 10th frame. `SOAK_FRAMES` frames (1,600 in the suite; 10,000 by
 //! hand, see docs/RELIABILITY.md). Required: no validation message; nothing Vulkan left alive
-//! at shutdown (no buffer, no handle); resident memory at the end within 5 % of what it was at
-//! the same place and frame phase after the first tenth of the run.
+//! at shutdown (no buffer, no handle); resident memory, taken at the same place and frame
+//! phase every 300 frames after the first tenth of the run, does not grow in every interval
+//! (a leak does; a one-off step does not: a new allocator arena or a vector's new high-water
+//! mark, which a busy machine's timing can move between probes) and grows at most 10 % in all.
 
 mod common;
 
@@ -32,8 +34,8 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
     let frames: u64 = std::env::var("SOAK_FRAMES")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(1_000);
-    assert!(frames >= 300, "SOAK_FRAMES >= 300");
+        .unwrap_or(1_600);
+    assert!(frames >= 1_100, "SOAK_FRAMES >= 1100 (three memory probes)");
     let handles_before = live_vulkan_handles();
     let ctx = common::context();
     let (dir, size) = common::baked_small("soak", 8, 3);
@@ -69,18 +71,11 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
             )
         })
         .collect();
-    // Compare memory at the same place and phase (frame % 300 == 100): first after a tenth of
-    // the run and a whole cycle of places (allocators and caches have seen every place), then
-    // the last such frame.
+    // Memory at the same place and phase (frame % 300 == 100), from after a tenth of the run
+    // and a whole cycle of places (allocators and caches have seen every place) on.
     let first = (frames / 10).max(300);
     let probe_early = 100 + 300 * (first - 100).div_ceil(300);
-    let probe_late = frames - 1 - ((frames - 1) % 300) + 100;
-    let probe_late = if probe_late >= frames {
-        probe_late - 300
-    } else {
-        probe_late
-    };
-    let (mut rss_early, mut rss_late) = (0, 0);
+    let mut probes: Vec<(u64, u64)> = Vec::new();
     let mut renders = 0;
     for frame in 0..frames {
         let place = places[((frame / 30) % 10) as usize];
@@ -107,11 +102,8 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
             renderer.render(raw, &table, &desc).expect("render");
             renders += 1;
         }
-        if frame == probe_early {
-            rss_early = rss_kib();
-        }
-        if frame == probe_late {
-            rss_late = rss_kib();
+        if frame >= probe_early && frame % 300 == 100 {
+            probes.push((frame, rss_kib()));
         }
     }
     assert!(renders >= frames / 10);
@@ -128,13 +120,22 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
         "no Vulkan handle alive at shutdown"
     );
     let _ = std::fs::remove_dir_all(&dir);
-    eprintln!(
-        "soak: {frames} frames, {renders} renders, RSS {rss_early} KiB at frame {probe_early}, {rss_late} KiB at frame {probe_late}"
-    );
-    let growth = rss_late as f64 / rss_early.max(1) as f64;
+    eprintln!("soak: {frames} frames, {renders} renders, RSS (frame, KiB) {probes:?}");
+    assert!(probes.len() >= 3, "{probes:?}");
+    let growth: Vec<f64> = probes
+        .windows(2)
+        .map(|w| w[1].1 as f64 / w[0].1.max(1) as f64 - 1.0)
+        .collect();
+    let least = growth.iter().copied().fold(f64::INFINITY, f64::min);
     assert!(
-        growth <= 1.05,
-        "resident memory grew {:.1} % from frame {probe_early} to {probe_late} at the same place",
-        (growth - 1.0) * 100.0
+        least <= 0.015,
+        "resident memory grew in every interval of 300 frames at the same place (at least \
+         {:.1} %): {probes:?}",
+        least * 100.0
+    );
+    let (first_rss, last_rss) = (probes[0].1, probes[probes.len() - 1].1);
+    assert!(
+        last_rss as f64 <= first_rss as f64 * 1.10,
+        "resident memory grew more than 10 % at the same place: {probes:?}"
     );
 }
