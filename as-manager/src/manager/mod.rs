@@ -682,12 +682,12 @@ impl<B: AsBackend> AsManager<B> {
             .estimate_batch(CostOp::Tlas, self.records.len() as u64);
         let build_ms = self.stats.build_estimated_ms as f64;
         // Beside the TLAS, the frame's compactions run with its builds.
-        let as_ms = if self.builds_beside {
-            self.costs
-                .beside(tlas_ms, build_ms + self.compaction_estimated_ms)
-        } else {
-            tlas_ms + build_ms + self.compaction_estimated_ms
-        };
+        let as_ms = schedule::tlas_with_work_ms(
+            &self.costs,
+            self.builds_beside,
+            tlas_ms,
+            build_ms + self.compaction_estimated_ms,
+        );
         self.stats.as_estimated_ms = (as_ms + refit_ms) as f32;
         self.stats.blas_count = self.built_count;
         self.stats.blas_bytes = self.live_bytes;

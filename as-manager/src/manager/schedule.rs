@@ -6,9 +6,20 @@ use std::sync::Arc;
 use super::journal::{CompactUndo, RefitUndo};
 use super::state::{EntryKey, EntryState};
 use super::AsManager;
+use crate::backend::model::CostModel;
 use crate::backend::{
     AsBackend, BackendError, BlasBuild, BlasClass, BlasRefit, CostOp, GeometryRef, NextTlas,
 };
+
+/// GPU ms of a frame's TLAS (`tlas`) with its builds and compactions (`work`): side by side
+/// when they run beside it (`CostModel::beside`: the managed frame), else one after the other.
+pub(crate) fn tlas_with_work_ms(costs: &CostModel, beside: bool, tlas: f64, work: f64) -> f64 {
+    if beside {
+        costs.beside(tlas, work)
+    } else {
+        tlas + work
+    }
+}
 use crate::mesh::{DeviceVertices, LodGeometry, MeshKind};
 use crate::quality::RefitQuality;
 use crate::Result;
@@ -528,18 +539,10 @@ impl<B: AsBackend> AsManager<B> {
         let builds = self.stats.build_estimated_ms as f64;
         let refits = self.gpu_reserved_ms - self.reserved_tlas_ms;
         let (beside, tlas) = (self.builds_beside, self.reserved_tlas_ms);
-        let tlas_and_builds = if beside {
-            self.costs.beside(tlas, builds)
-        } else {
-            tlas + builds
-        };
+        let tlas_and_builds = tlas_with_work_ms(&self.costs, beside, tlas, builds);
         let left = b.max_gpu_ms as f64 - refits - tlas_and_builds;
-        let extra = |costs: &crate::backend::model::CostModel, ms: f64| {
-            if beside {
-                costs.beside(tlas, builds + ms) - tlas_and_builds
-            } else {
-                ms
-            }
+        let extra = |costs: &CostModel, ms: f64| {
+            tlas_with_work_ms(costs, beside, tlas, builds + ms) - tlas_and_builds
         };
         let (max_n, max_ms) = (b.max_compactions, b.max_compaction_ms as f64);
         let mut pending = std::mem::take(&mut self.compact_pending);

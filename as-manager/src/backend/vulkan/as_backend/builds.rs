@@ -336,7 +336,7 @@ impl VulkanBackend {
         cmd: vk::CommandBuffer,
         timed: bool,
     ) -> Option<(CostOp, u64, u32)> {
-        let compactions = std::mem::take(&mut self.pending.compactions);
+        let mut compactions = std::mem::take(&mut self.pending.compactions);
         if compactions.is_empty() {
             return None;
         }
@@ -357,7 +357,6 @@ impl VulkanBackend {
             bytes += b;
         }
         let n = compactions.len() as u32;
-        let mut compactions = compactions;
         compactions.clear();
         self.pending.compactions = compactions;
         Some((CostOp::Compact, bytes, n))
