@@ -458,3 +458,140 @@ fn builds_run_beside_the_tlas_unless_a_record_names_one() {
         assert!(hits_total > 100, "{policy:?}: {hits_total} hits");
     }
 }
+
+/// An engine that drives the backend itself may compact a BLAS and name the compacted copy in
+/// the same frame's TLAS. The copy then runs before that TLAS, behind a barrier and timed on
+/// its own, not beside it (`records_name_pending`); synchronization validation reports a copy
+/// and a TLAS build left unordered. The copy is traced in that frame and the next (two frames
+/// in flight) and hits what the original hit.
+///
+/// The original is freed as last used by the frame before, the last whose TLAS named it,
+/// although the compacting frame's copy reads it: the backend holds it until that frame
+/// completes. (It destroyed it at once: a validation error, and lavapipe crashed running the
+/// copy.)
+#[test]
+fn a_compaction_named_by_its_own_frames_tlas_runs_before_it() {
+    use rtstream::as_manager::backend::{BlasBuild, BlasClass, CostOp, GeometryRef, TlasDelta};
+    use rtstream::as_manager::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
+    let ctx = common::context();
+    let mut b = VulkanBackend::new(
+        ctx.clone(),
+        VulkanBackendDesc {
+            frames_in_flight: 2,
+            ..VulkanBackendDesc::default()
+        },
+    )
+    .unwrap();
+    let mut renderer = Renderer::new(ctx.clone()).expect("renderer");
+    let g = grid_geometry(24, 20.0);
+    let geometry = GeometryRef {
+        vertex_count: g.positions.len() as u32,
+        triangle_count: (g.indices.len() / 3) as u32,
+        positions: Some(&g.positions),
+        indices: Some(&g.indices),
+        device_vertices: None,
+        device_indices: None,
+        opaque: true,
+    };
+    let sizes = b.blas_sizes(&geometry, BlasClass::Static);
+    let record = |address: u64| {
+        TlasInstance::new(
+            &Affine3A::IDENTITY,
+            0,
+            0xff,
+            0,
+            INSTANCE_FORCE_OPAQUE,
+            address,
+        )
+    };
+    // Looks down at the grid (y = 0) from 15 m, so that most pixels hit it.
+    let trace = |b: &mut VulkanBackend, renderer: &mut Renderer, tlas, records: &[TlasInstance]| {
+        b.wait_idle().expect("frames complete");
+        let table = common::shading_table(b, records, 4);
+        let raw = b.tlas(tlas).expect("TLAS of a frame in flight");
+        let cam = Camera::look_at(Vec3::new(0.0, 15.0, -8.0), Vec3::ZERO, 60f32.to_radians());
+        let f = renderer
+            .render(raw, &table, &RenderDesc::new(24, 16, cam))
+            .expect("trace without device error");
+        f.hits
+            .iter()
+            .map(|h| (h.instance, h.primitive))
+            .collect::<Vec<_>>()
+    };
+    // Frame 0 builds the BLAS (compactable) and traces it.
+    b.begin_frame(0).unwrap();
+    let original = b
+        .build_blases(&[BlasBuild {
+            geometry,
+            class: BlasClass::Static,
+            sizes,
+        }])
+        .unwrap()[0];
+    // Its TLAS names it: the build goes first.
+    let records = [record(b.blas_address(original))];
+    let tlas0 = b.build_tlas(&records, TlasDelta::ALL).unwrap();
+    b.end_frame(0).unwrap();
+    let before = trace(&mut b, &mut renderer, tlas0, &records);
+    let hit = before.iter().filter(|h| h.0 == 0).count();
+    assert!(hit > 200, "the grid fills the view: {hit} of 384 pixels");
+    // Frames until its compacted size is read (a slot's queries are read when it is reused).
+    let mut frame = 1;
+    while b.compacted_size(original).is_none() {
+        assert!(frame < 8, "the compacted size is read within a few frames");
+        b.begin_frame(frame).unwrap();
+        b.build_tlas(&records, TlasDelta::ALL).unwrap();
+        b.end_frame(frame).unwrap();
+        frame += 1;
+    }
+    let beside_before = b.counters().compactions_beside_tlas;
+    // The compacting frame's TLAS names the copy; the next frame frees the original, and
+    // both are recorded before either is waited for.
+    b.begin_frame(frame).unwrap();
+    let copy = b.compact_blas(original).unwrap();
+    let copied = [record(b.blas_address(copy))];
+    assert_ne!(copied[0].blas_address, records[0].blas_address);
+    let tlas_named = b.build_tlas(&copied, TlasDelta::ALL).unwrap();
+    b.end_frame(frame).unwrap();
+    // Named by no TLAS since frame - 1; the copy in `frame` reads it all the same.
+    b.free_blas(original, frame - 1);
+    b.begin_frame(frame + 1).unwrap();
+    let tlas_next = b
+        .build_tlas(
+            &copied,
+            TlasDelta {
+                stable: 1,
+                changed: &[],
+            },
+        )
+        .unwrap();
+    b.end_frame(frame + 1).unwrap();
+    let c = b.counters();
+    assert_eq!(c.compactions, 1, "{c:?}");
+    assert_eq!(
+        c.compactions_beside_tlas, beside_before,
+        "the named copy did not run beside the TLAS: {c:?}"
+    );
+    // Both frames trace the copy as frame 0 traced the original, hit for hit.
+    assert_eq!(trace(&mut b, &mut renderer, tlas_named, &copied), before);
+    assert_eq!(trace(&mut b, &mut renderer, tlas_next, &copied), before);
+    // It was timed on its own, not inside the TLAS's pair (read once its slot is reused).
+    b.begin_frame(frame + 2).unwrap();
+    b.build_tlas(
+        &copied,
+        TlasDelta {
+            stable: 1,
+            changed: &[],
+        },
+    )
+    .unwrap();
+    b.end_frame(frame + 2).unwrap();
+    let timed = b
+        .take_measurements()
+        .into_iter()
+        .filter(|m| m.op == CostOp::Compact)
+        .collect::<Vec<_>>();
+    assert_eq!(timed.len(), 1, "{timed:?}");
+    assert!(!timed[0].beside, "{timed:?}");
+    drop(renderer);
+    drop(b);
+}

@@ -344,6 +344,9 @@ pub trait AsBackend: Send {
     /// The caller frees the original with [`AsBackend::free_blas`].
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle>;
     /// No TLAS after `last_used_frame` references `blas`: destroy it once the GPU is done.
+    /// The Vulkan backend also waits for the last frame whose own commands used it (its
+    /// build, a refit, a compaction from it), so the original of a copy recorded this frame
+    /// may be freed at once.
     fn free_blas(&mut self, blas: BlasHandle, last_used_frame: u64);
     /// The BLAS device address for `accelerationStructureReference`.
     fn blas_address(&self, blas: BlasHandle) -> u64;

@@ -225,6 +225,7 @@ impl VulkanBackend {
             .collect();
         let mut handles = Vec::with_capacity(builds.len());
         let mut query_targets = Vec::new();
+        let frame = self.slots[self.current].frame;
         for (i, (b, p)) in builds.iter().zip(planned).enumerate() {
             if p.accels.len() > 1 {
                 self.counters.split_meshes += 1;
@@ -255,6 +256,7 @@ impl VulkanBackend {
                 shading: p.shading,
                 shading_plain: p.shading_plain,
                 compacted_size: None,
+                recorded: frame,
                 gpu_quality: measure.map(|_| GpuQuality {
                     build_gen: 1,
                     built_metric: None,
@@ -542,6 +544,13 @@ impl VulkanBackend {
                 opaque: p.r.geometry.opaque,
             });
         }
+        // The refits write (and read) their BLASes in this frame: their frees wait for it.
+        let frame = self.slots[self.current].frame;
+        for p in &plan {
+            if let Some(e) = self.blases.get_mut(key_of(p.r.blas)) {
+                e.recorded = frame;
+            }
+        }
         let mut raw = Vec::with_capacity(plan.len());
         let mut tris_total = 0u64;
         let flags = self.blas_flags(BlasClass::Skinned);
@@ -633,11 +642,12 @@ impl VulkanBackend {
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
         let bytes = entry_storage_bytes(self.entry(blas));
         // The compacted copy takes over the input buffers (shading reads them).
-        let inputs = {
-            self.blases
-                .get_mut(key_of(blas))
-                .and_then(|e| e.static_inputs.take())
-        };
+        // The copy reads the source in this frame: its free waits for this frame.
+        let frame = self.slots[self.current].frame;
+        let inputs = self.blases.get_mut(key_of(blas)).and_then(|e| {
+            e.recorded = frame;
+            e.static_inputs.take()
+        });
         // Recorded with the frame's builds (`record_builds`): beside the TLAS when no record
         // names the copy.
         self.pending.compactions.push((src, dst.raw, bytes));
@@ -657,6 +667,7 @@ impl VulkanBackend {
             shading,
             shading_plain,
             compacted_size: Some(size),
+            recorded: frame,
             gpu_quality: None,
         }))
     }
@@ -673,6 +684,9 @@ impl VulkanBackend {
             tracing::warn!(?blas, "free of an unknown BLAS");
             return;
         };
+        // Not before the frame whose commands last used it (a compaction from it in the
+        // frame that frees it, say, with the TLAS that last named it an earlier frame's).
+        let last_used_frame = last_used_frame.max(e.recorded);
         if e.parts.len() > 1 {
             self.split_parts.remove(&e.parts[0].address);
         }

@@ -230,6 +230,9 @@ struct BlasEntry {
     /// [`VulkanBackend::shading_geometry`] promises (not so for the engine's other formats).
     shading_plain: bool,
     compacted_size: Option<u64>,
+    /// The last frame whose commands wrote or read it (its build, a refit, a compaction from
+    /// it): a free waits for that frame, whatever frame the caller says last used it.
+    recorded: u64,
     /// Skinned BLAS built or refitted from the engine's GPU buffer: the GPU quality pass's
     /// bookkeeping (`gpu_quality.rs`).
     gpu_quality: Option<gpu_quality::GpuQuality>,
