@@ -97,6 +97,67 @@ fn a_failed_frame_rolls_back_and_its_number_is_retried() {
     assert!(c.compactions > 0 && c.refits + c.rebuilds > 0, "{c:?}");
 }
 
+/// A frame that fails after recording compactions leaves each compacted BLAS's original
+/// shading from its own vertices: the copy, never submitted, is freed, and the original,
+/// restored, is traced and shaded on (and compacted again later). Every static grid's shading
+/// positions are checked against its mesh in the frames after.
+#[test]
+fn a_failed_frame_with_compactions_leaves_the_originals_shading_intact() {
+    use rtstream::as_manager::synth::grid_geometry;
+    let ctx = common::context();
+    let mut s = scene(&ctx);
+    let mut frame = 0u64;
+    // Fail frames at their end until one of them had recorded compactions.
+    loop {
+        assert!(frame < 200, "no failed frame compacted");
+        let before = s.m.backend().counters().compactions;
+        s.m.backend_mut()
+            .inject_fault(FaultPoint::EndFrame, BackendError::Other("injected".into()));
+        update(&mut s, frame).expect_err("the injected fault strikes at the frame's end");
+        let compacted = s.m.backend().counters().compactions > before;
+        update(&mut s, frame).unwrap_or_else(|e| panic!("retry of frame {frame}: {e}"));
+        frame += 1;
+        if compacted {
+            break;
+        }
+    }
+    let mut checked = 0usize;
+    for f in frame..frame + 30 {
+        s.pose(f);
+        let cams = [Viewpoint::new(
+            Vec3::new(f as f32 * 0.8, 3.0, 0.0),
+            Vec3::new(0.0, 0.0, 1.0),
+        )];
+        let records =
+            s.m.update(FrameInput {
+                frame: f,
+                cameras: &cams,
+            })
+            .unwrap()
+            .instances
+            .to_vec();
+        let b = s.m.backend();
+        // A BLAS compacted this frame is named by this frame's records and already freed
+        // (retiring until the frame completes): only live ones are looked up.
+        for r in records
+            .iter()
+            .filter(|r| r.custom_index() < 24 && b.is_live_blas_address(r.blas_address))
+        {
+            let k = r.custom_index();
+            let want = grid_geometry(12 + k % 5, 8.0);
+            let got = b
+                .shading_positions(r.blas_address)
+                .unwrap_or_else(|| panic!("frame {f}: grid {k}'s BLAS has no shading"));
+            assert_eq!(
+                got, want.positions,
+                "frame {f}: grid {k} shades from another mesh's vertices"
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 100, "{checked} records checked");
+}
+
 #[test]
 fn a_vulkan_error_reaches_the_caller_typed() {
     let ctx = common::context();

@@ -654,7 +654,7 @@ impl VulkanBackend {
         let at = self.pending.addresses.partition_point(|&a| a < dst.address);
         self.pending.addresses.insert(at, dst.address);
         self.counters.compactions += 1;
-        Ok(self.insert(BlasEntry {
+        let copy = self.insert(BlasEntry {
             parts: vec![dst],
             class,
             sizes: BlasSizes {
@@ -669,7 +669,9 @@ impl VulkanBackend {
             compacted_size: Some(size),
             recorded: frame,
             gpu_quality: None,
-        }))
+        });
+        self.frame_copies.push((blas, copy));
+        Ok(copy)
     }
 
     /// Destroys an input buffer this call created, if any (all-or-nothing failure paths).

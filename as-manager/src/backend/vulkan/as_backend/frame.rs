@@ -461,6 +461,7 @@ impl VulkanBackend {
         match r {
             Ok(()) => {
                 s.submitted_value = value;
+                self.frame_copies.clear();
                 if engine {
                     self.to_record = Some(self.current);
                 }

@@ -504,6 +504,9 @@ pub struct VulkanBackend {
     frame_build_triangles: u64,
     /// The current frame's builds, recorded with its TLAS (or at its end).
     pending: PendingBuilds,
+    /// This frame's compactions (source, copy): the copy holds the source's input buffer
+    /// (the shading reads it); a frame that fails gives it back to the source, which stays.
+    frame_copies: Vec<(BlasHandle, BlasHandle)>,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
@@ -701,6 +704,7 @@ impl VulkanBackend {
             slot_keeper: Default::default(),
             frame_build_triangles: 0,
             pending: PendingBuilds::default(),
+            frame_copies: Vec::new(),
             bases: Vec::new(),
             faults: Vec::new(),
             engine_done: None,
@@ -925,6 +929,22 @@ impl AsBackend for VulkanBackend {
         }
         self.slots.iter_mut().for_each(|s| s.instances_call = 0);
         self.pending = PendingBuilds::default();
+        // The copies never ran: their sources keep their inputs (the caller frees the copies).
+        for (source, copy) in std::mem::take(&mut self.frame_copies).into_iter().rev() {
+            let inputs = self
+                .blases
+                .get_mut(key_of(copy))
+                .and_then(|e| e.static_inputs.take());
+            match self.blases.get_mut(key_of(source)) {
+                Some(e) if e.static_inputs.is_none() => e.static_inputs = inputs,
+                // The source was freed in the failed frame: the copy keeps them.
+                _ => {
+                    if let Some(e) = self.blases.get_mut(key_of(copy)) {
+                        e.static_inputs = inputs;
+                    }
+                }
+            }
+        }
         let s = &mut self.slots[self.current];
         // The command buffer is reset by the next begin_frame of this slot; the queries
         // recorded into it were never written, so nothing may wait on them.
