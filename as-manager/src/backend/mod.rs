@@ -5,9 +5,17 @@
 //! command buffers, the [`model::ModelBackend`] only accounts sizes and costs.
 //!
 //! # Contract, in frame order
-//! One frame is `begin_frame(n)`, then any of `blas_sizes`, `build_blases` (at most one call:
-//! one batched build), `refit_blases` (at most one call), `compacted_size`/`compact_blas`,
-//! `free_blas`, then `build_tlas` (once), then `end_frame(n)`.
+//! One frame is `begin_frame(n)`, then any of `blas_sizes`, `build_blases`, `refit_blases`,
+//! `compacted_size`/`compact_blas`, `free_blas`, then `build_tlas` (once), then `end_frame(n)`.
+//! The manager makes one batched `build_blases` and one `refit_blases` call a frame, refits
+//! first. An engine driving a backend directly gets [`BackendError::Misuse`] for a call out of
+//! this order (a frame number that does not increase, `begin_frame` while a frame records,
+//! `end_frame` of another frame, a second `build_tlas`, a refit after it), for a handle that is
+//! not live, one BLAS twice in a refit call, a second compaction of one original or one of a
+//! BLAS made this frame, and unusable geometry (checked before anything is allocated); the
+//! Vulkan backend also refuses, in debug builds, a TLAS record naming no live BLAS. A refit of
+//! a BLAS built this frame runs after its build; a free waits for the frame whose commands
+//! last used the BLAS, whatever frame it names.
 //! - Sizes: [`AsBackend::blas_sizes`] answers like `vkGetAccelerationStructureBuildSizesKHR`
 //!   for a geometry and class before anything is allocated; the manager budgets with it.
 //! - Builds/refits recorded in frame `n` are visible to frame `n`'s TLAS (the backend puts the
@@ -212,9 +220,86 @@ pub enum BackendError {
     #[cfg(feature = "vulkan")]
     #[error(transparent)]
     Vulkan(VulkanFailure),
+    /// The caller broke the backend's contract (a call out of the frame's order, a handle or
+    /// address that is not live, unusable geometry): nothing of the call was recorded or
+    /// allocated, and the frame can go on (or be aborted). The manager never makes these; an
+    /// engine driving the backend directly may.
+    #[error(transparent)]
+    Misuse(#[from] Misuse),
     /// Anything else, with the backend's words.
     #[error("{0}")]
     Other(String),
+}
+
+/// What a [`BackendError::Misuse`] refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum Misuse {
+    /// A call that records work outside `begin_frame` .. `end_frame`.
+    #[error("no frame is being recorded (call begin_frame)")]
+    NotRecording,
+    /// `begin_frame` while frame `frame` is still being recorded.
+    #[error("frame {frame} is still being recorded (end or abort it first)")]
+    StillRecording {
+        /// The frame being recorded.
+        frame: u64,
+    },
+    /// `begin_frame(frame)` after frame `last` was ended: frame numbers increase (a frame
+    /// that failed and was aborted may be begun again with its number).
+    #[error("frame {frame} after frame {last}: frame numbers increase")]
+    FrameNotIncreasing {
+        /// The frame asked for.
+        frame: u64,
+        /// The last frame ended.
+        last: u64,
+    },
+    /// `end_frame(frame)` while another frame is being recorded.
+    #[error("end_frame({frame}) while frame {recording} is being recorded")]
+    WrongFrame {
+        /// The frame named.
+        frame: u64,
+        /// The frame being recorded.
+        recording: u64,
+    },
+    /// A second `build_tlas` in one frame.
+    #[error("the frame's TLAS is already built (one build_tlas a frame)")]
+    TlasAlreadyBuilt,
+    /// A refit after the frame's `build_tlas`: the TLAS was built over the old bounds.
+    #[error("refits go before the frame's TLAS")]
+    RefitAfterTlas,
+    /// A handle that names no live BLAS of this backend (freed, or another backend's).
+    #[error("{0:?} is not a live BLAS of this backend")]
+    UnknownBlas(BlasHandle),
+    /// One BLAS twice in one `refit_blases` call.
+    #[error("{0:?} is refitted twice in one call")]
+    DuplicateRefit(BlasHandle),
+    /// A refit of a static BLAS (only skinned BLASes are built for updates).
+    #[error("{0:?} is static: only skinned BLASes are refitted")]
+    NotSkinned(BlasHandle),
+    /// A refit with another vertex or triangle count than the build.
+    #[error("refit of {0:?} with another vertex or triangle count than its build")]
+    TopologyChanged(BlasHandle),
+    /// A compaction before the BLAS's compacted size was read (frames after its build).
+    #[error("{0:?}'s compacted size is not known yet")]
+    CompactedSizeUnknown(BlasHandle),
+    /// A second compaction of one original (free it once its copy is made).
+    #[error("{0:?} was compacted already")]
+    AlreadyCompacted(BlasHandle),
+    /// A compaction of a BLAS whose own build or copy is recorded in this frame.
+    #[error("{0:?} is made in this frame: compact it in a later one")]
+    CompactionOfPending(BlasHandle),
+    /// A TLAS record naming an address that is no live BLAS (checked in debug builds).
+    #[error("TLAS record {index} names {address:#x}, which is no live BLAS")]
+    UnknownBlasAddress {
+        /// The record's index in the call.
+        index: usize,
+        /// The address it names.
+        address: u64,
+    },
+    /// Geometry a build cannot use (no triangles, counts beyond the slices, an index past
+    /// the vertices).
+    #[error("unusable geometry: {0}")]
+    InvalidGeometry(&'static str),
 }
 
 /// A [`vulkan::VulkanError`] inside a [`BackendError`], shared so that the error stays `Clone`.

@@ -21,7 +21,7 @@ use rustc_hash::FxHashMap;
 pub use super::calibration::{BatchCosts, CostFits, CostModel, OpFit, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, FaultPoint, GeometryRef, Measurement, NextTlas, TlasDelta, TlasHandle,
+    CostOp, FaultPoint, GeometryRef, Measurement, Misuse, NextTlas, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -441,7 +441,7 @@ impl AsBackend for ModelBackend {
             let b = self
                 .blases
                 .get(&r.blas)
-                .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+                .ok_or(Misuse::UnknownBlas(r.blas))?;
             debug_assert_eq!(b.class, BlasClass::Skinned);
             if r.rebuild {
                 rb += b.triangles as u64;
@@ -473,7 +473,7 @@ impl AsBackend for ModelBackend {
         self.check(FaultPoint::CompactBlas)?;
         let size = self
             .compacted_size(blas)
-            .ok_or_else(|| BackendError::Other("compaction size not ready".into()))?;
+            .ok_or(Misuse::CompactedSizeUnknown(blas))?;
         if !self.fits(size) {
             self.counters.oom_failures += 1;
             return Err(BackendError::OutOfDeviceMemory);

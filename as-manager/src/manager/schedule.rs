@@ -557,6 +557,11 @@ impl<B: AsBackend> AsManager<B> {
                 return false;
             }
             let e = &self.tables.entries[key];
+            // Listed twice (a rolled-back frame's builds are listed again when built again),
+            // or compacted already: its handle is a copy, maybe made earlier in this loop.
+            if !e.needs_compaction {
+                return false;
+            }
             let handle = e.handle.expect("built");
             let Some(size) = self.backend.compacted_size(handle) else {
                 return true;

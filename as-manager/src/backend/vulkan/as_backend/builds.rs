@@ -26,6 +26,43 @@ impl VulkanBackend {
             .clamp(1, u64::from(g.triangle_count.max(1))) as u32
     }
 
+    /// Checks a build's geometry (what the GPU would read past otherwise) and returns its
+    /// sizes: the caller's, but never below the backend's own for this geometry (a build
+    /// given another mesh's sizes would write past its storage).
+    fn checked_build(&self, b: &BlasBuild<'_>) -> BackendResult<BlasSizes> {
+        let g = &b.geometry;
+        let bad = |what| Err(Misuse::InvalidGeometry(what).into());
+        if g.triangle_count == 0 || g.vertex_count == 0 {
+            return bad("no triangles or no vertices");
+        }
+        if let Some(p) = g.positions.filter(|_| g.device_vertices.is_none()) {
+            if p.len() < g.vertex_count as usize {
+                return bad("fewer positions than vertex_count");
+            }
+        }
+        if let Some(v) = g.device_vertices {
+            if v.count < g.vertex_count {
+                return bad("fewer device vertices than vertex_count");
+            }
+        }
+        if let Some(idx) = g.indices.filter(|_| g.device_indices.is_none()) {
+            let n = g.triangle_count as usize * 3;
+            let Some(used) = idx.get(..n) else {
+                return bad("fewer indices than 3 x triangle_count");
+            };
+            // The CPU's indices are read here anyway (copied to the GPU): one pass more.
+            if used.iter().copied().max().unwrap_or(0) >= g.vertex_count {
+                return bad("an index past the vertices");
+            }
+        }
+        let own = self.blas_sizes(g, b.class);
+        Ok(BlasSizes {
+            as_bytes: b.sizes.as_bytes.max(own.as_bytes),
+            build_scratch: b.sizes.build_scratch.max(own.build_scratch),
+            update_scratch: b.sizes.update_scratch.max(own.update_scratch),
+        })
+    }
+
     pub(super) fn record_blas_builds(
         &mut self,
         builds: &[BlasBuild<'_>],
@@ -36,6 +73,11 @@ impl VulkanBackend {
         }
         // A frame is being recorded (the builds are recorded with its TLAS).
         self.cmd()?;
+        // Geometry the GPU can build from, and room for it: nothing is allocated before.
+        let sizes: Vec<BlasSizes> = builds
+            .iter()
+            .map(|b| self.checked_build(b))
+            .collect::<BackendResult<_>>()?;
         struct Planned {
             geoms: Vec<TriangleGeometry>,
             accels: Vec<AccelStruct>,
@@ -53,13 +95,13 @@ impl VulkanBackend {
         let align = self.ctx.info().min_scratch_alignment;
         let plan = tracing::trace_span!("plan").entered();
         let result: BackendResult<()> = (|| {
-            for b in builds {
+            for (b, checked) in builds.iter().zip(&sizes) {
                 let g = &b.geometry;
                 let device_v = g.device_vertices;
                 if device_v.is_none() && g.positions.is_none() {
                     return Err(BackendError::MissingGeometry);
                 }
-                let parts = self.parts_of(g, b.class, &b.sizes);
+                let parts = self.parts_of(g, b.class, checked);
                 let format = device_v.map_or(VertexFormat::F32x3, |v| v.format);
                 let cpu_static = b.class == BlasClass::Static
                     && device_v.is_none()
@@ -116,9 +158,10 @@ impl VulkanBackend {
                             (Some(v), None) => (iaddr, itype, v.address, v.stride, None, None),
                             (_, ib) => {
                                 self.destroy_all(ib);
-                                return Err(BackendError::Other(
-                                    "static geometry mixes device and CPU inputs".into(),
-                                ));
+                                return Err(Misuse::InvalidGeometry(
+                                    "static geometry mixes device and CPU inputs",
+                                )
+                                .into());
                             }
                         }
                     }
@@ -159,9 +202,9 @@ impl VulkanBackend {
                     let s = if parts == 1 {
                         crate::backend::vulkan::device::accel::AsSizes {
                             // One structure of the ring (`as_bytes` counts all of them).
-                            storage: b.sizes.as_bytes / self.ring_len(b.class),
-                            build_scratch: b.sizes.build_scratch,
-                            update_scratch: b.sizes.update_scratch,
+                            storage: checked.as_bytes / self.ring_len(b.class),
+                            build_scratch: checked.build_scratch,
+                            update_scratch: checked.update_scratch,
                         }
                     } else {
                         self.ctx.blas_sizes(&[g], self.blas_flags(b.class))
@@ -249,13 +292,14 @@ impl VulkanBackend {
             let h = self.insert(BlasEntry {
                 parts: p.accels,
                 class: b.class,
-                sizes: b.sizes,
+                sizes: sizes[i],
                 skinned: p.skinned,
                 static_inputs: p.inputs,
                 spares: Vec::new(),
                 shading: p.shading,
                 shading_plain: p.shading_plain,
                 compacted_size: None,
+                compacted: false,
                 recorded: frame,
                 gpu_quality: measure.map(|_| GpuQuality {
                     build_gen: 1,
@@ -448,12 +492,20 @@ impl VulkanBackend {
         }
         let mut plan = Vec::with_capacity(refits.len());
         let mut total = 0;
-        for r in refits {
-            let e = self
-                .entry(r.blas)
-                .ok_or_else(|| BackendError::Other(format!("refit of unknown {:?}", r.blas)))?;
+        // A refit of a BLAS whose build is pending (made this frame) must follow the build.
+        let mut names_pending = false;
+        for (i, r) in refits.iter().enumerate() {
+            if refits[..i].iter().any(|q| q.blas == r.blas) {
+                return Err(Misuse::DuplicateRefit(r.blas).into());
+            }
+            let e = self.entry(r.blas).ok_or(Misuse::UnknownBlas(r.blas))?;
+            names_pending |= self
+                .pending
+                .addresses
+                .binary_search(&e.parts[0].address)
+                .is_ok();
             let Some(sk) = &e.skinned else {
-                return Err(BackendError::Other("refit of a static BLAS".into()));
+                return Err(Misuse::NotSkinned(r.blas).into());
             };
             let (count, device) = match (r.geometry.device_vertices, r.geometry.positions) {
                 (Some(v), _) => (v.count, Some(v)),
@@ -461,9 +513,7 @@ impl VulkanBackend {
                 (None, None) => return Err(BackendError::MissingGeometry),
             };
             if count != sk.vertices || r.geometry.triangle_count != sk.triangles {
-                return Err(BackendError::Other(
-                    "refit with a different topology".into(),
-                ));
+                return Err(Misuse::TopologyChanged(r.blas).into());
             }
             // An update must read the format the BLAS was built from; another one rebuilds.
             let format = device.map_or(VertexFormat::F32x3, |v| v.format);
@@ -543,6 +593,10 @@ impl VulkanBackend {
                 triangle_count: p.tris,
                 opaque: p.r.geometry.opaque,
             });
+        }
+        if names_pending {
+            // The builds (and the frame's compactions) go first, behind a barrier.
+            self.record_pending_builds(cmd);
         }
         // The refits write (and read) their BLASes in this frame: their frees wait for it.
         let frame = self.slots[self.current].frame;
@@ -631,12 +685,19 @@ impl VulkanBackend {
         self.fault(FaultPoint::CompactBlas)?;
         // A frame is recording (the copy is recorded with its builds).
         self.cmd()?;
-        let e = self
-            .entry(blas)
-            .ok_or_else(|| BackendError::Other(format!("compaction of unknown {blas:?}")))?;
-        let size = e
-            .compacted_size
-            .ok_or_else(|| BackendError::Other("compacted size not known yet".into()))?;
+        let e = self.entry(blas).ok_or(Misuse::UnknownBlas(blas))?;
+        if e.compacted {
+            return Err(Misuse::AlreadyCompacted(blas).into());
+        }
+        if self
+            .pending
+            .addresses
+            .binary_search(&e.parts[0].address)
+            .is_ok()
+        {
+            return Err(Misuse::CompactionOfPending(blas).into());
+        }
+        let size = e.compacted_size.ok_or(Misuse::CompactedSizeUnknown(blas))?;
         let (src, class, sizes, shading, shading_plain) =
             (e.parts[0].raw, e.class, e.sizes, e.shading, e.shading_plain);
         let dst = self.create_accel(size.max(256), "compacted BLAS")?;
@@ -646,6 +707,7 @@ impl VulkanBackend {
         let frame = self.slots[self.current].frame;
         let inputs = self.blases.get_mut(key_of(blas)).and_then(|e| {
             e.recorded = frame;
+            e.compacted = true;
             e.static_inputs.take()
         });
         // Recorded with the frame's builds (`record_builds`): beside the TLAS when no record
@@ -667,6 +729,7 @@ impl VulkanBackend {
             shading,
             shading_plain,
             compacted_size: Some(size),
+            compacted: false,
             recorded: frame,
             gpu_quality: None,
         });

@@ -214,9 +214,7 @@ impl VulkanBackend {
         if s.recording {
             Ok(s.cmd)
         } else {
-            Err(BackendError::Other(
-                "no frame is being recorded (call begin_frame)".into(),
-            ))
+            Err(Misuse::NotRecording.into())
         }
     }
 
@@ -369,6 +367,7 @@ impl VulkanBackend {
         drop(retire);
         let _s = tracing::trace_span!("begin_cmd").entered();
         self.frame_build_triangles = 0;
+        self.tlas_this_frame = false;
         let s = &mut self.slots[slot];
         s.frame = frame;
         s.scratch_used.clear();

@@ -77,7 +77,7 @@ use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, GeometryRef, Measurement, TlasDelta, TlasHandle,
+    CostOp, GeometryRef, Measurement, Misuse, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -230,6 +230,8 @@ struct BlasEntry {
     /// [`VulkanBackend::shading_geometry`] promises (not so for the engine's other formats).
     shading_plain: bool,
     compacted_size: Option<u64>,
+    /// Copied by a compaction (its inputs went with the copy): it is not compacted again.
+    compacted: bool,
     /// The last frame whose commands wrote or read it (its build, a refit, a compaction from
     /// it): a free waits for that frame, whatever frame the caller says last used it.
     recorded: u64,
@@ -507,6 +509,10 @@ pub struct VulkanBackend {
     /// This frame's compactions (source, copy): the copy holds the source's input buffer
     /// (the shading reads it); a frame that fails gives it back to the source, which stays.
     frame_copies: Vec<(BlasHandle, BlasHandle)>,
+    /// The last frame ended (submitted or handed to the engine): frame numbers increase.
+    last_ended: Option<u64>,
+    /// The frame being recorded has built its TLAS (one a frame; refits go before it).
+    tlas_this_frame: bool,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
@@ -705,6 +711,8 @@ impl VulkanBackend {
             frame_build_triangles: 0,
             pending: PendingBuilds::default(),
             frame_copies: Vec::new(),
+            last_ended: None,
+            tlas_this_frame: false,
             bases: Vec::new(),
             faults: Vec::new(),
             engine_done: None,
@@ -821,6 +829,13 @@ impl AsBackend for VulkanBackend {
             return Err(BackendError::DeviceLost);
         }
         let _s = tracing::trace_span!("begin_frame").entered();
+        let s = &self.slots[self.current];
+        if s.recording {
+            return Err(Misuse::StillRecording { frame: s.frame }.into());
+        }
+        if let Some(last) = self.last_ended.filter(|&l| frame <= l) {
+            return Err(Misuse::FrameNotIncreasing { frame, last }.into());
+        }
         self.check_slot_done(frame)?;
         self.begin_frame_inner(frame).map_err(|e| {
             let e = backend_err(e);
@@ -873,6 +888,9 @@ impl AsBackend for VulkanBackend {
 
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
         let _s = tracing::trace_span!("refit_blases").entered();
+        if self.tlas_this_frame && !refits.is_empty() {
+            return Err(Misuse::RefitAfterTlas.into());
+        }
         self.record_refits(refits)
     }
 
@@ -907,12 +925,27 @@ impl AsBackend for VulkanBackend {
         delta: TlasDelta<'_>,
     ) -> BackendResult<TlasHandle> {
         let _s = tracing::trace_span!("build_tlas").entered();
-        self.record_tlas(instances, delta)
+        self.cmd()?;
+        if self.tlas_this_frame {
+            return Err(Misuse::TlasAlreadyBuilt.into());
+        }
+        #[cfg(debug_assertions)]
+        self.check_records(instances, delta)?;
+        let tlas = self.record_tlas(instances, delta)?;
+        self.tlas_this_frame = true;
+        Ok(tlas)
     }
 
     fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
         let _s = tracing::trace_span!("end_frame").entered();
-        self.end_and_submit(frame)
+        self.cmd()?;
+        let recording = self.slots[self.current].frame;
+        if frame != recording {
+            return Err(Misuse::WrongFrame { frame, recording }.into());
+        }
+        self.end_and_submit(frame)?;
+        self.last_ended = Some(frame);
+        Ok(())
     }
 
     fn abort_frame(&mut self) {
@@ -929,12 +962,16 @@ impl AsBackend for VulkanBackend {
         }
         self.slots.iter_mut().for_each(|s| s.instances_call = 0);
         self.pending = PendingBuilds::default();
+        self.tlas_this_frame = false;
         // The copies never ran: their sources keep their inputs (the caller frees the copies).
         for (source, copy) in std::mem::take(&mut self.frame_copies).into_iter().rev() {
             let inputs = self
                 .blases
                 .get_mut(key_of(copy))
                 .and_then(|e| e.static_inputs.take());
+            if let Some(e) = self.blases.get_mut(key_of(source)) {
+                e.compacted = false;
+            }
             match self.blases.get_mut(key_of(source)) {
                 Some(e) if e.static_inputs.is_none() => e.static_inputs = inputs,
                 // The source was freed in the failed frame: the copy keeps them.

@@ -200,14 +200,8 @@ impl VulkanBackend {
         } else {
             None
         };
-        let e = self
-            .blases
-            .get_mut(key)
-            .ok_or_else(|| BackendError::Other(format!("refit of unknown {blas:?}")))?;
-        let sk = e
-            .skinned
-            .as_mut()
-            .ok_or_else(|| BackendError::Other("refit of a static BLAS".into()))?;
+        let e = self.blases.get_mut(key).ok_or(Misuse::UnknownBlas(blas))?;
+        let sk = e.skinned.as_mut().ok_or(Misuse::NotSkinned(blas))?;
         let address = match fresh {
             Some(b) => {
                 let a = b.address;

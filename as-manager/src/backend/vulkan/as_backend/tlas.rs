@@ -403,6 +403,32 @@ impl VulkanBackend {
         }
     }
 
+    /// Debug builds: every record the call may have changed names a live BLAS, one freed
+    /// with this frame as its last, or none (address 0: inactive). A record naming a freed BLAS would trace whatever took its
+    /// storage since.
+    #[cfg(debug_assertions)]
+    pub(super) fn check_records(
+        &self,
+        records: &[TlasInstance],
+        delta: TlasDelta<'_>,
+    ) -> BackendResult<()> {
+        let frame = self.slots[self.current].frame;
+        let from = delta.stable.min(records.len());
+        let listed = delta
+            .changed
+            .iter()
+            .map(|&i| i as usize)
+            .filter(|&i| i < from);
+        for index in (from..records.len()).chain(listed) {
+            let address = records[index].blas_address;
+            // Freed with this frame as its last (retiring until it completes) is fine.
+            if address != 0 && !self.is_blas_address_usable(address, frame) {
+                return Err(Misuse::UnknownBlasAddress { index, address }.into());
+            }
+        }
+        Ok(())
+    }
+
     pub(super) fn record_tlas(
         &mut self,
         instances: &[TlasInstance],
