@@ -1059,12 +1059,15 @@ fn a_refit_with_other_opacity_is_refused_or_rebuilds() {
     b.begin_frame(1).unwrap();
     let mut other = geom(&g.positions, &g.indices);
     other.opaque = false;
+    let rebuilds = b.counters().rebuilds;
     let r = b.refit_blases(&[BlasRefit {
         blas: s,
         geometry: other,
         rebuild: false,
     }]);
     eprintln!("refit with opaque false of an opaque build: {r:?}");
+    r.expect("a refit with other flags rebuilds");
+    assert_eq!(b.counters().rebuilds, rebuilds + 1, "rebuilt, not updated");
     b.build_tlas(&records, TlasDelta::ALL).unwrap();
     b.end_frame(1).unwrap();
     b.wait_idle().unwrap();

@@ -146,6 +146,7 @@ impl VulkanBackend {
                             index_address: iaddr,
                             index_type: itype,
                             vertex_format: format,
+                            opaque: g.opaque,
                             triangles: g.triangle_count,
                             vertices: g.vertex_count,
                             poses,
@@ -517,7 +518,8 @@ impl VulkanBackend {
             }
             // An update must read the format the BLAS was built from; another one rebuilds.
             let format = device.map_or(VertexFormat::F32x3, |v| v.format);
-            let rebuild = r.rebuild || format != sk.vertex_format;
+            // So must it keep the build's geometry flags (opaque).
+            let rebuild = r.rebuild || format != sk.vertex_format || r.geometry.opaque != sk.opaque;
             let scratch = if rebuild {
                 e.sizes.build_scratch
             } else {
@@ -647,6 +649,7 @@ impl VulkanBackend {
             let format = p.device.map_or(VertexFormat::F32x3, |v| v.format);
             if let Some(sk) = e.skinned.as_mut() {
                 sk.vertex_format = format;
+                sk.opaque = p.r.geometry.opaque;
             }
             let Some(vertices) = p.device else {
                 // CPU poses: the manager measures quality on the CPU.

@@ -269,6 +269,9 @@ struct SkinnedInputs {
     index_type: crate::mesh::IndexType,
     /// Position format of the last build (an update must use the same; another one rebuilds).
     vertex_format: crate::mesh::VertexFormat,
+    /// The geometry's opaque flag at the last build (an update must keep it; another one
+    /// rebuilds).
+    opaque: bool,
     triangles: u32,
     vertices: u32,
     poses: Vec<GpuBuffer>,
