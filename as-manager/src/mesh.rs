@@ -215,7 +215,14 @@ impl DeviceGeometry {
         if self.triangle_count == 0 {
             return Err(DeviceGeometryError::Empty);
         }
-        let (a, size) = (self.indices.address, self.indices.index_type.size());
+        self.indices.validate()
+    }
+}
+
+impl DeviceIndices {
+    /// Checks the address and its alignment to the index size (not what lies there).
+    pub fn validate(&self) -> std::result::Result<(), DeviceGeometryError> {
+        let (a, size) = (self.address, self.index_type.size());
         if a == 0 {
             return Err(DeviceGeometryError::NullAddress("index"));
         }

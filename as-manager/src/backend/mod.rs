@@ -300,6 +300,10 @@ pub enum Misuse {
     /// the vertices).
     #[error("unusable geometry: {0}")]
     InvalidGeometry(&'static str),
+    /// The engine's device geometry is unusable (a null or misaligned address, a stride
+    /// shorter than a position).
+    #[error("unusable device geometry: {0}")]
+    DeviceGeometry(crate::mesh::DeviceGeometryError),
 }
 
 /// A [`vulkan::VulkanError`] inside a [`BackendError`], shared so that the error stays `Clone`.

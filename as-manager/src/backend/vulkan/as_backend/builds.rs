@@ -41,9 +41,13 @@ impl VulkanBackend {
             }
         }
         if let Some(v) = g.device_vertices {
+            v.validate().map_err(Misuse::DeviceGeometry)?;
             if v.count < g.vertex_count {
                 return bad("fewer device vertices than vertex_count");
             }
+        }
+        if let Some(i) = g.device_indices {
+            i.validate().map_err(Misuse::DeviceGeometry)?;
         }
         if let Some(idx) = g.indices.filter(|_| g.device_indices.is_none()) {
             let n = g.triangle_count as usize * 3;
@@ -509,7 +513,10 @@ impl VulkanBackend {
                 return Err(Misuse::NotSkinned(r.blas).into());
             };
             let (count, device) = match (r.geometry.device_vertices, r.geometry.positions) {
-                (Some(v), _) => (v.count, Some(v)),
+                (Some(v), _) => {
+                    v.validate().map_err(Misuse::DeviceGeometry)?;
+                    (v.count, Some(v))
+                }
                 (None, Some(p)) => (p.len() as u32, None),
                 (None, None) => return Err(BackendError::MissingGeometry),
             };

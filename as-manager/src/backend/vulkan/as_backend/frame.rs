@@ -48,18 +48,43 @@ impl VulkanBackend {
             )
         })?;
         let s = &mut self.slots[slot];
+        if cmd.frame() != s.frame {
+            self.to_record = Some(slot);
+            return Err(VulkanError::Unsupported(format!(
+                "record: the command buffer is frame {}'s, the frame to record is {}",
+                cmd.frame(),
+                s.frame
+            )));
+        }
         // SAFETY: a FrameCmd is a primary command buffer of this device, recording, outside a
         // render pass (its constructor's contract); the slot's secondary was ended by
         // `end_frame` and is executed once.
         unsafe { self.ctx.device.cmd_execute_commands(cmd.raw(), &[s.cmd]) };
         s.executed = true;
+        self.recorded_up_to = Some(s.frame);
         Ok(())
     }
 
     /// Engine-recorded: the engine's submission of frame `frame` (and every frame before it)
     /// has completed on the GPU. What those frames used may now be freed, rewritten or reused.
-    /// Frames reported out of order are fine; the latest counts.
+    /// Frames reported out of order are fine; the latest counts. A frame not yet handed over
+    /// by [`record`](Self::record) cannot have run: the claim counts up to the last frame
+    /// recorded (with a warning), so that what later frames use is never freed early. (Own
+    /// submission: ignored; the backend's timeline says what completed.)
     pub fn frame_done(&mut self, frame: u64) {
+        if self.desc.recording != Recording::Engine {
+            return; // the backend's own timeline says what completed
+        }
+        // Only frames already handed to the engine (`record`) can have completed: a claim
+        // past them would free what the frames still to run use.
+        let Some(recorded) = self.recorded_up_to else {
+            tracing::warn!(frame, "frame_done before any frame was recorded: ignored");
+            return;
+        };
+        if frame > recorded {
+            tracing::warn!(frame, recorded, "frame_done past the last recorded frame");
+        }
+        let frame = frame.min(recorded);
         self.engine_done = Some(self.engine_done.map_or(frame, |d| d.max(frame)));
     }
 
@@ -338,7 +363,7 @@ impl VulkanBackend {
             }
         }
         let reached = if engine {
-            self.engine_done.map_or(0, |f| f + 1)
+            self.engine_done.map_or(0, |f| f.saturating_add(1))
         } else if self.desc.deterministic {
             0
         } else {

@@ -514,6 +514,9 @@ pub struct VulkanBackend {
     frame_copies: Vec<(BlasHandle, BlasHandle)>,
     /// The last frame ended (submitted or handed to the engine): frame numbers increase.
     last_ended: Option<u64>,
+    /// Engine-recorded: the last frame handed to the engine (`record`); `frame_done` can
+    /// report no later one.
+    recorded_up_to: Option<u64>,
     /// The frame being recorded has built its TLAS (one a frame; refits go before it).
     tlas_this_frame: bool,
     /// Faults armed by `inject_fault`, each striking once.
@@ -715,6 +718,7 @@ impl VulkanBackend {
             pending: PendingBuilds::default(),
             frame_copies: Vec::new(),
             last_ended: None,
+            recorded_up_to: None,
             tlas_this_frame: false,
             bases: Vec::new(),
             faults: Vec::new(),

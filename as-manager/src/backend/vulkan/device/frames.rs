@@ -28,7 +28,9 @@ impl FrameCmd {
     /// # Safety
     /// - `raw` is a primary command buffer of the device the recording objects live on, from a
     ///   pool of the context's queue family, in the recording state and outside a render pass;
-    /// - the engine submits it, in frame order, to a queue of that family;
+    /// - the engine submits it once, in frame order, to a queue of that family (a frame run
+    ///   before an earlier one would trace BLASes the earlier one builds; run twice, its
+    ///   queries would be written without a reset);
     /// - every frame up to `completed` really has completed on the GPU (and every frame later
     ///   reported through `frame_done` calls).
     pub unsafe fn from_engine(raw: vk::CommandBuffer, frame: u64, completed: Option<u64>) -> Self {
