@@ -66,8 +66,8 @@ use std::sync::Arc;
 use ash::vk;
 
 use crate::backend::vulkan::device::accel::{
-    align_up, AccelStruct, BlasBuildInput, ScratchLayout, TriangleGeometry, ACCEL_STORAGE_USAGE,
-    BUILD_INPUT_USAGE,
+    align_up, AccelStruct, AsSizes, BlasBuildInput, ScratchLayout, TriangleGeometry,
+    ACCEL_STORAGE_USAGE, BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::arena::{ArenaRange, BufferArena};
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
@@ -329,6 +329,10 @@ struct Slot {
     frame: u64,
     tlas: Option<AccelStruct>,
     tlas_capacity: u32,
+    /// The build sizes of `tlas_capacity` instances with these flags: enough for any count up
+    /// to it (what vkGetAccelerationStructureBuildSizesKHR promises for a maximum count), so a
+    /// frame's TLAS needs no size query of its own.
+    tlas_sizes: Option<(vk::BuildAccelerationStructureFlagsKHR, AsSizes)>,
     /// Instances this slot's TLAS was last built or updated with (its records and the parked
     /// ones after them).
     tlas_count: u32,
@@ -667,6 +671,7 @@ impl VulkanBackend {
                 frame: 0,
                 tlas: None,
                 tlas_capacity: 0,
+                tlas_sizes: None,
                 tlas_count: 0,
                 parked: (0, 0),
                 instances_call: 0,

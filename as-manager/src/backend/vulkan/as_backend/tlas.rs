@@ -560,6 +560,7 @@ impl VulkanBackend {
                 self.retire_now(Retired::Accel(old));
             }
             self.slots[s].tlas_capacity = cap;
+            self.slots[s].tlas_sizes = Some((flags, sizes));
         }
         let parking = if keep {
             keeper_parking
@@ -568,7 +569,10 @@ impl VulkanBackend {
         } else {
             0
         };
-        let sizes = self.ctx.tlas_sizes(count, flags);
+        let sizes = match self.slots[s].tlas_sizes {
+            Some((f, sizes)) if f == flags => sizes,
+            _ => self.ctx.tlas_sizes(count, flags),
+        };
         let scratch_bytes = if source.is_some() {
             sizes.update_scratch
         } else {
