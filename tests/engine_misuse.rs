@@ -13,20 +13,22 @@
 
 mod common;
 
+use common::direct::*;
+
 use std::sync::Arc;
 use std::time::Duration;
 
-use glam::{Affine3A, Vec3};
+use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
     BufferDesc, FrameCmd, GpuBuffer, GpuGeometry, MemoryKind, VulkanBackend, VulkanBackendDesc,
     VulkanContext, BUILD_INPUT_USAGE,
 };
 use rtstream::as_manager::backend::{
-    AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit,
-    GeometryRef, TlasDelta, TlasHandle,
+    AsBackend, BackendError, BackendResult, BlasClass, BlasRefit, GeometryRef, TlasDelta,
+    TlasHandle,
 };
-use rtstream::as_manager::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
+use rtstream::as_manager::record::TlasInstance;
 use rtstream::as_manager::synth::grid_geometry;
 use rtstream::as_manager::{DeviceIndices, DeviceVertices, IndexType, VertexFormat};
 use rtstream::renderer::{Camera, InstanceShading, RenderDesc, Renderer};
@@ -41,31 +43,6 @@ fn engine_backend(ctx: &Arc<VulkanContext>, frames_in_flight: u32) -> VulkanBack
         VulkanBackendDesc::engine_recorded(frames_in_flight),
     )
     .expect("backend")
-}
-
-/// An own-submit backend (2 frames in flight).
-fn backend(ctx: &Arc<VulkanContext>) -> VulkanBackend {
-    VulkanBackend::new(
-        ctx.clone(),
-        VulkanBackendDesc {
-            frames_in_flight: 2,
-            ..VulkanBackendDesc::default()
-        },
-    )
-    .expect("backend")
-}
-
-/// CPU geometry over `positions` and `indices` (counts from the slices).
-fn geom<'a>(positions: &'a [[f32; 3]], indices: &'a [u32]) -> GeometryRef<'a> {
-    GeometryRef {
-        vertex_count: positions.len() as u32,
-        triangle_count: (indices.len() / 3) as u32,
-        positions: Some(positions),
-        indices: Some(indices),
-        device_vertices: None,
-        device_indices: None,
-        opaque: true,
-    }
 }
 
 /// Device geometry: `vertices` and `indices`, with `vertex_count` and `triangle_count`.
@@ -86,36 +63,6 @@ fn dgeom(
     }
 }
 
-/// One build of `g` as `class`, sized by the backend.
-fn build_one(
-    b: &mut VulkanBackend,
-    g: GeometryRef<'_>,
-    class: BlasClass,
-) -> BackendResult<BlasHandle> {
-    let sizes = b.blas_sizes(&g, class);
-    b.build_blases(&[BlasBuild {
-        geometry: g,
-        class,
-        sizes,
-    }])
-    .map(|h| h[0])
-}
-
-fn record(address: u64, custom: u32) -> TlasInstance {
-    TlasInstance::new(
-        &Affine3A::IDENTITY,
-        custom,
-        0xff,
-        0,
-        INSTANCE_FORCE_OPAQUE,
-        address,
-    )
-}
-
-fn hits_of(hits: &[(u32, u32)], custom: u32) -> usize {
-    hits.iter().filter(|h| h.0 == custom).count()
-}
-
 /// (custom index, primitive) per pixel of a 24 x 16 view looking down at the origin from 15 m
 /// (a grid of 20 m at y = 0 fills most of it) through `tlas`, which must be complete. Shaded
 /// by colour only (device geometry in other formats has no shading buffers).
@@ -126,42 +73,6 @@ fn trace_raw(renderer: &mut Renderer, tlas: vk::AccelerationStructureKHR) -> Vec
         .render(tlas, &table, &RenderDesc::new(24, 16, cam))
         .expect("trace without device error");
     f.hits.iter().map(|h| (h.instance, h.primitive)).collect()
-}
-
-/// The panic message of a `catch_unwind` result.
-fn panic_text(p: &(dyn std::any::Any + Send)) -> String {
-    p.downcast_ref::<String>()
-        .cloned()
-        .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-        .unwrap_or_default()
-}
-
-/// Collected defects of a test (several aspects of one misuse are checked before failing).
-#[derive(Default)]
-struct Defects(Vec<String>);
-
-impl Defects {
-    fn check(&mut self, ok: bool, what: impl Into<String>) {
-        if !ok {
-            let w = what.into();
-            eprintln!("DEFECT: {w}");
-            self.0.push(w);
-        }
-    }
-
-    /// The validation layer's messages so far, as defects.
-    fn validation(&mut self, ctx: &VulkanContext) {
-        let log = ctx.validation_log();
-        if log.failure_count() > 0 {
-            for m in log.messages() {
-                self.check(false, format!("validation: {m}"));
-            }
-        }
-    }
-
-    fn assert_none(self) {
-        assert!(self.0.is_empty(), "defects:\n{}", self.0.join("\n"));
-    }
 }
 
 /// A minimal engine on the context's device and queue: a primary command buffer and a fence

@@ -2,6 +2,8 @@
 
 #![allow(dead_code)]
 
+pub mod direct;
+
 use std::sync::Arc;
 
 use rtstream::as_manager::backend::vulkan::{
