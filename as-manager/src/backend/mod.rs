@@ -231,6 +231,87 @@ pub enum BackendError {
     Other(String),
 }
 
+/// The frame order a backend's calls must follow (the module docs): both backends refuse
+/// what breaks it with the same [`Misuse`].
+#[derive(Debug, Default, Clone)]
+pub(crate) struct FrameOrder {
+    /// The frame being recorded.
+    recording: Option<u64>,
+    /// The last frame ended: frame numbers increase (an aborted frame's may be begun again).
+    last_ended: Option<u64>,
+    /// The frame being recorded has its TLAS (one a frame; refits go before it).
+    tlas_built: bool,
+}
+
+impl FrameOrder {
+    /// Whether frame `frame` may begin.
+    pub(crate) fn may_begin(&self, frame: u64) -> Result<(), Misuse> {
+        if let Some(f) = self.recording {
+            return Err(Misuse::StillRecording { frame: f });
+        }
+        match self.last_ended.filter(|&l| frame <= l) {
+            Some(last) => Err(Misuse::FrameNotIncreasing { frame, last }),
+            None => Ok(()),
+        }
+    }
+
+    /// Frame `frame` began.
+    pub(crate) fn begun(&mut self, frame: u64) {
+        self.recording = Some(frame);
+        self.tlas_built = false;
+    }
+
+    /// The frame being recorded.
+    pub(crate) fn recording(&self) -> Result<u64, Misuse> {
+        self.recording.ok_or(Misuse::NotRecording)
+    }
+
+    /// Whether the frame's TLAS may be built now.
+    pub(crate) fn may_build_tlas(&self) -> Result<(), Misuse> {
+        self.recording()?;
+        if self.tlas_built {
+            return Err(Misuse::TlasAlreadyBuilt);
+        }
+        Ok(())
+    }
+
+    /// The frame's TLAS was recorded.
+    pub(crate) fn tlas_built(&mut self) {
+        self.tlas_built = true;
+    }
+
+    /// Whether refits may be recorded now.
+    pub(crate) fn may_refit(&self) -> Result<(), Misuse> {
+        self.recording()?;
+        if self.tlas_built {
+            return Err(Misuse::RefitAfterTlas);
+        }
+        Ok(())
+    }
+
+    /// Whether `end_frame(frame)` ends the frame being recorded.
+    pub(crate) fn may_end(&self, frame: u64) -> Result<(), Misuse> {
+        let recording = self.recording()?;
+        if frame != recording {
+            return Err(Misuse::WrongFrame { frame, recording });
+        }
+        Ok(())
+    }
+
+    /// Frame `frame` ended (submitted).
+    pub(crate) fn ended(&mut self, frame: u64) {
+        self.recording = None;
+        self.tlas_built = false;
+        self.last_ended = Some(frame);
+    }
+
+    /// The frame being recorded was dropped (failed, aborted): its number may begin again.
+    pub(crate) fn aborted(&mut self) {
+        self.recording = None;
+        self.tlas_built = false;
+    }
+}
+
 /// What a [`BackendError::Misuse`] refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]

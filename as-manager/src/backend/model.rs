@@ -21,7 +21,8 @@ use rustc_hash::FxHashMap;
 pub use super::calibration::{BatchCosts, CostFits, CostModel, OpFit, SizeModel, SizeSample};
 use super::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, FaultPoint, GeometryRef, Measurement, Misuse, NextTlas, TlasDelta, TlasHandle,
+    CostOp, FaultPoint, FrameOrder, GeometryRef, Measurement, Misuse, NextTlas, TlasDelta,
+    TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -114,6 +115,8 @@ pub struct ModelBackend {
     /// date through the calls' `TlasDelta`, so a frame costs what changed.
     records: Vec<TlasInstance>,
     refs: RecordRefs,
+    /// The frame order the calls follow (what `Misuse` refuses), as the Vulkan backend's.
+    order: FrameOrder,
 }
 
 /// How many records name each BLAS (handles are dense: a count per handle), the handles named
@@ -215,6 +218,7 @@ impl ModelBackend {
             tlas_marks: Vec::new(),
             records: Vec::new(),
             refs: RecordRefs::default(),
+            order: FrameOrder::default(),
         }
     }
 
@@ -342,6 +346,8 @@ impl ModelBackend {
 impl AsBackend for ModelBackend {
     fn begin_frame(&mut self, frame: u64) -> BackendResult<()> {
         self.lost()?;
+        self.order.may_begin(frame)?;
+        self.order.begun(frame);
         self.frame = frame;
         self.frame_build_triangles = 0;
         self.frame_build_ms = 0.0;
@@ -384,6 +390,7 @@ impl AsBackend for ModelBackend {
     }
 
     fn build_blases(&mut self, builds: &[BlasBuild<'_>]) -> BackendResult<Vec<BlasHandle>> {
+        self.order.recording()?;
         self.check(FaultPoint::BuildBlases)?;
         // Indices as CPU slices or in the engine's GPU buffer (`LodGeometry::Device`).
         let missing =
@@ -434,6 +441,14 @@ impl AsBackend for ModelBackend {
     }
 
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
+        if !refits.is_empty() {
+            self.order.may_refit()?;
+        }
+        for (i, r) in refits.iter().enumerate() {
+            if refits[..i].iter().any(|q| q.blas == r.blas) {
+                return Err(Misuse::DuplicateRefit(r.blas).into());
+            }
+        }
         self.check(FaultPoint::RefitBlases)?;
         let (mut rf, mut rb) = (0u64, 0u64);
         let (mut n_rf, mut n_rb) = (0u32, 0u32);
@@ -470,6 +485,7 @@ impl AsBackend for ModelBackend {
     }
 
     fn compact_blas(&mut self, blas: BlasHandle) -> BackendResult<BlasHandle> {
+        self.order.recording()?;
         self.check(FaultPoint::CompactBlas)?;
         let size = self
             .compacted_size(blas)
@@ -529,7 +545,9 @@ impl AsBackend for ModelBackend {
         instances: &[TlasInstance],
         delta: TlasDelta<'_>,
     ) -> BackendResult<TlasHandle> {
+        self.order.may_build_tlas()?;
         self.check(FaultPoint::BuildTlas)?;
+        self.order.tlas_built();
         self.tlas_instances = instances.len();
         let frame = self.frame;
         self.track_records(instances, delta);
@@ -608,11 +626,15 @@ impl AsBackend for ModelBackend {
         }
     }
 
-    fn end_frame(&mut self, _frame: u64) -> BackendResult<()> {
-        self.check(FaultPoint::EndFrame)
+    fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
+        self.order.may_end(frame)?;
+        self.check(FaultPoint::EndFrame)?;
+        self.order.ended(frame);
+        Ok(())
     }
 
     fn abort_frame(&mut self) {
+        self.order.aborted();
         // An update needs a TLAS that ran: the next one is built.
         if self.tlas_max_updates > 0 {
             self.tlas_updates_since = None;
@@ -661,8 +683,66 @@ mod tests {
         assert_eq!(b.allocated_bytes(), s.as_bytes, "still in flight");
         b.begin_frame(1).unwrap();
         assert!(b.is_live(h[0]));
+        b.end_frame(1).unwrap();
         b.begin_frame(2).unwrap();
         assert!(!b.is_live(h[0]));
         assert_eq!(b.allocated_bytes(), 0);
+    }
+
+    /// The model refuses what breaks the frame order as the Vulkan backend does, and lets an
+    /// aborted frame's number begin again.
+    #[test]
+    fn frame_order_misuse_is_refused_typed() {
+        let mut b = ModelBackend::lavapipe();
+        let g = GeometryRef {
+            vertex_count: 10,
+            triangle_count: 100,
+            positions: None,
+            indices: None,
+            device_vertices: None,
+            device_indices: None,
+            opaque: true,
+        };
+        let refused = |r: BackendResult<()>, m: Misuse| assert_eq!(r, Err(m.into()));
+        refused(b.end_frame(0), Misuse::NotRecording);
+        b.begin_frame(0).unwrap();
+        refused(b.begin_frame(1), Misuse::StillRecording { frame: 0 });
+        let sizes = b.blas_sizes(&g, BlasClass::Skinned);
+        let h = b.build_blases(&[BlasBuild {
+            geometry: g,
+            class: BlasClass::Skinned,
+            sizes,
+        }]);
+        let h = h.unwrap()[0];
+        let refit = BlasRefit {
+            blas: h,
+            geometry: g,
+            rebuild: false,
+        };
+        refused(b.refit_blases(&[refit, refit]), Misuse::DuplicateRefit(h));
+        b.build_tlas(&[], TlasDelta::ALL).unwrap();
+        refused(
+            b.build_tlas(&[], TlasDelta::ALL).map(|_| ()),
+            Misuse::TlasAlreadyBuilt,
+        );
+        refused(b.refit_blases(&[refit]), Misuse::RefitAfterTlas);
+        refused(
+            b.end_frame(1),
+            Misuse::WrongFrame {
+                frame: 1,
+                recording: 0,
+            },
+        );
+        b.end_frame(0).unwrap();
+        refused(
+            b.begin_frame(0),
+            Misuse::FrameNotIncreasing { frame: 0, last: 0 },
+        );
+        // A frame that fails is aborted; its number begins again.
+        b.begin_frame(1).unwrap();
+        b.abort_frame();
+        b.begin_frame(1).unwrap();
+        b.build_tlas(&[], TlasDelta::ALL).unwrap();
+        b.end_frame(1).unwrap();
     }
 }

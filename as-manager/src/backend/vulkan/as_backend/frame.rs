@@ -392,7 +392,6 @@ impl VulkanBackend {
         drop(retire);
         let _s = tracing::trace_span!("begin_cmd").entered();
         self.frame_build_triangles = 0;
-        self.tlas_this_frame = false;
         let s = &mut self.slots[slot];
         s.frame = frame;
         s.scratch_used.clear();

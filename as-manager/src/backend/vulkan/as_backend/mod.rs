@@ -77,7 +77,7 @@ use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,
-    CostOp, GeometryRef, Measurement, Misuse, TlasDelta, TlasHandle,
+    CostOp, FrameOrder, GeometryRef, Measurement, Misuse, TlasDelta, TlasHandle,
 };
 use crate::record::TlasInstance;
 
@@ -516,13 +516,11 @@ pub struct VulkanBackend {
     /// This frame's compactions (source, copy): the copy holds the source's input buffer
     /// (the shading reads it); a frame that fails gives it back to the source, which stays.
     frame_copies: Vec<(BlasHandle, BlasHandle)>,
-    /// The last frame ended (submitted or handed to the engine): frame numbers increase.
-    last_ended: Option<u64>,
+    /// The frame order the calls follow (what `Misuse` refuses).
+    order: FrameOrder,
     /// Engine-recorded: the last frame handed to the engine (`record`); `frame_done` can
     /// report no later one.
     recorded_up_to: Option<u64>,
-    /// The frame being recorded has built its TLAS (one a frame; refits go before it).
-    tlas_this_frame: bool,
     /// Faults armed by `inject_fault`, each striking once.
     faults: Vec<(FaultPoint, BackendError)>,
     /// Engine-recorded: the latest frame the engine reported done.
@@ -722,9 +720,8 @@ impl VulkanBackend {
             frame_build_triangles: 0,
             pending: PendingBuilds::default(),
             frame_copies: Vec::new(),
-            last_ended: None,
+            order: FrameOrder::default(),
             recorded_up_to: None,
-            tlas_this_frame: false,
             bases: Vec::new(),
             faults: Vec::new(),
             engine_done: None,
@@ -841,19 +838,15 @@ impl AsBackend for VulkanBackend {
             return Err(BackendError::DeviceLost);
         }
         let _s = tracing::trace_span!("begin_frame").entered();
-        let s = &self.slots[self.current];
-        if s.recording {
-            return Err(Misuse::StillRecording { frame: s.frame }.into());
-        }
-        if let Some(last) = self.last_ended.filter(|&l| frame <= l) {
-            return Err(Misuse::FrameNotIncreasing { frame, last }.into());
-        }
+        self.order.may_begin(frame)?;
         self.check_slot_done(frame)?;
         self.begin_frame_inner(frame).map_err(|e| {
             let e = backend_err(e);
             self.lost |= e == BackendError::DeviceLost;
             e
-        })
+        })?;
+        self.order.begun(frame);
+        Ok(())
     }
 
     fn completed_frame(&self) -> Option<u64> {
@@ -900,8 +893,8 @@ impl AsBackend for VulkanBackend {
 
     fn refit_blases(&mut self, refits: &[BlasRefit<'_>]) -> BackendResult<()> {
         let _s = tracing::trace_span!("refit_blases").entered();
-        if self.tlas_this_frame && !refits.is_empty() {
-            return Err(Misuse::RefitAfterTlas.into());
+        if !refits.is_empty() {
+            self.order.may_refit()?;
         }
         self.record_refits(refits)
     }
@@ -937,27 +930,30 @@ impl AsBackend for VulkanBackend {
         delta: TlasDelta<'_>,
     ) -> BackendResult<TlasHandle> {
         let _s = tracing::trace_span!("build_tlas").entered();
-        self.cmd()?;
-        if self.tlas_this_frame {
-            return Err(Misuse::TlasAlreadyBuilt.into());
-        }
+        self.order.may_build_tlas()?;
         #[cfg(debug_assertions)]
         self.check_records(instances, delta)?;
         let tlas = self.record_tlas(instances, delta)?;
-        self.tlas_this_frame = true;
+        self.order.tlas_built();
         Ok(tlas)
     }
 
     fn end_frame(&mut self, frame: u64) -> BackendResult<()> {
         let _s = tracing::trace_span!("end_frame").entered();
-        self.cmd()?;
-        let recording = self.slots[self.current].frame;
-        if frame != recording {
-            return Err(Misuse::WrongFrame { frame, recording }.into());
+        self.order.may_end(frame)?;
+        match self.end_and_submit(frame) {
+            Ok(()) => {
+                self.order.ended(frame);
+                Ok(())
+            }
+            Err(e) => {
+                // Not submitted: the frame is dropped (its number may begin again).
+                if !self.slots[self.current].recording {
+                    self.order.aborted();
+                }
+                Err(e)
+            }
         }
-        self.end_and_submit(frame)?;
-        self.last_ended = Some(frame);
-        Ok(())
     }
 
     fn abort_frame(&mut self) {
@@ -974,7 +970,7 @@ impl AsBackend for VulkanBackend {
         }
         self.slots.iter_mut().for_each(|s| s.instances_call = 0);
         self.pending = PendingBuilds::default();
-        self.tlas_this_frame = false;
+        self.order.aborted();
         // The copies never ran: their sources keep their inputs (the caller frees the copies).
         for (source, copy) in std::mem::take(&mut self.frame_copies).into_iter().rev() {
             let inputs = self
