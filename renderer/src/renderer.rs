@@ -336,10 +336,26 @@ pub(crate) fn read_frame(w: u32, h: u32, bufs: [&GpuBuffer; 4], ms: [f64; 3]) ->
 }
 
 /// Checks what a render request asks for.
+/// The most shadow or AO samples a pixel a request may ask for.
+pub const MAX_SAMPLES: u32 = 1024;
+
 pub(crate) fn validate(desc: &RenderDesc) -> Result<()> {
     let (w, h) = (desc.width, desc.height);
-    if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 {
+    // 8 x 8 pixels a workgroup; 65,535 workgroups a dimension is every device's minimum.
+    let groups_ok = w.div_ceil(8) <= 65_535 && h.div_ceil(8) <= 65_535;
+    if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 || !groups_ok {
         return Err(RenderError::InvalidRequest(format!("image size {w}x{h}")));
+    }
+    let c = &desc.camera;
+    let finite = c.position.is_finite() && c.forward.is_finite() && c.up.is_finite();
+    if !(finite && c.fov_y > 0.0 && c.fov_y < std::f32::consts::PI) {
+        return Err(RenderError::InvalidRequest(format!("camera {c:?}")));
+    }
+    if desc.shadow_samples > MAX_SAMPLES || desc.ao_samples > MAX_SAMPLES {
+        return Err(RenderError::InvalidRequest(format!(
+            "{} shadow / {} AO samples a pixel (at most {MAX_SAMPLES})",
+            desc.shadow_samples, desc.ao_samples
+        )));
     }
     let sun_ok = (0.0..1.0).contains(&desc.sun_radius);
     let ao_ok = desc.ao_radius.is_finite() && desc.ao_radius > 0.0;
@@ -376,6 +392,11 @@ pub(crate) fn push_constants(desc: &RenderDesc) -> Push {
 
 impl Drop for Renderer {
     fn drop(&mut self) {
+        // Frames recorded into an engine's command buffers may still run: the slots, the
+        // pipeline and its descriptors go once the device has finished them.
+        if let Err(e) = self.ctx.wait_idle() {
+            tracing::warn!(error = %e, "Renderer drop: waiting for the device failed");
+        }
         for s in std::mem::take(&mut self.slots) {
             s.destroy(&self.ctx);
         }

@@ -87,8 +87,12 @@ impl TracedScene {
         renderer.render(self.accel.tlas.raw, &self.shading, desc)
     }
 
-    /// Destroys the GPU objects (no frame may be in flight; [`Renderer::render`] waits).
+    /// Destroys the GPU objects, once the device has finished what it was given (frames
+    /// recorded with [`Renderer::record`] may still trace the scene).
     pub fn destroy(self, ctx: &VulkanContext) {
+        if let Err(e) = ctx.wait_idle() {
+            tracing::warn!(error = %e, "TracedScene::destroy: waiting for the device failed");
+        }
         self.accel.destroy(ctx);
     }
 }

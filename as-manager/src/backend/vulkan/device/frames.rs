@@ -162,6 +162,18 @@ impl FrameLoop {
         // A frame begun and never submitted (its recording failed) is abandoned: its command
         // buffer is reset when next used.
         self.recording = None;
+        if frame == u64::MAX {
+            return Err(VulkanError::Unsupported(
+                "FrameLoop::begin(u64::MAX): frame + 1 is its timeline value".into(),
+            ));
+        }
+        // After the last submitted frame (the timeline only goes up; an abandoned frame's
+        // number may begin again).
+        if let Some(&last) = self.frames.iter().flatten().max().filter(|&&l| frame <= l) {
+            return Err(VulkanError::Unsupported(format!(
+                "FrameLoop::begin({frame}) after frame {last}: frames must increase"
+            )));
+        }
         let i = (frame % self.cmds.len() as u64) as usize;
         if let Some(prev) = self.frames[i] {
             if prev >= frame {
