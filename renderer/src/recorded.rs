@@ -7,7 +7,8 @@
 //! in flight reads. Pass times come from GPU timestamps, not from the host.
 
 use rtstream_as_manager::backend::vulkan::{
-    ash::vk, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind, QueryPool, RECORDED_SETS,
+    ash::vk, read_stamp, Bound, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind,
+    QueryPool, NO_STAMP, RECORDED_SETS,
 };
 
 use crate::error::{RenderError, Result};
@@ -17,6 +18,10 @@ use crate::renderer::{
 };
 use crate::slot::RenderSlot;
 use crate::{RenderDesc, Renderer};
+
+/// Where a slot's `times` buffer holds its frame stamp (after the four timestamps): the
+/// number of the last frame whose commands ran to the end, written on the GPU.
+const STAMP_AT: u64 = 32;
 
 /// Readback buffers, their bytes per pixel: colour, hits, surface, light.
 const OUTPUTS: [(&str, u64); 4] = [
@@ -32,8 +37,13 @@ impl Renderer {
     /// [`take`](Self::take) once `cmd`'s submission has completed.
     ///
     /// Fails, recording nothing, when the frame that used this frame's resources
-    /// (`cmd.frame() - RECORDED_SETS`) has not completed, or when the frame was recorded already.
-    /// `tlas` must stay alive until the frame completes (the manager's TLAS of the frame does).
+    /// (`cmd.frame() - RECORDED_SETS`) has not completed, or when the frame was recorded already
+    /// ([`RenderError::FrameInFlight`]); when `cmd` cannot be recorded into (another device's,
+    /// or submitted or abandoned already: [`VulkanError::FrameCmdUnusable`]); and when `tlas`
+    /// is not a live TLAS of the renderer's device ([`RenderError::InvalidRequest`]). `tlas`
+    /// must stay alive until the frame completes (the manager's TLAS of the frame does).
+    ///
+    /// [`VulkanError::FrameCmdUnusable`]: rtstream_as_manager::backend::vulkan::VulkanError::FrameCmdUnusable
     pub fn record(
         &mut self,
         cmd: &FrameCmd,
@@ -42,6 +52,15 @@ impl Renderer {
         desc: &RenderDesc,
     ) -> Result<()> {
         validate(desc)?;
+        cmd.check(&self.ctx)?;
+        check_tlas(&self.ctx, tlas)?;
+        if cmd.frame() == NO_STAMP {
+            return Err(RenderError::InvalidRequest(format!(
+                "frame number {}: the largest is {}",
+                cmd.frame(),
+                NO_STAMP - 1
+            )));
+        }
         let n = RECORDED_SETS as usize;
         let i = (cmd.frame() % RECORDED_SETS as u64) as usize;
         while self.slots.len() < n {
@@ -54,11 +73,15 @@ impl Renderer {
             )?;
             let times = match self.ctx.create_buffer(&BufferDesc {
                 name: "render pass times",
-                size: 32,
+                size: STAMP_AT + 8,
                 usage: vk::BufferUsageFlags::TRANSFER_DST,
                 memory: MemoryKind::Readback,
             }) {
-                Ok(b) => b,
+                Ok(mut b) => {
+                    // No frame ran yet.
+                    b.write(STAMP_AT as usize, &NO_STAMP.to_le_bytes());
+                    b
+                }
                 Err(e) => {
                     timer.destroy(&self.ctx);
                     return Err(e.into());
@@ -129,15 +152,18 @@ impl Renderer {
             .collect();
         let (grid, rays) = ([w.div_ceil(8), h.div_ceil(8), 1], [w, h, 1]);
         let outputs = &slot.outputs;
+        // The table's own length: the buffer is reused and may be longer, and the shader
+        // shades a customIndex past `length()` magenta.
         let bound = [
-            rtstream_as_manager::backend::vulkan::Bound::AccelRaw(tlas),
-            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[0]),
-            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[1]),
-            rtstream_as_manager::backend::vulkan::Bound::Buffer(
+            Bound::AccelRaw(tlas),
+            Bound::Buffer(&outputs[0]),
+            Bound::Buffer(&outputs[1]),
+            Bound::BufferPrefix(
                 slot.instances.as_ref().expect("allocated above"),
+                bytes.len() as u64,
             ),
-            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[2]),
-            rtstream_as_manager::backend::vulkan::Bound::Buffer(&outputs[3]),
+            Bound::Buffer(&outputs[2]),
+            Bound::Buffer(&outputs[3]),
         ];
         let tracer = self.tracer.as_mut().expect("tracer lives until drop");
         let g = match tracer {
@@ -159,6 +185,8 @@ impl Renderer {
             Tracer::Query(p) => p.record(&ctx, cmd, &bound, &passes, timer)?,
             Tracer::Pipeline(p) => p.record(&ctx, cmd, &bound, &passes, timer)?,
         }
+        // Last: the stamp that says this frame's commands ran (see `ran`).
+        cmd.record_stamp(&ctx, &slot.times, STAMP_AT)?;
         slot.frame = Some(cmd.frame());
         slot.taken = false;
         Ok(())
@@ -166,32 +194,26 @@ impl Renderer {
 
     /// The GPU times (ms) of the three passes of `frame`, once it has completed, without
     /// reading the image back (an engine presents its image; it does not read it back). The
-    /// frame's image is dropped: a later [`take`](Self::take) of it returns `None`.
+    /// frame's image is dropped: a later [`take`](Self::take) of it returns `None`. `None` as
+    /// for [`take`](Self::take).
     pub fn take_times(&mut self, frame: u64, completed: Option<u64>) -> Option<[f64; 3]> {
-        if completed.is_none_or(|c| c < frame) {
-            return None;
-        }
-        let slot = self
-            .slots
-            .iter_mut()
-            .find(|s| s.frame == Some(frame) && !s.taken)?;
+        let slot = self.completed_slot(frame, completed)?;
         slot.taken = true;
         Some(pass_times(slot))
     }
 
     /// The frame recorded for `frame`, once it has completed (`completed` is the latest frame
-    /// whose submission completed, e.g. `FrameLoop::completed`); `None` while it is in flight,
-    /// or when it was taken already or overwritten by a later frame. Pass times are GPU time
+    /// whose submission completed, e.g. `FrameLoop::completed`). Pass times are GPU time
     /// (timestamps).
+    ///
+    /// `None` while it is in flight, when it was taken already or overwritten by a later
+    /// frame, and when its commands never ran: a frame recorded and never submitted (an
+    /// abandoned recording), or a `completed` that claims more than the GPU did. Besides
+    /// `completed`, the frame's last command writes its number where the renderer looks for it
+    /// (a claim `completed` makes that the GPU has not kept is caught there; `completed` stays
+    /// what makes the image's memory safe to read).
     pub fn take(&mut self, frame: u64, completed: Option<u64>) -> Result<Option<Frame>> {
-        if completed.is_none_or(|c| c < frame) {
-            return Ok(None);
-        }
-        let Some(slot) = self
-            .slots
-            .iter_mut()
-            .find(|s| s.frame == Some(frame) && !s.taken)
-        else {
+        let Some(slot) = self.completed_slot(frame, completed) else {
             return Ok(None);
         };
         let times = pass_times(slot);
@@ -200,6 +222,40 @@ impl Renderer {
         let f = read_frame(w, h, [&o[0], &o[1], &o[2], &o[3]], times);
         slot.taken = true;
         Ok(Some(f))
+    }
+}
+
+impl Renderer {
+    /// The untaken slot that recorded `frame`, if `completed` says the frame completed and
+    /// the frame's stamp says its commands ran.
+    fn completed_slot(
+        &mut self,
+        frame: u64,
+        completed: Option<u64>,
+    ) -> Option<&mut crate::slot::RenderSlot> {
+        if completed.is_none_or(|c| c < frame) {
+            return None;
+        }
+        self.slots
+            .iter_mut()
+            .find(|s| s.frame == Some(frame) && !s.taken)
+            .filter(|s| read_stamp(&s.times, STAMP_AT) == Some(frame))
+    }
+}
+
+/// Refuses a TLAS handle that is not a live TLAS of `ctx` (destroyed, another device's, or
+/// not a TLAS): tracing one reads freed memory.
+pub(crate) fn check_tlas(
+    ctx: &rtstream_as_manager::backend::vulkan::VulkanContext,
+    tlas: vk::AccelerationStructureKHR,
+) -> Result<()> {
+    if ctx.is_live_tlas(tlas) {
+        Ok(())
+    } else {
+        Err(RenderError::InvalidRequest(format!(
+            "TLAS {tlas:?} is not a live top-level acceleration structure of this device \
+             (destroyed, another device's, or null)"
+        )))
     }
 }
 

@@ -235,6 +235,7 @@ impl Renderer {
         desc: &RenderDesc,
     ) -> Result<Frame> {
         validate(desc)?;
+        crate::recorded::check_tlas(&self.ctx, tlas)?;
         let (w, h) = (desc.width, desc.height);
         let pixels = u64::from(w) * u64::from(h);
         let ctx = &*self.ctx;

@@ -83,6 +83,16 @@ pub enum VulkanError {
         /// Which object the handle named and what became of it.
         detail: String,
     },
+    /// A [`FrameCmd`](crate::backend::vulkan::FrameCmd) that cannot be recorded into or
+    /// submitted: another device's or another frame loop's, or one no longer recording its
+    /// frame (submitted already, or abandoned by a later `FrameLoop::begin`).
+    #[error("frame {frame}'s command buffer {why}")]
+    FrameCmdUnusable {
+        /// The frame the `FrameCmd` names.
+        frame: u64,
+        /// What is wrong with it.
+        why: &'static str,
+    },
     /// A failure injected by a test at a named step (see `VulkanContext::inject_failure`).
     #[error("injected failure at {at}")]
     Injected {

@@ -33,7 +33,7 @@ pub use device::context::{
     VulkanContext,
 };
 pub use device::external::{DeviceFeatures, ExternalDevice, REQUIRED_DEVICE_EXTENSIONS};
-pub use device::frames::{FrameCmd, FrameLoop};
+pub use device::frames::{read_stamp, FrameCmd, FrameLoop, NO_STAMP};
 pub use device::query::{QueryKind, QueryPool};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
 pub use render::binding::{BindingKind, Bound};

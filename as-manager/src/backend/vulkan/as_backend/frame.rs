@@ -42,6 +42,7 @@ impl VulkanBackend {
     /// it before the next frame's, and calls [`frame_done`](Self::frame_done) for the frame
     /// only after that submission completed.
     pub fn record(&mut self, cmd: &FrameCmd) -> VkResult<()> {
+        cmd.check(&self.ctx)?;
         let slot = self.to_record.take().ok_or_else(|| {
             VulkanError::Unsupported(
                 "record: no frame to record (engine-recorded mode, once per update)".into(),

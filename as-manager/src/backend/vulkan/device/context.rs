@@ -188,6 +188,9 @@ pub struct VulkanContext {
     pub(crate) info: DeviceInfo,
     /// A failure armed by `inject_failure` (test-only).
     pub(crate) failpoint: Mutex<Option<&'static str>>,
+    /// The top-level acceleration structures alive on this context (see
+    /// [`VulkanContext::is_live_tlas`]).
+    pub(crate) live_tlases: Mutex<rustc_hash::FxHashSet<vk::AccelerationStructureKHR>>,
 }
 
 impl std::fmt::Debug for VulkanContext {
@@ -419,6 +422,7 @@ impl VulkanContext {
             live_buffers: AtomicI64::new(0),
             info: chosen.info,
             failpoint: Mutex::new(None),
+            live_tlases: Mutex::default(),
         };
         ctx.set_name(parts.queue, "rtstream queue");
         ctx.set_name(parts.command_pool, "rtstream one-shot pool");

@@ -303,6 +303,7 @@ impl VulkanContext {
             live_buffers: AtomicI64::new(0),
             info,
             failpoint: Mutex::new(None),
+            live_tlases: Mutex::default(),
         };
         ctx.set_name(*ctx.command_pool.lock(), "rtstream one-shot pool");
         Ok(ctx)

@@ -6,19 +6,39 @@
 //! examples, a [`FrameLoop`]. A [`FrameCmd`] carries the promises that make recording into it
 //! safe, so the recording calls themselves need no `unsafe`.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use ash::vk;
 
+use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::{handle_created, handle_destroyed, VulkanContext};
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 /// A primary command buffer recording frame `frame`, and what is known to be finished.
-#[derive(Debug, Clone, Copy)]
+///
+/// Neither `Copy` nor `Clone`: [`FrameLoop::submit`] takes it, so no copy outlives the
+/// submission. One from a [`FrameLoop`] also knows its device and whether its command buffer
+/// still records it: recording into it once it was submitted, or abandoned by a later
+/// [`FrameLoop::begin`], or on another device, is [`VulkanError::FrameCmdUnusable`].
+///
+/// ```compile_fail,E0382
+/// # fn f(frames: &mut rtstream_as_manager::backend::vulkan::FrameLoop) {
+/// let cmd = frames.begin(0).unwrap();
+/// let kept = cmd; // moves: the FrameCmd is not Copy
+/// frames.submit(cmd).unwrap();
+/// # }
+/// ```
+#[derive(Debug)]
 pub struct FrameCmd {
     raw: vk::CommandBuffer,
     frame: u64,
     completed: Option<u64>,
+    /// The device it belongs to (null: the engine's, taken on trust).
+    device: vk::Device,
+    /// A loop's command buffer: its state (the ticket of the `begin` recording it, 0 when
+    /// none) and this recording's ticket.
+    owner: Option<(Arc<AtomicU64>, u64)>,
 }
 
 impl FrameCmd {
@@ -38,6 +58,8 @@ impl FrameCmd {
             raw,
             frame,
             completed,
+            device: vk::Device::null(),
+            owner: None,
         }
     }
 
@@ -60,7 +82,84 @@ impl FrameCmd {
     pub fn is_done(&self, frame: u64) -> bool {
         self.completed.is_some_and(|c| c >= frame)
     }
+
+    /// Whether its command buffer still records this frame: always for an engine's (its
+    /// promise), and for a loop's until it is submitted or abandoned by a later `begin`.
+    pub fn is_recording(&self) -> bool {
+        self.owner
+            .as_ref()
+            .is_none_or(|(state, ticket)| state.load(Ordering::Acquire) == *ticket)
+    }
+
+    /// Refuses, with [`VulkanError::FrameCmdUnusable`], a command buffer that `ctx` cannot
+    /// record into: one of another device, or one no longer recording this frame. Every
+    /// recording call checks it before it records anything.
+    pub fn check(&self, ctx: &VulkanContext) -> VkResult<()> {
+        use ash::vk::Handle;
+        let why = if self.device != vk::Device::null()
+            && self.device.as_raw() != ctx.device.handle().as_raw()
+        {
+            "belongs to another device"
+        } else if !self.is_recording() {
+            "is no longer recording it (submitted, or abandoned by a later begin)"
+        } else {
+            return Ok(());
+        };
+        Err(VulkanError::FrameCmdUnusable {
+            frame: self.frame,
+            why,
+        })
+    }
+
+    /// Records, after everything recorded so far, a write of the frame's number into `dst`
+    /// at byte `offset`, visible to the host once the submission completes. A stamp that reads
+    /// the frame's number proves that this command buffer ran to that point: a frame that was
+    /// never submitted, or has not run yet, leaves what was there (see [`read_stamp`]).
+    ///
+    /// `dst` needs TRANSFER_DST usage, host-visible memory and 8 bytes at `offset` (a multiple
+    /// of 4); no pending GPU work may use those bytes.
+    pub fn record_stamp(&self, ctx: &VulkanContext, dst: &GpuBuffer, offset: u64) -> VkResult<()> {
+        self.check(ctx)?;
+        if offset % 4 != 0 || offset + 8 > dst.size || dst.mapped().is_none() {
+            return Err(VulkanError::Unsupported(format!(
+                "a frame stamp needs 8 host-visible bytes at a multiple of 4: offset {offset} \
+                 of a {}-byte buffer",
+                dst.size
+            )));
+        }
+        let before = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::COPY)
+            .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)];
+        let after = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COPY)
+            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        // SAFETY: the command buffer is this device's and records this frame outside a render
+        // pass (checked above, and the constructor's contract); the range was checked and, by
+        // contract, no pending work uses it.
+        unsafe {
+            ctx.cmd_memory_barriers(self.raw, &before);
+            ctx.device
+                .cmd_update_buffer(self.raw, dst.raw, offset, &self.frame.to_le_bytes());
+            ctx.cmd_memory_barriers(self.raw, &after);
+        }
+        Ok(())
+    }
 }
+
+/// What a frame stamp (see [`FrameCmd::record_stamp`]) at `offset` of `src` reads now; `None`
+/// if the buffer is not host-visible or too short.
+pub fn read_stamp(src: &GpuBuffer, offset: u64) -> Option<u64> {
+    let bytes = src.mapped()?.get(offset as usize..offset as usize + 8)?;
+    Some(u64::from_le_bytes(bytes.try_into().ok()?))
+}
+
+/// A stamp value no frame writes (frame numbers stop below it): what a stamp's bytes hold
+/// before any frame ran.
+pub const NO_STAMP: u64 = u64::MAX;
 
 /// The own-submit frame loop: `frames_in_flight` primary command buffers and one timeline
 /// semaphore (frame `n` signals `n + 1`). [`begin`](Self::begin) waits only for the frame that
@@ -73,6 +172,11 @@ pub struct FrameLoop {
     timeline: vk::Semaphore,
     /// Frame last submitted from each command buffer (None: never).
     frames: Vec<Option<u64>>,
+    /// Each command buffer's state, shared with its `FrameCmd`: the ticket of the `begin`
+    /// recording it, 0 when none.
+    states: Vec<Arc<AtomicU64>>,
+    /// The next `begin`'s ticket (from 1).
+    next_ticket: u64,
     recording: Option<u64>,
     ctx: Arc<VulkanContext>,
 }
@@ -128,6 +232,10 @@ impl FrameLoop {
             timeline: scopeguard::ScopeGuard::into_inner(timeline),
             pool: scopeguard::ScopeGuard::into_inner(pool),
             frames: vec![None; cmds.len()],
+            states: (0..cmds.len())
+                .map(|_| Arc::new(AtomicU64::new(0)))
+                .collect(),
+            next_ticket: 1,
             cmds,
             recording: None,
             ctx: ctx.clone(),
@@ -147,21 +255,25 @@ impl FrameLoop {
         Ok(v.checked_sub(1))
     }
 
-    /// Waits until frame `frame` completed (returns at once if it has, or was never submitted).
+    /// Waits until frame `frame` completed: returns at once if no frame at or after it was
+    /// submitted; for a frame never submitted (abandoned), waits for the first submitted after
+    /// it (the value its submission signals: waiting for a value no submission signals is
+    /// legal, but the validation layer reports it).
     pub fn wait(&self, frame: u64) -> VkResult<()> {
-        let submitted = self.frames.iter().flatten().any(|&f| f >= frame);
-        if !submitted {
-            return Ok(());
+        match self.frames.iter().flatten().filter(|&&f| f >= frame).min() {
+            Some(&first) => self.ctx.wait_timeline(self.timeline, first + 1),
+            None => Ok(()),
         }
-        self.ctx.wait_timeline(self.timeline, frame + 1)
     }
 
     /// Begins frame `frame` (frames strictly increasing): waits for the frame that used its
     /// command buffer before, and returns the command buffer, recording.
     pub fn begin(&mut self, frame: u64) -> VkResult<FrameCmd> {
         // A frame begun and never submitted (its recording failed) is abandoned: its command
-        // buffer is reset when next used.
-        self.recording = None;
+        // buffer is reset when next used, and its FrameCmd no longer records.
+        if let Some(f) = self.recording.take() {
+            self.states[(f % self.cmds.len() as u64) as usize].store(0, Ordering::Release);
+        }
         if frame == u64::MAX {
             return Err(VulkanError::Unsupported(
                 "FrameLoop::begin(u64::MAX): frame + 1 is its timeline value".into(),
@@ -199,26 +311,43 @@ impl FrameLoop {
                 )
                 .op("vkBeginCommandBuffer")?;
         }
-        self.recording = Some(frame);
         let completed = self.completed()?;
+        let ticket = self.next_ticket;
+        self.next_ticket += 1;
+        self.states[i].store(ticket, Ordering::Release);
+        self.recording = Some(frame);
         Ok(FrameCmd {
             raw: cmd,
             frame,
             completed,
+            device: self.ctx.device.handle(),
+            owner: Some((self.states[i].clone(), ticket)),
         })
     }
 
-    /// Ends and submits `cmd` (from [`begin`](Self::begin)); signals `frame + 1` when done. Does
-    /// not wait.
+    /// Ends and submits `cmd` (from this loop's [`begin`](Self::begin), the frame it records
+    /// now); signals `frame + 1` when done. Does not wait. Another loop's `FrameCmd`, or one
+    /// abandoned by a later `begin`, is [`VulkanError::FrameCmdUnusable`] (and is dropped).
     pub fn submit(&mut self, cmd: FrameCmd) -> VkResult<()> {
-        if self.recording != Some(cmd.frame) {
-            return Err(VulkanError::Unsupported(format!(
-                "FrameLoop::submit of frame {} which is not the one recording",
-                cmd.frame
-            )));
+        let i = (cmd.frame % self.cmds.len() as u64) as usize;
+        let ours = cmd
+            .owner
+            .as_ref()
+            .is_some_and(|(state, _)| Arc::ptr_eq(state, &self.states[i]));
+        if !ours || cmd.raw != self.cmds[i] {
+            return Err(VulkanError::FrameCmdUnusable {
+                frame: cmd.frame,
+                why: "is not this loop's",
+            });
+        }
+        if !cmd.is_recording() || self.recording != Some(cmd.frame) {
+            return Err(VulkanError::FrameCmdUnusable {
+                frame: cmd.frame,
+                why: "is no longer recording it (submitted, or abandoned by a later begin)",
+            });
         }
         self.recording = None;
-        let i = (cmd.frame % self.cmds.len() as u64) as usize;
+        self.states[i].store(0, Ordering::Release);
         // SAFETY: the command buffer is recording (begun by `begin`).
         unsafe { self.ctx.device.end_command_buffer(cmd.raw) }.op("vkEndCommandBuffer")?;
         let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd.raw)];

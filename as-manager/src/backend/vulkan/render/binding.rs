@@ -27,6 +27,10 @@ pub enum Bound<'a> {
     AccelRaw(vk::AccelerationStructureKHR),
     /// A whole buffer.
     Buffer(&'a GpuBuffer),
+    /// The first `.1` bytes of a buffer (a shader's `length()` of a runtime array counts
+    /// only those): a table written into a larger, reused buffer. At least 1 byte and within
+    /// the buffer.
+    BufferPrefix(&'a GpuBuffer, u64),
 }
 
 /// Writes `bound` into `set`, binding `i` = `bound[i]`, checked against the layout's `bindings`.
@@ -42,7 +46,7 @@ pub(crate) fn write_descriptor_set(
         .map(|b| match b {
             Bound::Accel(a) => [a.raw],
             Bound::AccelRaw(raw) => [*raw],
-            Bound::Buffer(_) => [vk::AccelerationStructureKHR::null()],
+            Bound::Buffer(_) | Bound::BufferPrefix(..) => [vk::AccelerationStructureKHR::null()],
         })
         .collect();
     let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = bound
@@ -52,6 +56,10 @@ pub(crate) fn write_descriptor_set(
                 .buffer(buf.raw)
                 .offset(0)
                 .range(vk::WHOLE_SIZE)],
+            Bound::BufferPrefix(buf, bytes) => [vk::DescriptorBufferInfo::default()
+                .buffer(buf.raw)
+                .offset(0)
+                .range(*bytes)],
             _ => [vk::DescriptorBufferInfo::default()],
         })
         .collect();
@@ -77,6 +85,15 @@ pub(crate) fn write_descriptor_set(
                 w.descriptor_count(1).push_next(as_write)
             }
             (Bound::Buffer(_), BindingKind::StorageBuffer) => w.buffer_info(&buffer_infos[i]),
+            (Bound::BufferPrefix(buf, bytes), BindingKind::StorageBuffer) => {
+                if *bytes == 0 || *bytes > buf.size {
+                    return Err(VulkanError::Unsupported(format!(
+                        "binding {i}: {bytes} bytes of a {}-byte buffer",
+                        buf.size
+                    )));
+                }
+                w.buffer_info(&buffer_infos[i])
+            }
             _ => {
                 return Err(VulkanError::Unsupported(format!(
                     "binding {i}: {b:?} does not match {kind:?}"

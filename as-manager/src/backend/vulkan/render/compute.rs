@@ -103,6 +103,7 @@ impl ComputePipeline {
         passes: &[Pass<'_>],
         timer: Option<PassTimer<'_>>,
     ) -> VkResult<()> {
+        cmd.check(ctx)?;
         self.rec.check("record", bound, passes)?;
         check_timer(timer, passes.len())?;
         let set = self.sets.acquire(ctx, cmd, &self.rec.bindings, bound)?;

@@ -314,6 +314,7 @@ impl RayTracingPipeline {
                 "record without VK_KHR_ray_tracing_pipeline".into(),
             ));
         };
+        cmd.check(ctx)?;
         self.rec.check("record", bound, passes)?;
         check_timer(timer, passes.len())?;
         let set = self
