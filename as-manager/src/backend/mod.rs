@@ -360,6 +360,19 @@ pub enum Misuse {
     /// A refit with another vertex or triangle count than the build.
     #[error("refit of {0:?} with another vertex or triangle count than its build")]
     TopologyChanged(BlasHandle),
+    /// A refit in another vertex format or opacity than the BLAS's build (a rebuild in place)
+    /// whose new inputs need more storage than the BLAS has: free it and build it anew.
+    #[error(
+        "refit of {blas:?} in other inputs needs {needs} bytes of storage, more than its {has}"
+    )]
+    RefitOutgrowsStorage {
+        /// The BLAS.
+        blas: BlasHandle,
+        /// The storage the new inputs need (the driver's size).
+        needs: u64,
+        /// The storage the BLAS has.
+        has: u64,
+    },
     /// A compaction before the BLAS's compacted size was read (frames after its build).
     #[error("{0:?}'s compacted size is not known yet")]
     CompactedSizeUnknown(BlasHandle),

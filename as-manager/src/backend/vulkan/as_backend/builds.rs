@@ -494,6 +494,9 @@ impl VulkanBackend {
             rebuild: bool,
             /// The pose in the engine's buffer (`None`: CPU positions, copied to the ring).
             device: Option<DeviceVertices>,
+            /// The driver's sizes for inputs other than the build's (another vertex format or
+            /// opacity): the BLAS's scratch sizes from then on.
+            resized: Option<BlasSizes>,
         }
         let mut plan = Vec::with_capacity(refits.len());
         let mut total = 0;
@@ -526,11 +529,26 @@ impl VulkanBackend {
             // An update must read the format the BLAS was built from; another one rebuilds.
             let format = device.map_or(VertexFormat::F32x3, |v| v.format);
             // So must it keep the build's geometry flags (opaque).
-            let rebuild = r.rebuild || format != sk.vertex_format || r.geometry.opaque != sk.opaque;
-            let scratch = if rebuild {
-                e.sizes.build_scratch
-            } else {
-                e.sizes.update_scratch
+            let changed = format != sk.vertex_format || r.geometry.opaque != sk.opaque;
+            let rebuild = r.rebuild || changed;
+            // Other inputs may need other sizes (the spec leaves them to the driver): the
+            // rebuild must fit the BLAS's storage, and takes its scratch from the new sizes.
+            let resized = changed.then(|| self.blas_sizes(&r.geometry, BlasClass::Skinned));
+            if let Some(s) = resized {
+                let needs = s.as_bytes / self.ring_len(BlasClass::Skinned).max(1);
+                if needs > e.parts[0].size {
+                    return Err(Misuse::RefitOutgrowsStorage {
+                        blas: r.blas,
+                        needs,
+                        has: e.parts[0].size,
+                    }
+                    .into());
+                }
+            }
+            let scratch = match (resized, rebuild) {
+                (Some(s), _) => s.build_scratch,
+                (None, true) => e.sizes.build_scratch,
+                (None, false) => e.sizes.update_scratch,
             };
             total += align_up(scratch.max(1), align);
             plan.push(Plan {
@@ -543,6 +561,7 @@ impl VulkanBackend {
                 scratch,
                 rebuild,
                 device,
+                resized,
             });
         }
         // Separate refit targets: each refit writes a structure no frame in flight traces (a
@@ -657,6 +676,10 @@ impl VulkanBackend {
             if let Some(sk) = e.skinned.as_mut() {
                 sk.vertex_format = format;
                 sk.opaque = p.r.geometry.opaque;
+            }
+            if let Some(s) = p.resized {
+                e.sizes.build_scratch = s.build_scratch;
+                e.sizes.update_scratch = s.update_scratch;
             }
             let Some(vertices) = p.device else {
                 // CPU poses: the manager measures quality on the CPU.
