@@ -51,6 +51,10 @@ pub enum AsError {
         /// The last frame `update` ran.
         last: u64,
     },
+    /// `update(u64::MAX)`: the largest frame number is `u64::MAX - 1` (a GPU timeline signals
+    /// `frame + 1` when a frame completes). Nothing changed.
+    #[error("frame {0}: the largest frame number is u64::MAX - 1")]
+    FrameNumberTooLarge(u64),
     /// The backend reported an error the manager cannot absorb (device lost).
     #[error("backend: {0}")]
     Backend(#[from] BackendError),

@@ -82,6 +82,31 @@ impl<T: Copy> GridIndex<T> {
         self.len == 0
     }
 
+    /// Whether the cell rectangle `x0..=x1` by `z0..=z1` has more cells than the grid holds.
+    fn rect_exceeds_cells(&self, x0: i32, x1: i32, z0: i32, z1: i32) -> bool {
+        let w = (i64::from(x1) - i64::from(x0) + 1).max(0) as u64;
+        let h = (i64::from(z1) - i64::from(z0) + 1).max(0) as u64;
+        w.saturating_mul(h) > self.cell_coords.len() as u64
+    }
+
+    /// The grid's cells within the rectangle that `keep` accepts, in cell order.
+    fn cells_in<'a>(
+        &'a self,
+        x0: i32,
+        x1: i32,
+        z0: i32,
+        z1: i32,
+        keep: impl Fn(i32, i32) -> bool + 'a,
+    ) -> impl Iterator<Item = u32> + 'a {
+        self.cell_coords
+            .iter()
+            .enumerate()
+            .filter(move |&(_, &(x, z))| {
+                (x0..=x1).contains(&x) && (z0..=z1).contains(&z) && keep(x, z)
+            })
+            .map(|(c, _)| c as u32)
+    }
+
     fn coord(&self, v: f32) -> i32 {
         (v * self.inv_cell)
             .floor()
@@ -203,9 +228,15 @@ impl<T: Copy> GridIndex<T> {
         let mut cells = std::mem::take(&mut self.scratch);
         cells.clear();
         let pad = self.max_small_radius;
+        // A rectangle with more cells than the grid holds (an absurd range, box or camera
+        // jump) walks the grid's cells instead of the rectangle's, in cell order.
         for b in boxes {
             let (x0, x1) = (self.coord(b[0] - pad), self.coord(b[2] + pad));
             let (z0, z1) = (self.coord(b[1] - pad), self.coord(b[3] + pad));
+            if self.rect_exceeds_cells(x0, x1, z0, z1) {
+                cells.extend(self.cells_in(x0, x1, z0, z1, |_, _| true));
+                continue;
+            }
             for x in x0..=x1 {
                 for z in z0..=z1 {
                     if let Some(&c) = self.cells.get(&key(x, z)) {
@@ -218,6 +249,18 @@ impl<T: Copy> GridIndex<T> {
             let (x0, x1) = (self.coord(cam.x - reach), self.coord(cam.x + reach));
             let (z0, z1) = (self.coord(cam.z - reach), self.coord(cam.z + reach));
             let r2 = reach * reach;
+            let size = self.cell_size;
+            // The squared distance from the camera to cell (x, z) in XZ.
+            let gap = |x: i32, z: i32| {
+                let (lx, lz) = (x as f32 * size, z as f32 * size);
+                let dx = (lx - cam.x).max(cam.x - (lx + size)).max(0.0);
+                let dz = (lz - cam.z).max(cam.z - (lz + size)).max(0.0);
+                dx * dx + dz * dz
+            };
+            if self.rect_exceeds_cells(x0, x1, z0, z1) {
+                cells.extend(self.cells_in(x0, x1, z0, z1, |x, z| gap(x, z) <= r2));
+                continue;
+            }
             for x in x0..=x1 {
                 let lo = x as f32 * self.cell_size;
                 let dx = (lo - cam.x).max(cam.x - (lo + self.cell_size)).max(0.0);
@@ -225,9 +268,7 @@ impl<T: Copy> GridIndex<T> {
                     continue;
                 }
                 for z in z0..=z1 {
-                    let lo = z as f32 * self.cell_size;
-                    let dz = (lo - cam.z).max(cam.z - (lo + self.cell_size)).max(0.0);
-                    if dx * dx + dz * dz > r2 {
+                    if gap(x, z) > r2 {
                         continue;
                     }
                     if let Some(&c) = self.cells.get(&key(x, z)) {

@@ -249,6 +249,9 @@ impl FrameOrder {
         if let Some(f) = self.recording {
             return Err(Misuse::StillRecording { frame: f });
         }
+        if frame == u64::MAX {
+            return Err(Misuse::FrameNumberTooLarge(frame));
+        }
         match self.last_ended.filter(|&l| frame <= l) {
             Some(last) => Err(Misuse::FrameNotIncreasing { frame, last }),
             None => Ok(()),
@@ -334,6 +337,10 @@ pub enum Misuse {
         /// The last frame ended.
         last: u64,
     },
+    /// `begin_frame(u64::MAX)`: the largest frame number is `u64::MAX - 1` (a timeline
+    /// semaphore signals `frame + 1`).
+    #[error("frame {0}: the largest frame number is u64::MAX - 1")]
+    FrameNumberTooLarge(u64),
     /// `end_frame(frame)` while another frame is being recorded.
     #[error("end_frame({frame}) while frame {recording} is being recorded")]
     WrongFrame {

@@ -705,6 +705,10 @@ mod tests {
         };
         let refused = |r: BackendResult<()>, m: Misuse| assert_eq!(r, Err(m.into()));
         refused(b.end_frame(0), Misuse::NotRecording);
+        refused(
+            b.begin_frame(u64::MAX),
+            Misuse::FrameNumberTooLarge(u64::MAX),
+        );
         b.begin_frame(0).unwrap();
         refused(b.begin_frame(1), Misuse::StillRecording { frame: 0 });
         let sizes = b.blas_sizes(&g, BlasClass::Skinned);

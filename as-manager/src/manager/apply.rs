@@ -70,7 +70,14 @@ impl<B: AsBackend> AsManager<B> {
                         }
                     }
                 }
-                Command::UnregisterGroup(id) => self.far.unregister(id),
+                Command::UnregisterGroup(id) => {
+                    if self.far.is_live(id) {
+                        self.far.unregister(id);
+                        if self.members_of(id.index) == 0 {
+                            self.dead_groups.push(id.index);
+                        }
+                    }
+                }
                 Command::SetPose(id, pose) => {
                     if let Some(Some(i)) = self.tables.instances.get_mut(id.index as usize) {
                         i.pose = pose;
@@ -87,7 +94,7 @@ impl<B: AsBackend> AsManager<B> {
                 }
             }
         }
-        if !dead_meshes.is_empty() || !dead_instances.is_empty() {
+        if !dead_meshes.is_empty() || !dead_instances.is_empty() || !self.dead_groups.is_empty() {
             let mut p = self.registrar.pending.lock();
             for m in dead_meshes {
                 p.meshes.recycle(m);
@@ -96,7 +103,15 @@ impl<B: AsBackend> AsManager<B> {
                 p.instances.kill(i);
                 p.instances.recycle(i);
             }
+            for g in self.dead_groups.drain(..) {
+                p.groups.recycle(g);
+            }
         }
+    }
+
+    /// Applied instances naming group slot `g`.
+    fn members_of(&self, g: u32) -> u32 {
+        self.group_members.get(g as usize).copied().unwrap_or(0)
     }
 
     fn apply_register(&mut self, id: MeshId, desc: Arc<MeshDesc>) {
@@ -220,7 +235,15 @@ impl<B: AsBackend> AsManager<B> {
             .group
             .filter(|g| self.far.is_live(*g))
             .map_or(NO_GROUP, |g| g.index);
+        if group != NO_GROUP {
+            let g = group as usize;
+            if self.group_members.len() <= g {
+                self.group_members.resize(g + 1, 0);
+            }
+            self.group_members[g] += 1;
+        }
         self.tables.instances[slot] = Some(InstanceState {
+            generation: id.generation,
             mesh: desc.mesh.index,
             mesh_pos,
             center,
@@ -300,9 +323,21 @@ impl<B: AsBackend> AsManager<B> {
             return false;
         };
         let (mesh, mesh_pos, seed_has) = (inst.mesh, inst.mesh_pos, inst.seed_has);
-        let (own, shown) = self.grid.get(slot).map_or((None, None), |grid_entry| {
-            (grid_entry.data.own, grid_entry.data.shown)
-        });
+        let (own, shown, group) =
+            self.grid
+                .get(slot)
+                .map_or((None, None, NO_GROUP), |grid_entry| {
+                    let d = &grid_entry.data;
+                    (d.own, d.shown, d.group)
+                });
+        if group != NO_GROUP {
+            // The last member of an unregistered group frees its slot.
+            let n = &mut self.group_members[group as usize];
+            *n -= 1;
+            if *n == 0 && !self.far.slot_is_live(group) {
+                self.dead_groups.push(group);
+            }
+        }
         if let Some(Some(m)) = self.tables.meshes.get_mut(mesh as usize) {
             m.instances.swap_remove(mesh_pos as usize);
             if let Some(&moved) = m.instances.get(mesh_pos as usize) {

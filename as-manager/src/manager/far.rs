@@ -120,6 +120,11 @@ impl FarField {
             && matches!(self.nodes.get(id.index as usize), Some(Some(_)))
     }
 
+    /// Whether group slot `index` holds a registered group.
+    pub fn slot_is_live(&self, index: u32) -> bool {
+        matches!(self.nodes.get(index as usize), Some(Some(_)))
+    }
+
     pub fn is_empty(&self) -> bool {
         self.live == 0
     }

@@ -290,6 +290,11 @@ pub struct AsManager<B: AsBackend> {
     oom_frame: u64,
     floors: Vec<u32>,
     live_instances: u32,
+    /// Applied instances naming each group slot: an unregistered group's slot is recycled
+    /// only once none does (they keep its index, and would join a new group there).
+    group_members: Vec<u32>,
+    /// Group slots to recycle at the end of `apply_commands`.
+    dead_groups: Vec<u32>,
     live_meshes: u32,
     last_frame: Option<u64>,
     frame: u64,
@@ -345,6 +350,8 @@ impl<B: AsBackend> AsManager<B> {
             oom_frame: 0,
             floors: Vec::new(),
             live_instances: 0,
+            group_members: Vec::new(),
+            dead_groups: Vec::new(),
             live_meshes: 0,
             last_frame: None,
             frame: 0,
@@ -540,9 +547,14 @@ impl<B: AsBackend> AsManager<B> {
         &self.measured
     }
 
-    /// The LOD an instance is targeting (skinned poses are for this LOD), once applied.
+    /// The LOD an instance is targeting (skinned poses are for this LOD), once applied; `None`
+    /// for an instance not applied yet, removed, or named by a stale id (its slot reused).
     pub fn instance_lod(&self, id: InstanceId) -> Option<usize> {
-        self.tables.instances.get(id.index as usize)?.as_ref()?;
+        self.tables
+            .instances
+            .get(id.index as usize)?
+            .as_ref()
+            .filter(|s| s.generation == id.generation)?;
         let hot = self.grid.get(id.index)?.data;
         Some(match hot.own.and_then(|k| self.tables.entries.get(k)) {
             Some(own) => own.lod as usize,
@@ -626,10 +638,16 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Runs one frame: applies queued registrations, then residency, LOD, scheduling, memory,
     /// culling and assembly, then records the backend work and the TLAS build.
+    ///
+    /// Frame numbers increase from call to call (gaps are fine) and stop at `u64::MAX - 1`;
+    /// cameras must be finite. A refused frame changes nothing.
     pub fn update(&mut self, input: FrameInput<'_>) -> Result<FrameOutput<'_>> {
         let frame = input.frame;
         if let Some(last) = self.last_frame.filter(|&l| frame <= l) {
             return Err(AsError::FrameNotIncreasing { frame, last });
+        }
+        if frame == u64::MAX {
+            return Err(AsError::FrameNumberTooLarge(frame));
         }
         if input
             .cameras

@@ -369,7 +369,7 @@ impl<B: AsBackend> AsManager<B> {
                     self.journal.built.push((a.entry, handle));
                     // Beside the TLAS, the BLAS shows from the next frame on: its mesh's
                     // landmarks choose again then (they chose this frame already).
-                    let shows_from = frame + u64::from(self.builds_beside);
+                    let shows_from = frame.saturating_add(u64::from(self.builds_beside));
                     self.tables.blas_changed(a.entry, shows_from);
                     tracing::trace!(entry = ?a.entry, bytes = s.as_bytes, "blas built");
                 }
@@ -600,7 +600,7 @@ impl<B: AsBackend> AsManager<B> {
                     e.needs_compaction = false;
                     // Beside the TLAS the copy shows from the next frame (see the builds).
                     self.tables
-                        .blas_changed(key, frame + u64::from(self.builds_beside));
+                        .blas_changed(key, frame.saturating_add(u64::from(self.builds_beside)));
                     done += 1;
                     ms += est;
                     false

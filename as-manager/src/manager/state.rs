@@ -227,6 +227,8 @@ const _: () = assert!(std::mem::size_of::<crate::spatial::GridEntry<InstanceHot>
 /// Per-instance state touched only on changes (and by the baselines' full passes).
 #[derive(Debug)]
 pub(crate) struct InstanceState {
+    /// The generation of the `InstanceId` it was added with (a stale id names an older one).
+    pub generation: u32,
     pub mesh: u32,
     /// Index in the mesh's instance list.
     pub mesh_pos: u32,

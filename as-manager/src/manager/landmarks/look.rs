@@ -9,7 +9,8 @@ use crate::mesh::MeshKind;
 use crate::spatial::GridIndex;
 
 impl Landmarks {
-    /// Counts this frame's camera travel; a change of camera count makes everything due.
+    /// Counts this frame's camera travel; a change of camera count, or a move longer than
+    /// the due queue's ring (a teleport), makes everything due.
     pub(super) fn advance(&mut self, cams: &[Vec3]) {
         if cams.len() != self.cams.len() {
             self.all_due = true;
@@ -19,7 +20,7 @@ impl Landmarks {
                 .zip(&self.cams)
                 .map(|(a, b)| a.distance(*b))
                 .fold(0.0f32, f32::max);
-            if moved.is_finite() {
+            if moved.is_finite() && f64::from(moved) <= queue::MAX_STEP_M {
                 self.odo += f64::from(moved);
             } else {
                 self.all_due = true;

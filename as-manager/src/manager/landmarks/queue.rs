@@ -47,6 +47,10 @@ const FINE: u64 = 2 * BLOCK;
 const RING: u64 = 1 << 12;
 /// Blocks in the coarse ring: every block that a bucket less than `RING` ahead can be in.
 const COARSE: u64 = 2 * RING / BLOCK;
+/// The longest camera move a frame that the queue steps through (metres): a longer one (a
+/// teleport across the map) makes every candidate due instead, as a pop would walk a bucket
+/// a metre of it.
+pub(super) const MAX_STEP_M: f64 = RING as f64 * BUCKET_M;
 /// Entries per chunk of a coarse block.
 const CHUNK: usize = 1024;
 
