@@ -7,8 +7,8 @@
 //! in flight reads. Pass times come from GPU timestamps, not from the host.
 
 use rtstream_as_manager::backend::vulkan::{
-    ash::vk, read_stamp, Bound, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind,
-    QueryPool, NO_STAMP, RECORDED_SETS,
+    ash::vk, read_timer, Bound, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind,
+    QueryPool, RECORDED_SETS,
 };
 
 use crate::error::{RenderError, Result};
@@ -19,9 +19,8 @@ use crate::renderer::{
 use crate::slot::RenderSlot;
 use crate::{RenderDesc, Renderer};
 
-/// Where a slot's `times` buffer holds its frame stamp (after the four timestamps): the
-/// number of the last frame whose commands ran to the end, written on the GPU.
-const STAMP_AT: u64 = 32;
+/// Timestamps a recorded frame takes: one before the passes and one after each.
+const TIMESTAMPS: usize = 4;
 
 /// Readback buffers, their bytes per pixel: colour, hits, surface, light.
 const OUTPUTS: [(&str, u64); 4] = [
@@ -54,13 +53,6 @@ impl Renderer {
         validate(desc)?;
         cmd.check(&self.ctx)?;
         check_tlas(&self.ctx, tlas)?;
-        if cmd.frame() == NO_STAMP {
-            return Err(RenderError::InvalidRequest(format!(
-                "frame number {}: the largest is {}",
-                cmd.frame(),
-                NO_STAMP - 1
-            )));
-        }
         let n = RECORDED_SETS as usize;
         let i = (cmd.frame() % RECORDED_SETS as u64) as usize;
         while self.slots.len() < n {
@@ -73,15 +65,11 @@ impl Renderer {
             )?;
             let times = match self.ctx.create_buffer(&BufferDesc {
                 name: "render pass times",
-                size: STAMP_AT + 8,
+                size: TIMESTAMPS as u64 * 16,
                 usage: vk::BufferUsageFlags::TRANSFER_DST,
                 memory: MemoryKind::Readback,
             }) {
-                Ok(mut b) => {
-                    // No frame ran yet.
-                    b.write(STAMP_AT as usize, &NO_STAMP.to_le_bytes());
-                    b
-                }
+                Ok(b) => b,
                 Err(e) => {
                     timer.destroy(&self.ctx);
                     return Err(e.into());
@@ -143,6 +131,8 @@ impl Renderer {
         let ibuf = slot.instances.as_mut().expect("allocated above");
         ibuf.write(0, bytes);
         slot.timer.reset(&ctx);
+        // Availability words at zero until this frame's timestamps are copied (see `take`).
+        slot.times.write(0, &[0; TIMESTAMPS * 16]);
         let mut push = push_constants(desc);
         let pushes: Vec<_> = (0..3u32)
             .map(|pass| {
@@ -185,8 +175,6 @@ impl Renderer {
             Tracer::Query(p) => p.record(&ctx, cmd, &bound, &passes, timer)?,
             Tracer::Pipeline(p) => p.record(&ctx, cmd, &bound, &passes, timer)?,
         }
-        // Last: the stamp that says this frame's commands ran (see `ran`).
-        cmd.record_stamp(&ctx, &slot.times, STAMP_AT)?;
         slot.frame = Some(cmd.frame());
         slot.taken = false;
         Ok(())
@@ -209,9 +197,10 @@ impl Renderer {
     /// `None` while it is in flight, when it was taken already or overwritten by a later
     /// frame, and when its commands never ran: a frame recorded and never submitted (an
     /// abandoned recording), or a `completed` that claims more than the GPU did. Besides
-    /// `completed`, the frame's last command writes its number where the renderer looks for it
-    /// (a claim `completed` makes that the GPU has not kept is caught there; `completed` stays
-    /// what makes the image's memory safe to read).
+    /// `completed`, the frame's last command, the copy of its pass timestamps, marks them
+    /// available where the renderer looks (zeroed when the frame was recorded): a claim
+    /// `completed` makes that the GPU has not kept is caught there; `completed` stays what
+    /// makes the image's memory safe to read.
     pub fn take(&mut self, frame: u64, completed: Option<u64>) -> Result<Option<Frame>> {
         let Some(slot) = self.completed_slot(frame, completed) else {
             return Ok(None);
@@ -227,7 +216,7 @@ impl Renderer {
 
 impl Renderer {
     /// The untaken slot that recorded `frame`, if `completed` says the frame completed and
-    /// the frame's stamp says its commands ran.
+    /// its timestamps were copied (its commands ran).
     fn completed_slot(
         &mut self,
         frame: u64,
@@ -239,7 +228,7 @@ impl Renderer {
         self.slots
             .iter_mut()
             .find(|s| s.frame == Some(frame) && !s.taken)
-            .filter(|s| read_stamp(&s.times, STAMP_AT) == Some(frame))
+            .filter(|s| read_timer(&s.times, TIMESTAMPS).is_some())
     }
 }
 
@@ -261,7 +250,7 @@ pub(crate) fn check_tlas(
 
 /// The passes' GPU times of a completed slot: its timestamps were copied into `times` on the GPU.
 fn pass_times(slot: &RenderSlot) -> [f64; 3] {
-    let t: &[u64] = bytemuck::cast_slice(slot.times.mapped().expect("readback is mapped"));
+    let t = read_timer(&slot.times, TIMESTAMPS).unwrap_or_else(|| vec![0; TIMESTAMPS]);
     let ms = |a: usize, b: usize| slot.timer.ticks_to_ms(t[b].saturating_sub(t[a]));
     [ms(0, 1), ms(1, 2), ms(2, 3)]
 }

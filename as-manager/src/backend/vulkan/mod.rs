@@ -33,13 +33,13 @@ pub use device::context::{
     VulkanContext,
 };
 pub use device::external::{DeviceFeatures, ExternalDevice, REQUIRED_DEVICE_EXTENSIONS};
-pub use device::frames::{read_stamp, FrameCmd, FrameLoop, NO_STAMP};
+pub use device::frames::{FrameCmd, FrameLoop};
 pub use device::query::{QueryKind, QueryPool};
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
 pub use render::binding::{BindingKind, Bound};
 pub use render::compute::ComputePipeline;
 pub use render::geometry::{GpuGeometry, SceneMesh};
-pub use render::ring::{Pass, PassTimer, RECORDED_SETS};
+pub use render::ring::{read_timer, Pass, PassTimer, RECORDED_SETS};
 pub use render::rt_pipeline::{RayTracingPipeline, RtShaders};
 pub use render::scene::{GpuMesh, SceneBuildStats, StaticInstance, StaticScene};
 

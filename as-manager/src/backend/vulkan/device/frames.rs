@@ -11,7 +11,6 @@ use std::sync::Arc;
 
 use ash::vk;
 
-use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::{handle_created, handle_destroyed, VulkanContext};
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
@@ -110,56 +109,7 @@ impl FrameCmd {
             why,
         })
     }
-
-    /// Records, after everything recorded so far, a write of the frame's number into `dst`
-    /// at byte `offset`, visible to the host once the submission completes. A stamp that reads
-    /// the frame's number proves that this command buffer ran to that point: a frame that was
-    /// never submitted, or has not run yet, leaves what was there (see [`read_stamp`]).
-    ///
-    /// `dst` needs TRANSFER_DST usage, host-visible memory and 8 bytes at `offset` (a multiple
-    /// of 4); no pending GPU work may use those bytes.
-    pub fn record_stamp(&self, ctx: &VulkanContext, dst: &GpuBuffer, offset: u64) -> VkResult<()> {
-        self.check(ctx)?;
-        if offset % 4 != 0 || offset + 8 > dst.size || dst.mapped().is_none() {
-            return Err(VulkanError::Unsupported(format!(
-                "a frame stamp needs 8 host-visible bytes at a multiple of 4: offset {offset} \
-                 of a {}-byte buffer",
-                dst.size
-            )));
-        }
-        let before = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::COPY)
-            .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)];
-        let after = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::COPY)
-            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
-        // SAFETY: the command buffer is this device's and records this frame outside a render
-        // pass (checked above, and the constructor's contract); the range was checked and, by
-        // contract, no pending work uses it.
-        unsafe {
-            ctx.cmd_memory_barriers(self.raw, &before);
-            ctx.device
-                .cmd_update_buffer(self.raw, dst.raw, offset, &self.frame.to_le_bytes());
-            ctx.cmd_memory_barriers(self.raw, &after);
-        }
-        Ok(())
-    }
 }
-
-/// What a frame stamp (see [`FrameCmd::record_stamp`]) at `offset` of `src` reads now; `None`
-/// if the buffer is not host-visible or too short.
-pub fn read_stamp(src: &GpuBuffer, offset: u64) -> Option<u64> {
-    let bytes = src.mapped()?.get(offset as usize..offset as usize + 8)?;
-    Some(u64::from_le_bytes(bytes.try_into().ok()?))
-}
-
-/// A stamp value no frame writes (frame numbers stop below it): what a stamp's bytes hold
-/// before any frame ran.
-pub const NO_STAMP: u64 = u64::MAX;
 
 /// The own-submit frame loop: `frames_in_flight` primary command buffers and one timeline
 /// semaphore (frame `n` signals `n + 1`). [`begin`](Self::begin) waits only for the frame that

@@ -154,10 +154,61 @@ impl QueryPool {
         dst: &crate::backend::vulkan::device::buffer::GpuBuffer,
         offset: u64,
     ) {
+        // SAFETY: guaranteed by the caller.
+        unsafe { self.copy_results(ctx, cmd, first, n, dst, offset, false) }
+    }
+
+    /// As [`cmd_copy_results`](Self::cmd_copy_results), each result followed by its
+    /// availability (16 bytes a query): the availability word is non-zero once the GPU wrote
+    /// the result, so a caller that zeroed `dst` can tell whether the copy ran.
+    ///
+    /// # Safety
+    /// As for `cmd_copy_results`, with room for 16 bytes a query.
+    pub unsafe fn cmd_copy_results_available(
+        &self,
+        ctx: &VulkanContext,
+        cmd: vk::CommandBuffer,
+        first: u32,
+        n: u32,
+        dst: &crate::backend::vulkan::device::buffer::GpuBuffer,
+        offset: u64,
+    ) {
+        // SAFETY: guaranteed by the caller.
+        unsafe { self.copy_results(ctx, cmd, first, n, dst, offset, true) }
+    }
+
+    /// The two copies above: 8 bytes a result, or 16 with its availability.
+    ///
+    /// # Safety
+    /// As for `cmd_copy_results`.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn copy_results(
+        &self,
+        ctx: &VulkanContext,
+        cmd: vk::CommandBuffer,
+        first: u32,
+        n: u32,
+        dst: &crate::backend::vulkan::device::buffer::GpuBuffer,
+        offset: u64,
+        availability: bool,
+    ) {
         if n == 0 {
             return;
         }
-        debug_assert!(offset + u64::from(n) * 8 <= dst.size);
+        let (stride, flags) = if availability {
+            (
+                16,
+                vk::QueryResultFlags::TYPE_64
+                    | vk::QueryResultFlags::WAIT
+                    | vk::QueryResultFlags::WITH_AVAILABILITY,
+            )
+        } else {
+            (
+                8,
+                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+            )
+        };
+        debug_assert!(offset + u64::from(n) * stride <= dst.size);
         let before = [vk::MemoryBarrier2::default()
             .src_stage_mask(vk::PipelineStageFlags2::COPY | vk::PipelineStageFlags2::HOST)
             .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE | vk::AccessFlags2::HOST_READ)
@@ -172,14 +223,7 @@ impl QueryPool {
         unsafe {
             ctx.cmd_memory_barriers(cmd, &before);
             ctx.device.cmd_copy_query_pool_results(
-                cmd,
-                self.raw,
-                first,
-                n,
-                dst.raw,
-                offset,
-                8,
-                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+                cmd, self.raw, first, n, dst.raw, offset, stride, flags,
             );
             ctx.cmd_memory_barriers(cmd, &after);
         }

@@ -98,14 +98,33 @@ pub struct Pass<'a> {
 }
 
 /// Timestamps of a recorded frame's passes: one before the passes and one after each, in
-/// `queries` (reset by the caller before the frame), copied on the GPU into `results` (u64 each,
-/// host-visible) at the end of the passes, to read once the frame completed.
+/// `queries` (reset by the caller before the frame), copied on the GPU into `results` at the
+/// end of the passes, to read with [`read_timer`] once the frame completed.
+///
+/// Each timestamp is copied with its availability (two u64: the value, then a word that is
+/// non-zero once the GPU wrote it). A caller that zeroes `results` before recording can tell
+/// a frame whose commands ran to the end from one never submitted, or still on the GPU: its
+/// availability words stay zero.
 #[derive(Debug, Clone, Copy)]
 pub struct PassTimer<'a> {
     /// A timestamp pool with at least passes + 1 queries.
     pub queries: &'a QueryPool,
-    /// A readback buffer with room for as many u64.
+    /// A host-visible buffer (TRANSFER_DST) with room for two u64 per query.
     pub results: &'a crate::backend::vulkan::device::buffer::GpuBuffer,
+}
+
+/// The first `n` timestamps a [`PassTimer`] copied into `results`, if the GPU wrote every one
+/// of them (their availability words are non-zero); `None` otherwise, or if the buffer is not
+/// host-visible or too short.
+pub fn read_timer(
+    results: &crate::backend::vulkan::device::buffer::GpuBuffer,
+    n: usize,
+) -> Option<Vec<u64>> {
+    let words: &[u64] = bytemuck::try_cast_slice(results.mapped()?.get(..n * 16)?).ok()?;
+    let pairs = words.chunks_exact(2);
+    pairs
+        .map(|p| (p[1] != 0).then_some(p[0]))
+        .collect::<Option<Vec<u64>>>()
 }
 
 /// The descriptor pool and sets of a pipeline.
@@ -224,14 +243,14 @@ pub(crate) fn check_timer(timer: Option<PassTimer<'_>>, passes: usize) -> VkResu
     match timer {
         Some(t)
             if (t.queries.count as usize) < passes + 1
-                || t.results.size < (passes as u64 + 1) * 8
+                || t.results.size < (passes as u64 + 1) * 16
                 || t.results.mapped().is_none() =>
         {
             Err(VulkanError::Unsupported(format!(
                 "a timer for {passes} passes needs {} queries and a host-visible buffer of {} \
                  bytes",
                 passes + 1,
-                (passes + 1) * 8
+                (passes + 1) * 16
             )))
         }
         _ => Ok(()),
@@ -252,7 +271,7 @@ pub(crate) unsafe fn copy_timer(
         // SAFETY: guaranteed by the caller; `check_timer` checked the sizes.
         unsafe {
             t.queries
-                .cmd_copy_results(ctx, cmd, 0, passes as u32 + 1, t.results, 0)
+                .cmd_copy_results_available(ctx, cmd, 0, passes as u32 + 1, t.results, 0)
         };
     }
 }
