@@ -446,6 +446,7 @@ impl VulkanBackend {
                     s.timed.len() as u32 * 2,
                     &s.results,
                     0,
+                    false,
                 );
                 s.compact_pool.cmd_copy_results(
                     &self.ctx,
@@ -454,6 +455,7 @@ impl VulkanBackend {
                     s.compact_queries.len() as u32,
                     &s.results,
                     u64::from(QUERIES_PER_SLOT) * 8,
+                    false,
                 );
             }
             // SAFETY: recording; the barriers make the TLAS build visible to later traces, and

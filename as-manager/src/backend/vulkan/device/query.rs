@@ -136,53 +136,19 @@ impl QueryPool {
         Ok(out)
     }
 
-    /// Records a copy of results `first..first + n` (u64 each) into `dst` at byte `offset`,
-    /// waiting on the GPU for them to be written, and makes the copy visible to the host once
-    /// the submission completes. Reading results this way needs no host query call, which some
-    /// drivers (lavapipe) implement as "wait for the whole queue", and which would hang behind a
-    /// later submission that waits for the host.
+    /// Records a copy of results `first..first + n` into `dst` at byte `offset`, waiting on
+    /// the GPU for them to be written, and makes the copy visible to the host once the
+    /// submission completes: a u64 each, or with `availability` 16 bytes each, the result and
+    /// then its availability word (non-zero once the GPU wrote the result, so a caller that
+    /// zeroed `dst` can tell whether the copy ran). Reading results this way needs no host
+    /// query call, which some drivers (lavapipe) implement as "wait for the whole queue", and
+    /// which would hang behind a later submission that waits for the host.
     ///
     /// # Safety
     /// `cmd` is recording outside a render pass; the queries were reset and are written by
     /// commands recorded before this one; `dst` has room and lives until the copy completed.
-    pub unsafe fn cmd_copy_results(
-        &self,
-        ctx: &VulkanContext,
-        cmd: vk::CommandBuffer,
-        first: u32,
-        n: u32,
-        dst: &crate::backend::vulkan::device::buffer::GpuBuffer,
-        offset: u64,
-    ) {
-        // SAFETY: guaranteed by the caller.
-        unsafe { self.copy_results(ctx, cmd, first, n, dst, offset, false) }
-    }
-
-    /// As [`cmd_copy_results`](Self::cmd_copy_results), each result followed by its
-    /// availability (16 bytes a query): the availability word is non-zero once the GPU wrote
-    /// the result, so a caller that zeroed `dst` can tell whether the copy ran.
-    ///
-    /// # Safety
-    /// As for `cmd_copy_results`, with room for 16 bytes a query.
-    pub unsafe fn cmd_copy_results_available(
-        &self,
-        ctx: &VulkanContext,
-        cmd: vk::CommandBuffer,
-        first: u32,
-        n: u32,
-        dst: &crate::backend::vulkan::device::buffer::GpuBuffer,
-        offset: u64,
-    ) {
-        // SAFETY: guaranteed by the caller.
-        unsafe { self.copy_results(ctx, cmd, first, n, dst, offset, true) }
-    }
-
-    /// The two copies above: 8 bytes a result, or 16 with its availability.
-    ///
-    /// # Safety
-    /// As for `cmd_copy_results`.
     #[allow(clippy::too_many_arguments)]
-    unsafe fn copy_results(
+    pub unsafe fn cmd_copy_results(
         &self,
         ctx: &VulkanContext,
         cmd: vk::CommandBuffer,

@@ -271,7 +271,7 @@ pub(crate) unsafe fn copy_timer(
         // SAFETY: guaranteed by the caller; `check_timer` checked the sizes.
         unsafe {
             t.queries
-                .cmd_copy_results_available(ctx, cmd, 0, passes as u32 + 1, t.results, 0)
+                .cmd_copy_results(ctx, cmd, 0, passes as u32 + 1, t.results, 0, true)
         };
     }
 }
