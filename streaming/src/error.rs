@@ -2,10 +2,14 @@
 
 use std::path::PathBuf;
 
-/// Everything that can go wrong while reading world data. Each variant names the file.
+/// Everything that can go wrong while reading world data (each of those variants names the
+/// file), and a configuration the world cannot stream with.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum StreamingError {
+    /// A `StreamConfig` the world cannot stream with (see `StreamConfig::validate`).
+    #[error("invalid streaming configuration: {0}")]
+    InvalidConfig(String),
     /// The file could not be read or parsed as glTF 2.0.
     #[error("{path}: not a readable glTF 2.0 file: {source}")]
     Gltf {

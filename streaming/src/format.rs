@@ -211,7 +211,18 @@ impl<'a> Reader<'a> {
             self.f32()?,
         ))
     }
+    /// Bounds: finite with min <= max, or exactly [`Aabb::EMPTY`] (what the writer writes for
+    /// nothing: an empty world's extent, a proxy node without opaque static content).
     pub fn aabb(&mut self) -> FResult<Aabb> {
+        let start = self.pos;
+        let raw: [u8; 24] = self.array()?;
+        let f: [f32; 6] =
+            std::array::from_fn(|i| f32::from_le_bytes(raw[4 * i..4 * i + 4].try_into().unwrap()));
+        let e = Aabb::EMPTY;
+        if f[..3] == e.min.to_array() && f[3..] == e.max.to_array() {
+            return Ok(Aabb::EMPTY);
+        }
+        self.pos = start;
         let b = Aabb {
             min: self.vec3()?,
             max: self.vec3()?,

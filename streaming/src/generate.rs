@@ -134,7 +134,7 @@ impl WorldPreset {
     /// A `grid` x `grid` corner of the default map at its density (for tests and examples).
     pub fn small(grid: u32, seed: u64) -> WorldPreset {
         let d = WorldPreset::default_world();
-        let cells = f64::from(grid * grid) / f64::from(d.grid * d.grid);
+        let cells = f64::from(grid).powi(2) / f64::from(d.grid).powi(2);
         WorldPreset {
             name: format!("small{grid}"),
             seed,
@@ -158,13 +158,16 @@ impl WorldPreset {
     }
 
     /// A crowd: 3 x 3 levels of the default map (214 m) with `characters` generated skinned
-    /// characters spread over them (besides the map's own content).
+    /// characters spread over them (besides the map's own content), rounded up to a multiple
+    /// of 9 and capped at what a u32 instance count holds.
     pub fn crowd(characters: u32) -> WorldPreset {
         let small = WorldPreset::small(3, WorldPreset::default_world().seed);
+        // At most what the instance count (u32) can hold besides the map's own content.
+        let per_level = characters.div_ceil(9).min((u32::MAX - small.instances) / 9);
         WorldPreset {
             name: format!("crowd{characters}"),
-            characters_per_level: characters.div_ceil(9),
-            instances: small.instances + characters.div_ceil(9) * 9,
+            characters_per_level: per_level,
+            instances: small.instances + per_level * 9,
             ..small
         }
     }

@@ -329,7 +329,7 @@ fn load_gltf_level(path: &Path, placement: &Mat4) -> Result<LoadedLevel> {
             lods,
         });
     }
-    let instances = scene
+    let instances: Vec<GltfInstance> = scene
         .instances
         .iter()
         .map(|i| GltfInstance {
@@ -343,6 +343,30 @@ fn load_gltf_level(path: &Path, placement: &Mat4) -> Result<LoadedLevel> {
             },
         })
         .collect();
+    // A finite placement can still overflow f32 once applied (a scale of 1e38): the level's
+    // instances and bounds would be infinite or NaN.
+    let overflows = instances.iter().any(|i| {
+        let placed = crate::Instance::new(
+            crate::WorldInstanceId(0),
+            crate::WorldMeshId(0),
+            i.transform,
+            &meshes[i.mesh].bounds,
+            i.material,
+            i.motion,
+        );
+        let (b, s) = (placed.aabb, placed.sphere);
+        !(i.transform.is_finite()
+            && (b.max - b.min).is_finite()
+            && s.center.is_finite()
+            && s.radius.is_finite()
+            && placed.max_scale().is_finite())
+    });
+    if overflows {
+        return Err(StreamingError::InvalidScene {
+            path: path.to_owned(),
+            reason: "the level placement takes its instances past f32's range".into(),
+        });
+    }
     Ok(LoadedLevel::Gltf { meshes, instances })
 }
 

@@ -100,9 +100,12 @@ impl Skeleton {
         Ok(())
     }
 
-    /// Skinning matrices (joint global * inverse bind) at time `t` seconds (looping).
+    /// Skinning matrices (joint global * inverse bind) at time `t` seconds (looping; a
+    /// non-finite time is the animation's start).
     pub fn pose(&self, t: f32) -> Vec<Mat4> {
-        let t = if self.duration > 0.0 {
+        let t = if !t.is_finite() {
+            0.0
+        } else if self.duration > 0.0 {
             t.rem_euclid(self.duration)
         } else {
             0.0

@@ -227,6 +227,7 @@ impl World {
         manifest: Option<Manifest>,
         config: StreamConfig,
     ) -> Result<World> {
+        config.validate()?;
         let m = manifest.unwrap_or(Manifest {
             extent: Aabb::EMPTY,
             levels: Vec::new(),
@@ -401,8 +402,26 @@ impl World {
 
     /// Advances streaming by one frame: takes finished loads, loads/unloads levels around the
     /// cameras, streams LODs, and returns the events in order. Never blocks on I/O.
+    ///
+    /// A focus whose position is not finite is left out (with a warning): it is at no
+    /// distance from anything, and would stream in the whole world.
     pub fn update(&mut self, frame: u64, cameras: &[StreamFocus]) -> Vec<WorldEvent> {
         let _span = tracing::debug_span!("world_update", frame).entered();
+        let finite;
+        let cameras = if cameras.iter().all(|c| c.position.is_finite()) {
+            cameras
+        } else {
+            tracing::warn!(frame, "streaming foci with non-finite positions left out");
+            finite = cameras
+                .iter()
+                .filter(|c| c.position.is_finite())
+                .copied()
+                .collect::<Vec<_>>();
+            &finite[..]
+        };
+        if frame < self.frame {
+            self.frame_went_back(frame);
+        }
         self.frame = frame;
         let mut ev = Vec::new();
         match self.config.apply_after_frames {
@@ -588,6 +607,25 @@ impl World {
 
     /// Deterministic mode: applies, in request order, every result requested at least `n`
     /// frames ago, waiting for the loader threads when one is late.
+    /// The caller's frame numbers went back (a new session, a counter reset): what was asked
+    /// or scheduled at a later frame counts as asked or scheduled at `frame`, so that pending
+    /// loads and retries come due instead of waiting for the old numbers to come round.
+    fn frame_went_back(&mut self, frame: u64) {
+        tracing::warn!(
+            frame,
+            last = self.frame,
+            "streaming frame numbers went back"
+        );
+        for (_, asked) in &mut self.requests {
+            *asked = (*asked).min(frame);
+        }
+        for slot in &mut self.levels {
+            if let LevelState::Failed { retry_at, .. } = &mut slot.state {
+                *retry_at = (*retry_at).min(frame);
+            }
+        }
+    }
+
     fn finish_due(&mut self, frame: u64, n: u64, ev: &mut Vec<WorldEvent>) {
         while let Some(&(ticket, asked)) = self.requests.front() {
             if asked.saturating_add(n) > frame {
@@ -645,15 +683,26 @@ impl World {
             return Ok(self.update(frame, cameras));
         }
         let start = Instant::now();
-        let deadline = start + timeout;
+        // A limit past the clock's range (`Duration::MAX`) waits without one.
+        let deadline = start.checked_add(timeout);
         let mut all = Vec::new();
         loop {
             all.extend(self.update(frame, cameras));
             if self.in_flight == 0 {
                 return Ok(all);
             }
-            let left = deadline.saturating_duration_since(Instant::now());
-            match self.pool.results.recv_timeout(left) {
+            let got = match deadline {
+                Some(d) => self
+                    .pool
+                    .results
+                    .recv_timeout(d.saturating_duration_since(Instant::now())),
+                None => self
+                    .pool
+                    .results
+                    .recv()
+                    .map_err(|_| crossbeam::channel::RecvTimeoutError::Disconnected),
+            };
+            match got {
                 Ok(done) => self.finish(done, &mut all),
                 Err(_) => {
                     return Err(SettleTimeout {
@@ -706,7 +755,7 @@ impl World {
                 tracing::warn!(level = level.0, error = %e, attempts = slot.failures, "level load failed");
                 slot.state = LevelState::Failed {
                     attempts: slot.failures,
-                    retry_at: self.frame + backoff,
+                    retry_at: self.frame.saturating_add(backoff),
                 };
                 ev.push(WorldEvent::LoadFailed {
                     level: Some(level),

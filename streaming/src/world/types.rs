@@ -36,16 +36,20 @@ pub struct StreamConfig {
     pub mesh_budget_bytes: usize,
     /// A LOD is fine enough when its error is at most this angle (radians) x distance.
     pub lod_error_angle: f32,
-    /// Hysteresis factor for evicting finer LODs (> 1).
+    /// Hysteresis factor for evicting finer LODs (> 1; `World::open` refuses others: at 1 or
+    /// below a still camera would load and evict the same LODs every frame).
     pub lod_evict_factor: f32,
-    /// At most this many loader jobs in flight (closer requests go first).
+    /// At most this many finer-LOD loads in flight (closer requests go first). Level loads
+    /// and the far field's coarsest-LOD and proxy loads are not capped: a level within the load
+    /// radius is always asked for.
     pub max_in_flight: usize,
     /// Far-field proxies within this distance (XZ, to the node's bounds) of a camera are
     /// resident; they leave beyond 1.1x it. Default: the whole map.
     pub far_radius: f32,
     /// Deterministic streaming: `Some(n)` applies every loader result exactly `n` frames after
     /// its request, in request order, waiting for the loader when it is late (`n` = 0 waits in
-    /// the same frame). With the same cameras per frame the event stream is then identical
+    /// the same frame). Frame numbers that go back count what was asked later as asked at the
+    /// new number. With the same cameras per frame the event stream is then identical
     /// under any machine load. `None` (the default, for interactive runs) applies whatever has
     /// arrived and never waits.
     pub apply_after_frames: Option<u32>,
@@ -76,6 +80,20 @@ impl Default for StreamConfig {
 }
 
 impl StreamConfig {
+    /// Refuses what the world cannot stream with: a LOD eviction factor that is not a number
+    /// above 1. (The rest is lenient: a radius that is not a number loads nothing, an unload
+    /// radius below the load radius streams with no hysteresis band, a LOD error angle of 0
+    /// or less asks for the finest LODs.)
+    pub fn validate(&self) -> Result<(), crate::StreamingError> {
+        if !(self.lod_evict_factor > 1.0 && self.lod_evict_factor.is_finite()) {
+            return Err(crate::StreamingError::InvalidConfig(format!(
+                "lod_evict_factor {} (a finite number above 1)",
+                self.lod_evict_factor
+            )));
+        }
+        Ok(())
+    }
+
     /// The default configuration but for its radii: levels load within `load_radius` of a
     /// camera and unload beyond `unload_radius`.
     pub fn within(load_radius: f32, unload_radius: f32) -> StreamConfig {
