@@ -30,7 +30,7 @@ mod cli;
 #[path = "support/eval.rs"]
 mod eval;
 
-use eval::{kept_by_culler, DemoWorldDesc, EvalWorld};
+use eval::{try_kept_by_culler, DemoWorldDesc, EvalWorld};
 
 fn main() -> anyhow::Result<()> {
     cli::init_tracing_at("info");
@@ -60,26 +60,29 @@ struct Args {
     /// Image size, WxH.
     #[arg(long, default_value = "640x360", value_parser = cli::parse_size)]
     size: (u32, u32),
-    /// Projected-angle culling threshold of the managed frame, degrees.
-    #[arg(long, default_value_t = 1.0)]
+    /// Projected-angle culling threshold of the managed frame, degrees (0 to below 90; 0 culls
+    /// nothing).
+    #[arg(long, default_value_t = 1.0, value_parser = cli::angle_deg)]
     angle: f32,
     /// The PNG written (`<out>_ids.png` and `<out>_shadow.png` beside it).
     #[arg(long, default_value = "out/compare.png")]
     out: PathBuf,
-    /// Rows of models.
-    #[arg(long)]
+    /// Rows of models, each 1.6 times as far as the last (default 6; 1 to 32, and rows x
+    /// cols at most 10,000).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=MAX_ROWS))]
     rows: Option<u32>,
-    /// Models per row.
-    #[arg(long)]
+    /// Models per row (default 6; 1 to 10,000, and rows x cols at most 10,000).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=i64::from(eval::MAX_DEMO_MODELS)))]
     cols: Option<u32>,
-    /// Angular radius of the sun (soft shadows), degrees.
-    #[arg(long, default_value_t = 0.0)]
+    /// Angular radius of the sun (soft shadows), degrees (0: hard shadows; below 57.3, one
+    /// radian).
+    #[arg(long, default_value_t = 0.0, value_parser = sun_radius_deg)]
     soft: f32,
-    /// Shadow rays per pixel.
-    #[arg(long, default_value_t = 4)]
+    /// Shadow rays per pixel (at most 1,024).
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(0..=MAX_SAMPLES))]
     shadow_samples: u32,
-    /// Ambient-occlusion rays per pixel.
-    #[arg(long, default_value_t = 1)]
+    /// Ambient-occlusion rays per pixel (at most 1,024).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(0..=MAX_SAMPLES))]
     ao_samples: u32,
     /// Render path: ray query (`rq`) or the ray-tracing pipeline (`rt`); default: the device's.
     #[arg(long, value_parser = parse_path)]
@@ -89,6 +92,27 @@ struct Args {
     json: bool,
     #[command(flatten)]
     assets: cli::AssetArgs,
+}
+
+/// The most rows of models: the last of 32 rows is 5 m x 1.6^31, about 10,000 km away (far
+/// beyond a pixel).
+const MAX_ROWS: i64 = 32;
+
+/// The renderer's most shadow or AO samples a pixel (`rtstream_renderer`'s
+/// `renderer::MAX_SAMPLES`, in a private module).
+const MAX_SAMPLES: i64 = 1024;
+
+/// `value_parser` of `--soft`: the renderer's sun radius is from 0 to below one radian.
+fn sun_radius_deg(s: &str) -> Result<f32, String> {
+    let v = cli::finite_non_negative_f32(s)?;
+    if v.to_radians() < 1.0 {
+        Ok(v)
+    } else {
+        Err(format!(
+            "must be from 0 to below {:.2} degrees (one radian), not {s}",
+            1f32.to_degrees()
+        ))
+    }
 }
 
 fn parse_path(s: &str) -> Result<RenderPath, String> {
@@ -107,9 +131,16 @@ fn run() -> anyhow::Result<()> {
     let mut world_desc = DemoWorldDesc::default();
     world_desc.rows = args.rows.unwrap_or(world_desc.rows);
     world_desc.columns = args.cols.unwrap_or(world_desc.columns);
+    world_desc.validate()?;
     let asset_dir = args.assets.asset_dir.unwrap_or_else(eval::asset_dir);
 
     let world = EvalWorld::demo_in(&asset_dir, &world_desc)?;
+    let camera = EvalWorld::demo_camera();
+    let keep = try_kept_by_culler(
+        camera.position,
+        &world.bounding_spheres(),
+        angle_deg.to_radians(),
+    )?;
     let ctx = Arc::new(VulkanContext::new(&ContextDesc::default())?);
     let info = ctx.info().clone();
     eprintln!(
@@ -120,13 +151,7 @@ fn run() -> anyhow::Result<()> {
         Some(p) => Renderer::with_path(ctx.clone(), p)?,
         None => Renderer::new(ctx.clone())?,
     };
-    let camera = EvalWorld::demo_camera();
     let meshes = world.mesh_descs();
-    let keep = kept_by_culler(
-        camera.position,
-        &world.bounding_spheres(),
-        angle_deg.to_radians(),
-    );
     let reference = TracedScene::reference(&ctx, &meshes, &world.instances)?;
     let managed = TracedScene::subset(&ctx, &meshes, &world.instances, |i| keep[i])?;
     let desc = RenderDesc {

@@ -95,11 +95,13 @@ struct Args {
     /// Directory of glTF models whose meshes join the compaction figures.
     #[arg(long, value_name = "DIR")]
     models: Option<PathBuf>,
-    /// Triangles per BLAS-build measurement (default 4,000,000; 1,000,000 with `--quick`).
-    #[arg(long, value_name = "N")]
+    /// Triangles per BLAS-build measurement (default 4,000,000; 1,000,000 with `--quick`;
+    /// 1 to 100,000,000: the manager measurement uploads a copy of a 100k-triangle mesh per
+    /// 100k triangles).
+    #[arg(long, value_name = "N", value_parser = count(1, MAX_TOTAL_TRIS))]
     total_tris: Option<usize>,
-    /// Timed repetitions; the median is reported (default 5; 3 with `--quick`).
-    #[arg(long, value_name = "N")]
+    /// Timed repetitions; the median is reported (default 5; 3 with `--quick`; 1 to 10,000).
+    #[arg(long, value_name = "N", value_parser = count(1, MAX_REPS))]
     reps: Option<usize>,
     /// The largest TLAS measured, in instances.
     #[arg(long, value_name = "N", default_value_t = 1_000_000)]
@@ -124,6 +126,16 @@ struct Args {
     /// without one, and in one call (GPU time, by TLAS size and batch), then stop.
     #[arg(long)]
     beside_only: bool,
+}
+
+/// The most triangles `--total-tris` takes.
+const MAX_TOTAL_TRIS: u64 = 100_000_000;
+/// The most repetitions `--reps` takes.
+const MAX_REPS: u64 = 10_000;
+
+/// `value_parser` of a `usize` count from `min` to `max`.
+fn count(min: u64, max: u64) -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::<usize>::new().range(min..=max)
 }
 
 impl Args {

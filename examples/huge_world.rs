@@ -6,6 +6,9 @@
 //!   that crosses the map: per-frame `update` p50/p99 against the default world's, and the
 //!   process's resident memory and open files sampled along the way (they must stay flat).
 //!
+//! The manager's flags (`--r1`, `--r2`, `--budget-mb`, culling, LOD, build budget) apply to
+//! both parts.
+//!
 //! ```text
 //! cargo run --release --example huge_world -- --help
 //! cargo run --release --example huge_world -- --part model --json
@@ -42,8 +45,8 @@ struct Flags {
     /// Which part to run.
     #[arg(long, value_enum, default_value_t = Part::Both)]
     part: Part,
-    /// Frames of the model part (after 300 warm-up frames).
-    #[arg(long, default_value_t = 2000)]
+    /// Frames of the model part (after 300 warm-up frames; 1 to 1,000,000).
+    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
     model_frames: u64,
     /// Runs of each part, alternating the default and the huge world; the ratios reported are
     /// the medians over the pairs (the machine's noise is of the size of the differences).
@@ -115,6 +118,10 @@ fn main() -> anyhow::Result<()> {
         "out/huge_world",
     );
     let own = &cli.own;
+    // The run's configuration, checked before either part runs (a bad flag, r1 above r2 say,
+    // is an error whichever part is asked for). The model part takes its manager
+    // configuration (radii, culling, LOD, budgets).
+    let base = cli.run.run_config()?;
     let mut s = Summary::default();
     if matches!(own.part, Part::Model | Part::Both) {
         for k in 0..own.repeat.max(1) {
@@ -123,7 +130,12 @@ fn main() -> anyhow::Result<()> {
                 ("million", SynthParams::million()),
             ] {
                 eprintln!("model backend: {name} (run {})", k + 1);
-                s.model.push(model_run(name, params, own.model_frames)?);
+                s.model.push(model_run(
+                    name,
+                    params,
+                    base.managed.clone(),
+                    own.model_frames,
+                )?);
             }
             let n = s.model.len();
             let (a, b) = (&s.model[n - 2].update_ms, &s.model[n - 1].update_ms);
@@ -132,7 +144,6 @@ fn main() -> anyhow::Result<()> {
         (s.model_ratio_p50, s.model_ratio_p99) = median_ratios(&s.model_ratios);
     }
     if matches!(own.part, Part::Stream | Part::Both) {
-        let base = cli.run.run_config()?;
         let pairs = (0..own.repeat.max(1))
             .flat_map(|_| [WorldPreset::default_world(), WorldPreset::large_world()]);
         for (i, preset) in pairs.enumerate() {
@@ -208,10 +219,16 @@ fn median_ratios(pairs: &[(f64, f64)]) -> (Option<f64>, Option<f64>) {
     (median(|p| p.0), median(|p| p.1))
 }
 
-/// The manager on the model backend over `params`'s world, camera on the synthetic loop.
-fn model_run(name: &str, params: SynthParams, frames: u64) -> anyhow::Result<WorldRun> {
+/// The manager configured by `config` on the model backend over `params`'s world, camera on
+/// the synthetic loop.
+fn model_run(
+    name: &str,
+    params: SynthParams,
+    config: Config,
+    frames: u64,
+) -> anyhow::Result<WorldRun> {
     let world = SynthWorld::generate(params);
-    let manager = AsManager::new(Config::default(), ModelBackend::lavapipe())?;
+    let manager = AsManager::new(config, ModelBackend::lavapipe())?;
     world.populate(&manager)?;
     let mut manager = manager;
     let mut times = Vec::with_capacity(frames as usize);

@@ -24,8 +24,8 @@ use serde::Serialize;
 /// The example's own flags.
 #[derive(Debug, clap::Args)]
 struct Flags {
-    /// Generated skinned characters (spread over a 3x3-level area, 214 m).
-    #[arg(long, default_value_t = 600)]
+    /// Generated skinned characters (spread over a 3x3-level area, 214 m; 1 to 100,000).
+    #[arg(long, default_value_t = 600, value_parser = clap::value_parser!(u32).range(1..=100_000))]
     characters: u32,
     /// Triangles refitted per frame at most (the manager's `max_refit_primitives`).
     #[arg(long)]
@@ -58,7 +58,6 @@ fn main() -> anyhow::Result<()> {
         "Hundreds of skinned characters near the camera: refit budget, rebuilds and quality.",
         "out/skinned_crowd",
     );
-    anyhow::ensure!(cli.own.characters > 0, "--characters must be at least 1");
     let mut config = cli.run.run_config()?;
     cli.run
         .use_preset(&mut config, WorldPreset::crowd(cli.own.characters));

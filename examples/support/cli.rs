@@ -73,41 +73,42 @@ pub struct RunArgs {
     /// what it does in an open world with regional assets (0: one shared library).
     #[arg(long, default_value_t = 0)]
     pub districts: u32,
-    /// Frames to run.
-    #[arg(long, default_value_t = 600)]
+    /// Frames to run (1 to 100,000,000).
+    #[arg(long, default_value_t = 600, value_parser = clap::value_parser!(u64).range(1..=MAX_FRAMES))]
     pub frames: u64,
     /// Policies to run side by side (comma-separated).
     #[arg(long, value_enum, value_delimiter = ',', default_values_t = [Policy::Managed, Policy::Naive, Policy::Seed])]
     pub policy: Vec<Policy>,
     /// BLAS memory budget of the managed policy, MB.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f64)]
     pub budget_mb: Option<f64>,
     /// Residency radius r1 (request), metres.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f32)]
     pub r1: Option<f32>,
     /// Residency radius r2 (keep), metres.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f32)]
     pub r2: Option<f32>,
-    /// Culling angle, degrees (projected angular radius below which an instance is culled).
-    #[arg(long)]
+    /// Culling angle, degrees (projected angular radius below which an instance is culled;
+    /// 0 to 90 exclusive, 0: no instance is culled for its size).
+    #[arg(long, value_parser = angle_deg)]
     pub cull_angle: Option<f32>,
     /// Culling distance, metres.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f32)]
     pub cull_distance: Option<f32>,
     /// LOD pixel error.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f32)]
     pub lod_px: Option<f32>,
     /// Estimated GPU ms of BLAS builds admitted per frame.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f32)]
     pub max_build_ms: Option<f32>,
     /// Triangles admitted for BLAS builds per frame.
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_build_tris: Option<u64>,
     /// BLAS builds admitted per frame (`BuildBudget::max_builds`).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_builds: Option<u32>,
     /// Streaming load radius, metres (what a raster engine would load).
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, default_value_t = 1000.0, value_parser = finite_positive_f32)]
     pub stream_radius: f32,
     /// Streaming loads in flight at most (`StreamConfig::max_in_flight`, default 64): how many
     /// finer LODs streaming can be fetching at once. With distinct meshes (`--districts`) at
@@ -130,7 +131,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub blocking_render: bool,
     /// Frames in flight (1 to 4).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
     pub frames_in_flight: u32,
     /// Deterministic: freeze the cost model, retire at frame minus frames in flight, apply
     /// loads a fixed number of frames after their request. Every figure but the timings is
@@ -153,8 +154,8 @@ pub struct RunArgs {
     pub tlas_max_updates: u32,
     /// With `--tlas-max-updates`: the fraction of the records that may join an updated TLAS
     /// in a parked slot away from where they stand before a frame builds
-    /// (`TlasUpdates::max_misplaced`; default 1/256).
-    #[arg(long)]
+    /// (`TlasUpdates::max_misplaced`; default 1/256; 0 to 1).
+    #[arg(long, value_parser = fraction_f32)]
     pub tlas_max_misplaced: Option<f32>,
     /// Build every policy's TLAS with PREFER_FAST_TRACE instead of the backend's default
     /// PREFER_FAST_BUILD (to compare build and trace times).
@@ -165,14 +166,15 @@ pub struct RunArgs {
     #[arg(long)]
     pub static_fast_trace: bool,
     /// Far-field cut: a proxy is shown once its error projects under this many pixels.
-    #[arg(long)]
+    #[arg(long, value_parser = finite_positive_f32)]
     pub far_px: Option<f32>,
     /// Far keep angle in degrees (0: off): a static instance beyond r2 that subtends more
-    /// stays in the TLAS beside the proxies (a landmark).
-    #[arg(long)]
+    /// stays in the TLAS beside the proxies (a landmark); below 90.
+    #[arg(long, value_parser = angle_deg)]
     pub far_keep_angle: Option<f32>,
-    /// Far keep range in metres: no landmark farther than this (default: unlimited).
-    #[arg(long)]
+    /// Far keep range in metres: no landmark farther than this (default: unlimited; `inf`
+    /// says so explicitly).
+    #[arg(long, value_parser = positive_f32_or_inf)]
     pub far_keep_range: Option<f32>,
     /// Skip the all-geometry reference (non-opaque as opaque).
     #[arg(long)]
@@ -180,20 +182,98 @@ pub struct RunArgs {
     /// Output directory (CSV, summary.json, maps, worst frames).
     #[arg(long, default_value = "out/flythrough")]
     pub out: PathBuf,
-    /// Top-down maps at this many frames.
-    #[arg(long, default_value_t = 3)]
+    /// Top-down maps at this many frames (0 to 1,000).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(0..=1_000))]
     pub maps: u32,
 }
 
-/// Parses `WxH` (both at least 1).
+/// The most frames `--frames` takes (a run of 600 frames is the default; this is days of
+/// frames at 60 Hz, and keeps the driver's frame arithmetic far from overflowing).
+pub const MAX_FRAMES: u64 = 100_000_000;
+
+/// Parses `WxH`: a size the renderer takes (`rtstream::renderer::check_size`), so that a size it
+/// refuses fails on the command line, before any GPU work.
 pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s.split_once('x').ok_or("expected WxH, e.g. 320x180")?;
     let w: u32 = w.parse().map_err(|e| format!("width: {e}"))?;
     let h: u32 = h.parse().map_err(|e| format!("height: {e}"))?;
-    if w == 0 || h == 0 {
-        return Err("the size must be at least 1x1".into());
-    }
+    rtstream::renderer::check_size(w, h).map_err(|e| e.to_string())?;
     Ok((w, h))
+}
+
+/// Parses a number (`nan`, `inf` and `-inf` included, which the callers then refuse).
+fn parse_number<T: std::str::FromStr>(s: &str) -> Result<T, String>
+where
+    T::Err: std::fmt::Display,
+{
+    s.trim().parse::<T>().map_err(|e| format!("{s:?}: {e}"))
+}
+
+/// `value_parser` of a flag that takes a finite number greater than 0 (a radius, a distance, a
+/// budget).
+pub fn finite_positive_f32(s: &str) -> Result<f32, String> {
+    let v: f32 = parse_number(s)?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("must be a finite number greater than 0, not {s}"))
+    }
+}
+
+/// [`finite_positive_f32`] for an `f64` flag.
+pub fn finite_positive_f64(s: &str) -> Result<f64, String> {
+    let v: f64 = parse_number(s)?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("must be a finite number greater than 0, not {s}"))
+    }
+}
+
+/// `value_parser` of a flag that takes a finite number of at least 0 (0 meaning "off" or
+/// "none").
+pub fn finite_non_negative_f32(s: &str) -> Result<f32, String> {
+    let v: f32 = parse_number(s)?;
+    if v.is_finite() && v >= 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("must be a finite number of at least 0, not {s}"))
+    }
+}
+
+/// `value_parser` of a number greater than 0 where `inf` means "unlimited" (NaN refused).
+pub fn positive_f32_or_inf(s: &str) -> Result<f32, String> {
+    let v: f32 = parse_number(s)?;
+    if v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!(
+            "must be a number greater than 0 (or inf: unlimited), not {s}"
+        ))
+    }
+}
+
+/// `value_parser` of a fraction: a number from 0 to 1.
+pub fn fraction_f32(s: &str) -> Result<f32, String> {
+    let v: f32 = parse_number(s)?;
+    if (0.0..=1.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("must be a fraction from 0 to 1, not {s}"))
+    }
+}
+
+/// `value_parser` of an angle in degrees from 0 (inclusive: "off") to 90 (exclusive), what the
+/// manager's angle thresholds accept (`Config::validate`: `[0, pi/2)` in radians).
+pub fn angle_deg(s: &str) -> Result<f32, String> {
+    let v: f32 = parse_number(s)?;
+    if v.is_finite() && v >= 0.0 && v.to_radians() < std::f32::consts::FRAC_PI_2 {
+        Ok(v)
+    } else {
+        Err(format!(
+            "must be an angle in degrees from 0 to below 90, not {s}"
+        ))
+    }
 }
 
 /// `--asset-dir`, for every example that generates a world (flattened into [`RunArgs`] and into

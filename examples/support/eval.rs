@@ -8,12 +8,12 @@ use std::path::PathBuf;
 
 use glam::{Mat4, Quat, Vec3};
 use rtstream::as_manager::backend::vulkan::SceneMesh;
-use rtstream::as_manager::config::{CullConfig, CullMode};
+use rtstream::as_manager::config::{Config, CullConfig, CullMode};
 use rtstream::as_manager::cull::InstanceCuller;
 use rtstream::renderer::reference::ReferenceScene;
 use rtstream::renderer::{cpu_reference, Camera, SceneInstance};
 use rtstream::streaming::{load_gltf, GltfScene, TriMesh, ASSIMP_GLTF2_DIR};
-use rtstream::Result;
+use rtstream::{Error, Result};
 
 /// The asset directory: `RTSTREAM_ASSETS` when set (e.g. a copy carried to the GPU machine,
 /// which has no assimp-testmodels), else Debian's ([`ASSIMP_GLTF2_DIR`]).
@@ -32,6 +32,10 @@ pub struct EvalWorld {
     pub instances: Vec<SceneInstance>,
 }
 
+/// The most models [`EvalWorld::demo`] places (`rows * columns`): 10,000 models are about
+/// 300,000 instances, which lavapipe builds and traces in well under a minute.
+pub const MAX_DEMO_MODELS: u32 = 10_000;
+
 /// Layout of [`EvalWorld::demo`].
 #[derive(Debug, Clone, Copy)]
 pub struct DemoWorldDesc {
@@ -43,6 +47,50 @@ pub struct DemoWorldDesc {
     pub first_row: f32,
     /// Each row is this many times farther than the previous one.
     pub row_growth: f32,
+}
+
+impl DemoWorldDesc {
+    /// Checks the layout: at least one row and one column, at most [`MAX_DEMO_MODELS`] models,
+    /// finite positive distances, and a farthest row at a finite distance.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: String| Err(Error::InvalidRun(format!("demo world: {what}")));
+        if self.rows == 0 || self.columns == 0 {
+            return bad(format!(
+                "{} rows of {} models (at least one of each)",
+                self.rows, self.columns
+            ));
+        }
+        if u64::from(self.rows) * u64::from(self.columns) > u64::from(MAX_DEMO_MODELS) {
+            return bad(format!(
+                "{} rows of {} models is more than {MAX_DEMO_MODELS} models",
+                self.rows, self.columns
+            ));
+        }
+        let pos = |v: f32| v.is_finite() && v > 0.0;
+        if !(pos(self.first_row) && pos(self.row_growth)) {
+            return bad(format!(
+                "first row at {} m, growing {}x a row (finite and > 0)",
+                self.first_row, self.row_growth
+            ));
+        }
+        let far = self.farthest_row();
+        if !(far * 4.0 + 50.0).is_finite() {
+            return bad(format!(
+                "the last of {} rows is at {far} m (not a finite distance)",
+                self.rows
+            ));
+        }
+        Ok(())
+    }
+
+    /// Distance of the last row.
+    fn farthest_row(&self) -> f32 {
+        let mut far = self.first_row;
+        for _ in 1..self.rows {
+            far *= self.row_growth;
+        }
+        far
+    }
 }
 
 impl Default for DemoWorldDesc {
@@ -109,16 +157,14 @@ impl EvalWorld {
     /// [`EvalWorld::demo`] with the models read from `dir` (a copy of assimp-testmodels' glTF2
     /// directory) instead of [`asset_dir`].
     pub fn demo_in(dir: &std::path::Path, desc: &DemoWorldDesc) -> Result<Self> {
+        desc.validate()?;
         let engine = load_gltf(dir.join("2CylinderEngine-glTF-Binary/2CylinderEngine.glb"))?;
         let cube = load_gltf(dir.join("BoxTextured-glTF/BoxTextured.gltf"))?;
         let morph = load_gltf(
             dir.join("glTF-Sample-Models/AnimatedMorphCube-glTF/AnimatedMorphCube.gltf"),
         )?;
         let mut world = Self::default();
-        let mut far = desc.first_row;
-        for _ in 1..desc.rows {
-            far *= desc.row_growth;
-        }
+        let far = desc.farthest_row();
         world.meshes.push(ground(far * 4.0 + 50.0));
         world.instances.push(SceneInstance {
             mesh: 0,
@@ -204,16 +250,33 @@ impl EvalWorld {
 /// `R^2 / |c - e|^2 < tan^2(angle)`) at `angle` radians from `eye`, for one frame: no near
 /// distance, no hysteresis. An instance whose sphere contains the eye is always kept. Returns
 /// the keep mask, one entry per `(centre, radius)` sphere.
+///
+/// # Panics
+/// On an angle the manager's configuration refuses (see [`try_kept_by_culler`]).
 pub fn kept_by_culler(eye: Vec3, spheres: &[(Vec3, f32)], angle: f32) -> Vec<bool> {
-    let culler = InstanceCuller::new(&CullConfig {
+    try_kept_by_culler(eye, spheres, angle).expect("a valid culling angle")
+}
+
+/// [`kept_by_culler`], or the manager's configuration error when it refuses `angle` (NaN,
+/// infinite, negative, or not below pi/2: `Config::validate`).
+pub fn try_kept_by_culler(eye: Vec3, spheres: &[(Vec3, f32)], angle: f32) -> Result<Vec<bool>> {
+    let cull = CullConfig {
         mode: CullMode::Small,
         min_angle: angle,
         near_distance: 0.0,
         hysteresis: 0.0,
         ..CullConfig::default()
-    });
-    spheres
+    };
+    // The culler checks nothing itself: the manager's configuration does, for the culler it
+    // runs.
+    Config {
+        cull: cull.clone(),
+        ..Config::default()
+    }
+    .validate()?;
+    let culler = InstanceCuller::new(&cull);
+    Ok(spheres
         .iter()
         .map(|&(c, r)| !culler.cull(r, c.distance(eye), false))
-        .collect()
+        .collect())
 }

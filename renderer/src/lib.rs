@@ -41,5 +41,8 @@ pub use camera::Camera;
 pub use error::{RenderError, Result};
 pub use frame::{save_rgba_png, side_by_side, Frame, PassStats, PixelHit};
 pub use metrics::{difference_image, FrameMetrics};
-pub use renderer::{InstanceShading, RenderDesc, RenderPath, Renderer};
+pub use renderer::{
+    check_size, InstanceShading, RenderDesc, RenderPath, Renderer, MAX_PIXELS, MAX_SAMPLES,
+    MAX_SIDE,
+};
 pub use traced_scene::{cpu_reference, SceneInstance, TracedScene};

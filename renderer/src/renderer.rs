@@ -336,17 +336,33 @@ pub(crate) fn read_frame(w: u32, h: u32, bufs: [&GpuBuffer; 4], ms: [f64; 3]) ->
     }
 }
 
-/// Checks what a render request asks for.
 /// The most shadow or AO samples a pixel a request may ask for.
 pub const MAX_SAMPLES: u32 = 1024;
 
-pub(crate) fn validate(desc: &RenderDesc) -> Result<()> {
-    let (w, h) = (desc.width, desc.height);
-    // 8 x 8 pixels a workgroup; 65,535 workgroups a dimension is every device's minimum.
-    let groups_ok = w.div_ceil(8) <= 65_535 && h.div_ceil(8) <= 65_535;
-    if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 26 || !groups_ok {
-        return Err(RenderError::InvalidRequest(format!("image size {w}x{h}")));
+/// The most pixels an image may have.
+pub const MAX_PIXELS: u64 = 1 << 26;
+
+/// The most pixels an image side may have: 65,535 workgroups of 8 pixels (every device's
+/// minimum dispatch limit).
+pub const MAX_SIDE: u32 = 65_535 * 8;
+
+/// Whether the renderer takes an image of `width` x `height` pixels: at least 1x1, at most
+/// [`MAX_SIDE`] a side and [`MAX_PIXELS`] in all (`InvalidRequest` otherwise). What every
+/// render and record checks; callers may check a size up front with it.
+pub fn check_size(width: u32, height: u32) -> Result<()> {
+    let (w, h) = (width, height);
+    if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE || u64::from(w) * u64::from(h) > MAX_PIXELS
+    {
+        return Err(RenderError::InvalidRequest(format!(
+            "image size {w}x{h}: 1x1 to {MAX_SIDE} pixels a side, at most {MAX_PIXELS} pixels"
+        )));
     }
+    Ok(())
+}
+
+/// Checks what a render request asks for.
+pub(crate) fn validate(desc: &RenderDesc) -> Result<()> {
+    check_size(desc.width, desc.height)?;
     let c = &desc.camera;
     let finite = c.position.is_finite() && c.forward.is_finite() && c.up.is_finite();
     if !(finite && c.fov_y > 0.0 && c.fov_y < std::f32::consts::PI) {

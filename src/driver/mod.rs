@@ -411,6 +411,12 @@ pub fn run_cached(
     if config.policies.is_empty() || config.frames == 0 {
         return Err(Error::InvalidRun("no policy or no frame to run".into()));
     }
+    if config.eval_every > 0 || config.render_every > 0 {
+        // Before any GPU work: a size the renderer refuses would otherwise fail only at the
+        // first render, with the run's buffers still alive.
+        let (w, h) = config.size;
+        crate::renderer::check_size(w, h).map_err(|e| Error::InvalidRun(e.to_string()))?;
+    }
     let started = Instant::now();
     let generated = Arc::new(prepare_world(&config.preset, &config.world_dir)?);
     let truth = GroundTruth::new(generated.clone());
