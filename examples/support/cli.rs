@@ -209,71 +209,75 @@ where
     s.trim().parse::<T>().map_err(|e| format!("{s:?}: {e}"))
 }
 
+/// Parses a number that `ok` accepts; otherwise the error says it `must` be what it is not.
+fn checked<T>(s: &str, ok: impl Fn(T) -> bool, must: &str) -> Result<T, String>
+where
+    T: std::str::FromStr + Copy,
+    T::Err: std::fmt::Display,
+{
+    let v: T = parse_number(s)?;
+    if ok(v) {
+        Ok(v)
+    } else {
+        Err(format!("must be {must}, not {s}"))
+    }
+}
+
 /// `value_parser` of a flag that takes a finite number greater than 0 (a radius, a distance, a
 /// budget).
 pub fn finite_positive_f32(s: &str) -> Result<f32, String> {
-    let v: f32 = parse_number(s)?;
-    if v.is_finite() && v > 0.0 {
-        Ok(v)
-    } else {
-        Err(format!("must be a finite number greater than 0, not {s}"))
-    }
+    checked(
+        s,
+        |v: f32| v.is_finite() && v > 0.0,
+        "a finite number greater than 0",
+    )
 }
 
 /// [`finite_positive_f32`] for an `f64` flag.
 pub fn finite_positive_f64(s: &str) -> Result<f64, String> {
-    let v: f64 = parse_number(s)?;
-    if v.is_finite() && v > 0.0 {
-        Ok(v)
-    } else {
-        Err(format!("must be a finite number greater than 0, not {s}"))
-    }
+    checked(
+        s,
+        |v: f64| v.is_finite() && v > 0.0,
+        "a finite number greater than 0",
+    )
 }
 
 /// `value_parser` of a flag that takes a finite number of at least 0 (0 meaning "off" or
 /// "none").
 pub fn finite_non_negative_f32(s: &str) -> Result<f32, String> {
-    let v: f32 = parse_number(s)?;
-    if v.is_finite() && v >= 0.0 {
-        Ok(v)
-    } else {
-        Err(format!("must be a finite number of at least 0, not {s}"))
-    }
+    checked(
+        s,
+        |v: f32| v.is_finite() && v >= 0.0,
+        "a finite number of at least 0",
+    )
 }
 
 /// `value_parser` of a number greater than 0 where `inf` means "unlimited" (NaN refused).
 pub fn positive_f32_or_inf(s: &str) -> Result<f32, String> {
-    let v: f32 = parse_number(s)?;
-    if v > 0.0 {
-        Ok(v)
-    } else {
-        Err(format!(
-            "must be a number greater than 0 (or inf: unlimited), not {s}"
-        ))
-    }
+    checked(
+        s,
+        |v: f32| v > 0.0,
+        "a number greater than 0 (or inf: unlimited)",
+    )
 }
 
 /// `value_parser` of a fraction: a number from 0 to 1.
 pub fn fraction_f32(s: &str) -> Result<f32, String> {
-    let v: f32 = parse_number(s)?;
-    if (0.0..=1.0).contains(&v) {
-        Ok(v)
-    } else {
-        Err(format!("must be a fraction from 0 to 1, not {s}"))
-    }
+    checked(
+        s,
+        |v: f32| (0.0..=1.0).contains(&v),
+        "a fraction from 0 to 1",
+    )
 }
 
 /// `value_parser` of an angle in degrees from 0 (inclusive: "off") to 90 (exclusive), what the
 /// manager's angle thresholds accept (`Config::validate`: `[0, pi/2)` in radians).
 pub fn angle_deg(s: &str) -> Result<f32, String> {
-    let v: f32 = parse_number(s)?;
-    if v.is_finite() && v >= 0.0 && v.to_radians() < std::f32::consts::FRAC_PI_2 {
-        Ok(v)
-    } else {
-        Err(format!(
-            "must be an angle in degrees from 0 to below 90, not {s}"
-        ))
-    }
+    checked(
+        s,
+        |v: f32| v.is_finite() && v >= 0.0 && v.to_radians() < std::f32::consts::FRAC_PI_2,
+        "an angle in degrees from 0 to below 90",
+    )
 }
 
 /// `--asset-dir`, for every example that generates a world (flattened into [`RunArgs`] and into

@@ -94,10 +94,7 @@ impl FrameCmd {
     /// record into: one of another device, or one no longer recording this frame. Every
     /// recording call checks it before it records anything.
     pub fn check(&self, ctx: &VulkanContext) -> VkResult<()> {
-        use ash::vk::Handle;
-        let why = if self.device != vk::Device::null()
-            && self.device.as_raw() != ctx.device.handle().as_raw()
-        {
+        let why = if self.device != vk::Device::null() && self.device != ctx.device.handle() {
             "belongs to another device"
         } else if !self.is_recording() {
             "is no longer recording it (submitted, or abandoned by a later begin)"
