@@ -113,7 +113,7 @@ pub struct RunArgs {
     /// Streaming loads in flight at most (`StreamConfig::max_in_flight`, default 64): how many
     /// finer LODs streaming can be fetching at once. With distinct meshes (`--districts`) at
     /// the fly-through's speed, the default holds LODs back (docs/STRESS.md).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub loads_in_flight: Option<usize>,
     /// Score every K-th frame against the full-world ground truth (0: never). The default
     /// scores 33 frames of the 600.
@@ -443,7 +443,7 @@ impl RunArgs {
         c.stream.load_radius = self.stream_radius;
         c.stream.unload_radius = self.stream_radius + 100.0;
         if let Some(n) = self.loads_in_flight {
-            c.stream.max_in_flight = n.max(1);
+            c.stream.max_in_flight = n;
         }
         let m = &mut c.managed;
         if let Some(mb) = self.budget_mb {

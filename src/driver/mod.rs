@@ -411,6 +411,13 @@ pub fn run_cached(
     if config.policies.is_empty() || config.frames == 0 {
         return Err(Error::InvalidRun("no policy or no frame to run".into()));
     }
+    // Before the backends and renderers exist (they were created, then refused).
+    if config.frames_in_flight == 0 || config.frames_in_flight > RECORDED_SETS {
+        return Err(Error::InvalidRun(format!(
+            "frames in flight {} (1 to {RECORDED_SETS})",
+            config.frames_in_flight
+        )));
+    }
     if config.eval_every > 0 || config.render_every > 0 {
         // Before any GPU work: a size the renderer refuses would otherwise fail only at the
         // first render, with the run's buffers still alive.
@@ -511,12 +518,6 @@ pub fn run_cached(
         for _ in &policies {
             renderers.push(Renderer::new(ctx.clone())?);
         }
-    }
-    if config.frames_in_flight == 0 || config.frames_in_flight > RECORDED_SETS {
-        return Err(Error::InvalidRun(format!(
-            "frames in flight {} (1 to {RECORDED_SETS})",
-            config.frames_in_flight
-        )));
     }
     // The frame loop: one submission per frame holding every policy's work and the scored
     // renders; `begin` waits only for the frame `frames_in_flight` frames back.
