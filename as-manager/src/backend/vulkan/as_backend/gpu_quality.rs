@@ -14,7 +14,7 @@
 //! a spatially coherent order; what the ratio measures, boxes of triangles that were together
 //! at the build growing apart, is the same.
 
-use crate::backend::vulkan::render::compute::create_compute_pipeline;
+use crate::backend::vulkan::device::pipeline::compute::create_compute_pipeline;
 
 use super::*;
 use crate::mesh::{DeviceVertices, IndexType, VertexFormat};

@@ -8,9 +8,9 @@ use crate::backend::vulkan::device::accel::{
     align_up, AccelStruct, BlasBuildInput, TlasBuildInput, TriangleGeometry, BUILD_INPUT_USAGE,
 };
 use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::geometry::GpuGeometry;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
 use crate::backend::vulkan::error::VkResult;
-use crate::backend::vulkan::render::geometry::GpuGeometry;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 
 /// Runs `record` between two timestamps in one submit and returns the GPU milliseconds.

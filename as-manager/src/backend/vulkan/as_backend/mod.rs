@@ -81,32 +81,6 @@ use crate::backend::{
 };
 use crate::record::TlasInstance;
 
-/// Build flags of a BLAS of `class` with the backend's default preference for static ones
-/// (see [`VulkanBackendDesc::static_blas_prefer`]): static BLASes PREFER_FAST_BUILD with
-/// ALLOW_COMPACTION, skinned ones PREFER_FAST_BUILD with ALLOW_UPDATE.
-pub fn class_flags(class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
-    flags_for(
-        class,
-        vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD,
-    )
-}
-
-/// Build flags of a BLAS of `class`, static ones preferring `static_prefer`.
-fn flags_for(
-    class: BlasClass,
-    static_prefer: vk::BuildAccelerationStructureFlagsKHR,
-) -> vk::BuildAccelerationStructureFlagsKHR {
-    match class {
-        BlasClass::Static => {
-            static_prefer | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
-        }
-        BlasClass::Skinned => {
-            vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
-                | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
-        }
-    }
-}
-
 /// Creation parameters of a [`VulkanBackend`].
 #[derive(Debug, Clone)]
 pub struct VulkanBackendDesc {

@@ -4,6 +4,7 @@
 
 use super::tlas_slots::SlotKeeper;
 use super::*;
+use crate::backend::vulkan::device::accel::flags_for;
 
 /// Build flags of the parking BLAS.
 const PARKING_FLAGS: vk::BuildAccelerationStructureFlagsKHR =

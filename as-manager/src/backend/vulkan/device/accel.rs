@@ -9,6 +9,7 @@ pub use crate::backend::vulkan::device::accel_object::{
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::error::VkResult;
+use crate::backend::BlasClass;
 
 /// Usage of buffers read by acceleration-structure builds (vertices, indices, instances).
 pub const BUILD_INPUT_USAGE: vk::BufferUsageFlags = vk::BufferUsageFlags::from_raw(
@@ -16,6 +17,32 @@ pub const BUILD_INPUT_USAGE: vk::BufferUsageFlags = vk::BufferUsageFlags::from_r
         | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS.as_raw()
         | vk::BufferUsageFlags::STORAGE_BUFFER.as_raw(),
 );
+
+/// Build flags of a BLAS of `class` with the backend's default preference for static ones
+/// (see [`VulkanBackendDesc::static_blas_prefer`](crate::backend::vulkan::VulkanBackendDesc::static_blas_prefer)): static BLASes PREFER_FAST_BUILD with
+/// ALLOW_COMPACTION, skinned ones PREFER_FAST_BUILD with ALLOW_UPDATE.
+pub fn class_flags(class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
+    flags_for(
+        class,
+        vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD,
+    )
+}
+
+/// Build flags of a BLAS of `class`, static ones preferring `static_prefer`.
+pub(crate) fn flags_for(
+    class: BlasClass,
+    static_prefer: vk::BuildAccelerationStructureFlagsKHR,
+) -> vk::BuildAccelerationStructureFlagsKHR {
+    match class {
+        BlasClass::Static => {
+            static_prefer | vk::BuildAccelerationStructureFlagsKHR::ALLOW_COMPACTION
+        }
+        BlasClass::Skinned => {
+            vk::BuildAccelerationStructureFlagsKHR::PREFER_FAST_BUILD
+                | vk::BuildAccelerationStructureFlagsKHR::ALLOW_UPDATE
+        }
+    }
+}
 
 /// Rounds `v` up to a multiple of `align` (a power of two or any positive number).
 pub fn align_up(v: u64, align: u64) -> u64 {

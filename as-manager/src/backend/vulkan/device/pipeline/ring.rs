@@ -9,11 +9,11 @@ use ash::vk;
 
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
-use crate::backend::vulkan::device::query::QueryPool;
-use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
-use crate::backend::vulkan::render::binding::{
+use crate::backend::vulkan::device::pipeline::binding::{
     descriptor_type, write_descriptor_set, BindingKind, Bound,
 };
+use crate::backend::vulkan::device::query::QueryPool;
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 /// A pipeline's descriptor-set layout (set 0: `bindings` in list order, seen by `stages`) and
 /// its pipeline layout (that set, and `push_size` bytes of push constants for `stages`). On

@@ -7,12 +7,12 @@ use ash::vk;
 
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
-use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
-use crate::backend::vulkan::render::binding::{BindingKind, Bound};
-use crate::backend::vulkan::render::ring::{
+use crate::backend::vulkan::device::pipeline::binding::{BindingKind, Bound};
+use crate::backend::vulkan::device::pipeline::ring::{
     check_timer, create_layouts, destroy_pipeline, record_passes, Pass, PassTimer, Recorder,
     SetRing,
 };
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 /// A compute pipeline with one descriptor set and push constants.
 #[derive(Debug)]

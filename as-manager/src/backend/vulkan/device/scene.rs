@@ -1,18 +1,20 @@
 //! A static scene: every mesh's BLAS built in one batch, and a TLAS over given instances.
 //!
-//! This is the "build everything" path: the thin slice, and the renderer's reference mode (every
-//! instance, finest LOD, no culling). The managed path goes through the manager's backend trait.
+//! This is the "build everything" path on the device layer: the thin slice, and the renderer's
+//! reference scenes (`renderer::TracedScene`: every instance, finest LOD, no culling). The
+//! managed path goes through the manager's backend trait.
 
 use std::time::Instant;
 
 use ash::vk;
 
-use crate::backend::vulkan::as_backend::class_flags;
-use crate::backend::vulkan::device::accel::{AccelStruct, TriangleGeometry, BUILD_INPUT_USAGE};
+use crate::backend::vulkan::device::accel::{
+    class_flags, AccelStruct, TriangleGeometry, BUILD_INPUT_USAGE,
+};
 use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
+use crate::backend::vulkan::device::geometry::{GpuGeometry, SceneMesh};
 use crate::backend::vulkan::error::{caller_index, VkResult, VulkanError};
-use crate::backend::vulkan::render::geometry::{GpuGeometry, SceneMesh};
 use crate::backend::BlasClass;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
 
@@ -71,8 +73,9 @@ pub struct StaticScene {
 }
 
 impl StaticScene {
-    /// Uploads the meshes, builds all BLASes in one command (PREFER_FAST_TRACE, opaque where
-    /// marked) and a TLAS over `instances` (opaque instances get FORCE_OPAQUE).
+    /// Uploads the meshes, builds all BLASes in one command (the backend's static flags,
+    /// [`class_flags`]`(BlasClass::Static)`; opaque where marked) and a PREFER_FAST_TRACE TLAS
+    /// over `instances` (opaque instances get FORCE_OPAQUE).
     pub fn build(
         ctx: &VulkanContext,
         meshes: &[SceneMesh<'_>],

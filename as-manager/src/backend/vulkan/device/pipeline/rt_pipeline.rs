@@ -13,12 +13,12 @@ use crate::backend::vulkan::device::accel::align_up;
 use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
-use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
-use crate::backend::vulkan::render::binding::{BindingKind, Bound};
-use crate::backend::vulkan::render::ring::{
+use crate::backend::vulkan::device::pipeline::binding::{BindingKind, Bound};
+use crate::backend::vulkan::device::pipeline::ring::{
     check_timer, create_layouts, destroy_pipeline, record_passes, Pass, PassTimer, Recorder,
     SetRing,
 };
+use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 
 /// SPIR-V of the three shaders (entry point `main` in each).
 #[derive(Debug, Clone, Copy)]
