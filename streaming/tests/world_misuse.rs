@@ -19,13 +19,14 @@
 //! handed out NaN bounds (`InvalidScene` now); an eviction factor of 1 or below (or NaN)
 //! churned finer LODs every frame (`StreamConfig::validate` refuses it); `WorldPreset::crowd`
 //! and `small` overflowed on absurd sizes; a world with no instances or no levels baked files
-//! its own readers rejected (empty bounds now read back). Still open, ignored: every reload of
-//! a glTF level takes new mesh slots. `max_in_flight` capping only finer-LOD loads is now what
-//! its documentation says (capping level loads would change what streams when).
+//! its own readers rejected (empty bounds now read back); every reload of a glTF level took new
+//! mesh slots (a glTF level now keeps the mesh ids of its first load, checked also for a file
+//! that changes its mesh count between loads). `max_in_flight` capping only finer-LOD loads is
+//! now what its documentation says (capping level loads would change what streams when).
 
 mod common;
 
-use std::collections::{BTreeMap, BTreeSet, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -1269,7 +1270,6 @@ fn gltf_level_with_a_huge_scale_hands_out_no_nan() {
 /// A glTF level streaming in and out a hundred times: each time the same content; the world
 /// does not grow with the cycles (mesh ids stay bounded, nothing stays resident).
 #[test]
-#[ignore = "known defect: every load of a glTF level appends new mesh slots (World::level_arrived); ids and per-frame work grow with each in/out cycle"]
 fn gltf_level_in_and_out_does_not_grow_the_world() {
     let config = StreamConfig::within(10.0, 20.0);
     let mut w = World::empty(config).expect("empty world");
@@ -1299,6 +1299,66 @@ fn gltf_level_in_and_out_does_not_grow_the_world() {
         let st = w.stats();
         assert_eq!((st.resident_lods, st.mesh_bytes), (0, 0), "{st:?}");
     }
+}
+
+/// A glTF level whose file changes on disk between loads (one mesh, then many, then one, then
+/// many again): each load reuses the ids of the loads before it, in file order, and takes new
+/// ones only for meshes beyond them; whatever the file no longer has holds nothing, and the
+/// world's counters agree with the events after every load and unload.
+#[test]
+fn gltf_level_whose_file_changes_between_loads_reuses_its_mesh_ids() {
+    let dir = Scratch(common::scratch("misuse-gltf-swap"));
+    let file = dir.join("level.glb");
+    let mut w = World::empty(StreamConfig::within(10.0, 20.0)).expect("empty world");
+    let id = w.add_gltf_level(&file, Mat4::IDENTITY);
+    let mut t = Tracker::default();
+    let mut bytes: HashMap<(WorldMeshId, u8), usize> = HashMap::new();
+    // Far beyond the larger model's extent (its bounds are the level's once it has loaded).
+    let (here, away) = ([focus(0.0, 0.0)], [focus(1e5, 0.0)]);
+    let mut seen: Vec<BTreeSet<WorldMeshId>> = Vec::new();
+    for (cycle, rel) in [BOX, ENGINE, BOX, ENGINE].into_iter().enumerate() {
+        std::fs::copy(gltf(rel), &file).expect("copy the glTF model");
+        let ev = settle(&mut w, 2 * cycle as u64, &here);
+        for e in &ev {
+            match e {
+                WorldEvent::MeshLodLoaded {
+                    mesh,
+                    lod,
+                    geometry,
+                    ..
+                } => {
+                    bytes.insert((*mesh, *lod), geometry.byte_size());
+                }
+                WorldEvent::MeshLodEvicted { mesh, lod } => {
+                    bytes.remove(&(*mesh, *lod));
+                }
+                _ => {}
+            }
+        }
+        t.eat(&ev);
+        assert!(w.is_loaded(id), "{rel}: {:?}", t.failures);
+        t.agrees(&w);
+        assert_eq!(w.stats().mesh_bytes, bytes.values().sum::<usize>(), "{rel}");
+        seen.push(t.resident.iter().map(|(m, _)| *m).collect());
+        t.eat(&settle(&mut w, 2 * cycle as u64 + 1, &away));
+        assert!(!w.is_loaded(id));
+        t.agrees(&w);
+        let st = w.stats();
+        assert_eq!((st.resident_lods, st.mesh_bytes), (0, 0), "{rel}: {st:?}");
+        bytes.clear();
+    }
+    let (one, many) = (&seen[0], &seen[1]);
+    assert_eq!(one.len(), 1, "{BOX} has one mesh: {one:?}");
+    assert!(many.len() > 1, "{ENGINE} has several meshes: {many:?}");
+    assert!(one.is_subset(many), "{one:?} not reused in {many:?}");
+    assert_eq!(&seen[2], one, "the smaller file again: its first id");
+    assert_eq!(&seen[3], many, "the larger file again: the same ids");
+    let top = many.iter().map(|m| m.0).max().unwrap_or(0) as usize;
+    assert!(
+        top < many.len(),
+        "ids up to {top} for {} meshes",
+        many.len()
+    );
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -81,6 +81,11 @@ struct LevelSlot {
     state: LevelState,
     /// Loads that failed in a row (reset by a success or by leaving the unload radius).
     failures: u32,
+    /// A glTF level's mesh ids, in the file's mesh order, given on its first load: every
+    /// later load refills these slots (new ones only for meshes beyond them, when the file
+    /// changed), so a level streaming in and out does not grow the world. Empty for baked
+    /// levels (their ids are the manifest's).
+    gltf_meshes: Vec<WorldMeshId>,
 }
 
 #[derive(Debug)]
@@ -241,6 +246,7 @@ impl World {
                 source: LevelSource::Baked(PathBuf::from(&l.file)),
                 state: LevelState::Unloaded,
                 failures: 0,
+                gltf_meshes: Vec::new(),
             })
             .collect();
         let meshes = m
@@ -310,7 +316,9 @@ impl World {
 
     /// Registers a glTF 2.0 file as a level placed by `transform`; it streams in and out like any
     /// other level (its bounds are the placement point until it has loaded). Its meshes get new
-    /// ids and their whole LOD chains arrive with it.
+    /// ids on its first load, which every later load reuses (a file changed on disk keeps the
+    /// ids of its first meshes, in file order, and gets new ones only for meshes beyond them);
+    /// their whole LOD chains arrive with it.
     pub fn add_gltf_level(&mut self, path: impl AsRef<Path>, transform: Mat4) -> LevelId {
         let p = transform.w_axis.truncate();
         let id = LevelId(self.levels.len() as u32);
@@ -322,6 +330,7 @@ impl World {
             },
             state: LevelState::Unloaded,
             failures: 0,
+            gltf_meshes: Vec::new(),
         });
         id
     }
@@ -847,11 +856,10 @@ impl World {
                 (kept, ids)
             }
             LoadedLevel::Gltf { meshes, instances } => {
-                let base = self.meshes.len() as u32;
                 let mut ids = Vec::with_capacity(meshes.len());
                 let mut bounds = Vec::with_capacity(meshes.len());
                 for (k, m) in meshes.into_iter().enumerate() {
-                    let id = WorldMeshId(base + k as u32);
+                    let id = self.gltf_mesh_slot(level, k, ev);
                     let n = m.lods.len() as u8;
                     // Coarsest first, as for baked levels.
                     for (lod, g) in m.lods.iter().enumerate().rev() {
@@ -859,18 +867,23 @@ impl World {
                         self.mesh_bytes += g.byte_size();
                     }
                     tracing::trace!(mesh = id.0, name = %m.name, "glTF level mesh");
-                    self.meshes.push(MeshSlot {
-                        lods: m.lods.iter().map(|g| (g.byte_size(), g.error)).collect(),
-                        streamed: false,
-                        refs: 0,
-                        landmark_refs: 0,
-                        landmark_load: None,
-                        failed: vec![false; m.lods.len()],
-                        resident: m.lods.into_iter().map(Some).collect(),
-                        pending: None,
-                    });
+                    let slot = &mut self.meshes[id.0 as usize];
+                    // Its refs (and landmark refs, which only baked meshes get) stay as
+                    // released: 0, the level's own count is added below.
+                    slot.lods = m.lods.iter().map(|g| (g.byte_size(), g.error)).collect();
+                    slot.streamed = false;
+                    slot.landmark_load = None;
+                    slot.failed = vec![false; m.lods.len()];
+                    slot.resident = m.lods.into_iter().map(Some).collect();
+                    slot.pending = None;
                     ids.push(id);
                     bounds.push(m.bounds);
+                }
+                // Ids of meshes the file no longer has (it changed on disk) stay the level's
+                // for a later load, holding nothing.
+                for k in ids.len()..self.levels[level.0 as usize].gltf_meshes.len() {
+                    let id = self.levels[level.0 as usize].gltf_meshes[k];
+                    self.release_mesh(id, false, ev);
                 }
                 let inst = instances
                     .into_iter()
@@ -925,6 +938,34 @@ impl World {
         self.skinned.insert(level.0, skinned);
         let slot = &mut self.levels[level.0 as usize];
         slot.state = LevelState::Loaded { instances, meshes };
+    }
+
+    /// The id of mesh `k` (in file order) of glTF level `level`: the one it got on an earlier
+    /// load, emptied of anything still resident (nothing is, once the level unloaded: its
+    /// meshes are its own), or a new slot the level keeps for its later loads.
+    fn gltf_mesh_slot(
+        &mut self,
+        level: LevelId,
+        k: usize,
+        ev: &mut Vec<WorldEvent>,
+    ) -> WorldMeshId {
+        if let Some(&id) = self.levels[level.0 as usize].gltf_meshes.get(k) {
+            self.release_mesh(id, false, ev);
+            return id;
+        }
+        let id = WorldMeshId(self.meshes.len() as u32);
+        self.meshes.push(MeshSlot {
+            lods: Vec::new(),
+            streamed: false,
+            refs: 0,
+            landmark_refs: 0,
+            landmark_load: None,
+            resident: Vec::new(),
+            pending: None,
+            failed: Vec::new(),
+        });
+        self.levels[level.0 as usize].gltf_meshes.push(id);
+        id
     }
 
     fn residency(&mut self, cameras: &[StreamFocus], ev: &mut Vec<WorldEvent>) {
