@@ -1,4 +1,5 @@
-//! The Vulkan backend (ash), in two layers, each in its own folder, under the renderer's:
+//! The Vulkan backend (ash), in two layers, each in its own folder (the renderer is a third,
+//! in its own crate, on the first):
 //! - `device/`: the device layer. The context (created here, or imported from the engine),
 //!   buffers, query pools, acceleration-structure objects and barriers, debug names, and the
 //!   safe wrappers the layers above build on: GPU geometry, compute and ray-tracing pipelines

@@ -19,8 +19,10 @@ pub const BUILD_INPUT_USAGE: vk::BufferUsageFlags = vk::BufferUsageFlags::from_r
 );
 
 /// Build flags of a BLAS of `class` with the backend's default preference for static ones
-/// (see [`VulkanBackendDesc::static_blas_prefer`](crate::backend::vulkan::VulkanBackendDesc::static_blas_prefer)): static BLASes PREFER_FAST_BUILD with
+/// (see [`VulkanBackendDesc::static_blas_prefer`]): static BLASes PREFER_FAST_BUILD with
 /// ALLOW_COMPACTION, skinned ones PREFER_FAST_BUILD with ALLOW_UPDATE.
+///
+/// [`VulkanBackendDesc::static_blas_prefer`]: crate::backend::vulkan::VulkanBackendDesc::static_blas_prefer
 pub fn class_flags(class: BlasClass) -> vk::BuildAccelerationStructureFlagsKHR {
     flags_for(
         class,
