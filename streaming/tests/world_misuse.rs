@@ -35,7 +35,8 @@ use std::time::Duration;
 use glam::{Mat4, Quat, Vec3};
 use rtstream_streaming::{
     bake, generate, GeneratedWorld, Instance, LevelId, MeshLod, ProxyId, SettleTimeout,
-    StreamConfig, StreamFocus, StreamingError, World, WorldEvent, WorldMeshId, WorldPreset,
+    StreamConfig, StreamFocus, StreamingError, World, WorldEvent, WorldInstanceId, WorldMeshId,
+    WorldPreset,
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -1268,7 +1269,9 @@ fn gltf_level_with_a_huge_scale_hands_out_no_nan() {
 }
 
 /// A glTF level streaming in and out a hundred times: each time the same content; the world
-/// does not grow with the cycles (mesh ids stay bounded, nothing stays resident).
+/// does not grow with the cycles (mesh ids stay bounded, nothing stays resident), and every
+/// load hands out the first load's instance ids (each load took new ones, wrapping into the
+/// baked ids after 2^31 instances loaded).
 #[test]
 fn gltf_level_in_and_out_does_not_grow_the_world() {
     let config = StreamConfig::within(10.0, 20.0);
@@ -1277,12 +1280,20 @@ fn gltf_level_in_and_out_does_not_grow_the_world() {
     let mut t = Tracker::default();
     let (here, away) = ([focus(0.0, 0.0)], [focus(1000.0, 0.0)]);
     let mut first_meshes = None;
+    let mut first_instances: Option<Vec<WorldInstanceId>> = None;
     let mut max_mesh = 0;
     for cycle in 0..100u64 {
         let ev = settle(&mut w, 2 * cycle, &here);
         for e in &ev {
-            if let WorldEvent::MeshLodLoaded { mesh, .. } = e {
-                max_mesh = max_mesh.max(mesh.0);
+            match e {
+                WorldEvent::MeshLodLoaded { mesh, .. } => max_mesh = max_mesh.max(mesh.0),
+                WorldEvent::LevelLoaded { instances, .. } => {
+                    let ids: Vec<WorldInstanceId> = instances.iter().map(|i| i.id).collect();
+                    assert!(!ids.is_empty(), "cycle {cycle}: a level of no instances");
+                    let first = first_instances.get_or_insert_with(|| ids.clone());
+                    assert_eq!(&ids, first, "cycle {cycle}: instance ids changed");
+                }
+                _ => {}
             }
         }
         t.eat(&ev);

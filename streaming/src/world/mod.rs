@@ -86,6 +86,10 @@ struct LevelSlot {
     /// changed), so a level streaming in and out does not grow the world. Empty for baked
     /// levels (their ids are the manifest's).
     gltf_meshes: Vec<WorldMeshId>,
+    /// A glTF level's instance ids, in the file's instance order, given on its first load
+    /// and reused by every later one (as `gltf_meshes`), so a level streaming in and out
+    /// keeps its instances' ids and does not use up the dynamic id range.
+    gltf_instances: Vec<WorldInstanceId>,
 }
 
 #[derive(Debug)]
@@ -247,6 +251,7 @@ impl World {
                 state: LevelState::Unloaded,
                 failures: 0,
                 gltf_meshes: Vec::new(),
+                gltf_instances: Vec::new(),
             })
             .collect();
         let meshes = m
@@ -331,6 +336,7 @@ impl World {
             state: LevelState::Unloaded,
             failures: 0,
             gltf_meshes: Vec::new(),
+            gltf_instances: Vec::new(),
         });
         id
     }
@@ -887,9 +893,9 @@ impl World {
                 }
                 let inst = instances
                     .into_iter()
-                    .map(|i| {
-                        let id = WorldInstanceId(self.next_dynamic_instance);
-                        self.next_dynamic_instance = self.next_dynamic_instance.wrapping_add(1);
+                    .enumerate()
+                    .map(|(k, i)| {
+                        let id = self.gltf_instance_id(level, k);
                         Instance::new(
                             id,
                             ids[i.mesh],
@@ -965,6 +971,25 @@ impl World {
             failed: Vec::new(),
         });
         self.levels[level.0 as usize].gltf_meshes.push(id);
+        id
+    }
+
+    /// The id of instance `k` (in file order) of glTF level `level`: the one it got on an
+    /// earlier load, or the next dynamic id, which the level keeps for its later loads.
+    ///
+    /// Dynamic ids start at 2^31, past a baked world's (those count from 0; 2^31 baked
+    /// instances would take hundreds of GB). They are only taken by instances that no glTF
+    /// level had before, so running out needs 2^31 distinct glTF instances, whose id lists
+    /// alone would hold 8 GB. (Before, every load took new ids: a level of 10,000 instances
+    /// streaming in and out wrapped into the baked range after about 200,000 loads.)
+    fn gltf_instance_id(&mut self, level: LevelId, k: usize) -> WorldInstanceId {
+        let ids = &mut self.levels[level.0 as usize].gltf_instances;
+        if let Some(&id) = ids.get(k) {
+            return id;
+        }
+        let id = WorldInstanceId(self.next_dynamic_instance);
+        self.next_dynamic_instance = self.next_dynamic_instance.wrapping_add(1);
+        ids.push(id);
         id
     }
 
