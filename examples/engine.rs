@@ -203,7 +203,7 @@ fn run(args: Args) -> anyhow::Result<()> {
         e.vertices = vertices;
         e.indices = indices;
     }
-    let raw = backend.resolve_tlas(tlas)?;
+    let traced = backend.resolve_tlas(tlas)?;
     let desc = RenderDesc {
         sun_dir: Vec3::new(0.4, 1.0, 0.3),
         primitive_bases: backend.primitive_bases(tlas),
@@ -212,7 +212,7 @@ fn run(args: Args) -> anyhow::Result<()> {
     let mut renderer = Renderer::new(ctx.clone())?;
     // The first dispatch of a new pipeline pays for shader compilation: warm up, then time.
     renderer.render(
-        raw,
+        traced,
         &shading,
         &RenderDesc {
             width: 64,
@@ -220,7 +220,7 @@ fn run(args: Args) -> anyhow::Result<()> {
             ..desc
         },
     )?;
-    let image = renderer.render(raw, &shading, &desc)?;
+    let image = renderer.render(traced, &shading, &desc)?;
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }

@@ -757,10 +757,10 @@ fn main() -> anyhow::Result<()> {
                 50f32.to_radians(),
             );
             let desc = rtstream::renderer::RenderDesc::new(w, h, cam);
-            renderer.render(scene.tlas.raw, &shading, &desc)?; // warm-up
+            renderer.render(scene.tlas_ref(), &shading, &desc)?; // warm-up
             let mut frames = Vec::new();
             for _ in 0..reps {
-                frames.push(renderer.render(scene.tlas.raw, &shading, &desc)?);
+                frames.push(renderer.render(scene.tlas_ref(), &shading, &desc)?);
             }
             frames.sort_by(|a, b| a.render_ms.total_cmp(&b.render_ms));
             let f = &frames[nearest_rank(frames.len(), 0.5)]; // the median frame

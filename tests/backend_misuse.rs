@@ -52,10 +52,10 @@ fn trace(
 ) -> Vec<(u32, u32)> {
     b.wait_idle().expect("frames complete");
     let table = common::shading_table(b, records, 4);
-    let raw = b.tlas(tlas).expect("TLAS of a frame in flight");
+    let traced = b.tlas(tlas).expect("TLAS of a frame in flight");
     let cam = Camera::look_at(Vec3::new(0.0, 15.0, -8.0), Vec3::ZERO, 60f32.to_radians());
     let f = renderer
-        .render(raw, &table, &RenderDesc::new(24, 16, cam))
+        .render(traced, &table, &RenderDesc::new(24, 16, cam))
         .expect("trace without device error");
     f.hits.iter().map(|h| (h.instance, h.primitive)).collect()
 }

@@ -23,8 +23,8 @@ use std::sync::{Arc, Mutex};
 use ash::{ext, khr, vk};
 use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::{
-    ash, DeviceFeatures, ExternalDevice, FrameCmd, VulkanBackendDesc, VulkanContext, VulkanError,
-    REQUIRED_DEVICE_EXTENSIONS,
+    ash, DeviceFeatures, ExternalDevice, FrameCmd, TlasRef, VulkanBackendDesc, VulkanContext,
+    VulkanError, REQUIRED_DEVICE_EXTENSIONS,
 };
 use rtstream::as_manager::backend::{BackendError, TlasHandle};
 use rtstream::as_manager::{AsError, FrameInput, Viewpoint};
@@ -435,7 +435,7 @@ fn record_frame(
     engine: &Engine,
     s: &mut Scene,
     renderer: &mut Renderer,
-    tlas: vk::AccelerationStructureKHR,
+    tlas: TlasRef,
     frame: u64,
 ) -> FrameCmd {
     let cmd = engine.begin(frame);

@@ -21,8 +21,8 @@ use std::time::Duration;
 use glam::Vec3;
 use rtstream::as_manager::backend::vulkan::ash::vk;
 use rtstream::as_manager::backend::vulkan::{
-    BufferDesc, FrameCmd, GpuBuffer, GpuGeometry, MemoryKind, VulkanBackend, VulkanBackendDesc,
-    VulkanContext, BUILD_INPUT_USAGE,
+    BufferDesc, FrameCmd, GpuBuffer, GpuGeometry, MemoryKind, TlasRef, VulkanBackend,
+    VulkanBackendDesc, VulkanContext, BUILD_INPUT_USAGE,
 };
 use rtstream::as_manager::backend::{
     AsBackend, BackendError, BackendResult, BlasClass, BlasRefit, GeometryRef, TlasDelta,
@@ -66,7 +66,7 @@ fn dgeom(
 /// (custom index, primitive) per pixel of a 24 x 16 view looking down at the origin from 15 m
 /// (a grid of 20 m at y = 0 fills most of it) through `tlas`, which must be complete. Shaded
 /// by colour only (device geometry in other formats has no shading buffers).
-fn trace_raw(renderer: &mut Renderer, tlas: vk::AccelerationStructureKHR) -> Vec<(u32, u32)> {
+fn trace_tlas(renderer: &mut Renderer, tlas: TlasRef) -> Vec<(u32, u32)> {
     let table = vec![InstanceShading::colour_only([0.7, 0.7, 0.7, 1.0]); 4];
     let cam = Camera::look_at(Vec3::new(0.0, 15.0, -8.0), Vec3::ZERO, 60f32.to_radians());
     let f = renderer
@@ -402,7 +402,7 @@ fn recording_a_frame_twice_is_refused() {
     );
     eng.submit(&cmd, false);
     finish(&mut b, &eng);
-    let hits = trace_raw(&mut renderer, b.tlas(tlas).unwrap());
+    let hits = trace_tlas(&mut renderer, b.tlas(tlas).unwrap());
     d.check(
         hits_of(&hits, 0) > 200,
         format!("frame 0 traces its grid: {} pixels", hits_of(&hits, 0)),
@@ -455,7 +455,7 @@ fn a_frame_never_recorded_blocks_the_next_until_recorded() {
         engine_frame(&mut b, &mut eng, 1, &records, false)
     };
     finish(&mut b, &eng);
-    let hits = trace_raw(&mut renderer, b.tlas(tlas1).unwrap());
+    let hits = trace_tlas(&mut renderer, b.tlas(tlas1).unwrap());
     d.check(
         hits_of(&hits, 0) > 200,
         format!(
@@ -513,7 +513,7 @@ fn record_before_end_frame_is_refused() {
     }
     eng.submit(&cmd1, false);
     finish(&mut b, &eng);
-    let hits = trace_raw(&mut renderer, b.tlas(tlas).unwrap());
+    let hits = trace_tlas(&mut renderer, b.tlas(tlas).unwrap());
     d.check(
         hits_of(&hits, 0) > 200,
         format!("frame 0 traces its grid: {} pixels", hits_of(&hits, 0)),
@@ -1051,7 +1051,7 @@ fn refits_in_another_format_stride_or_from_the_cpu_trace_their_pose() {
     let t = b.build_tlas(&records, TlasDelta::ALL).unwrap();
     b.end_frame(0).unwrap();
     b.wait_idle().unwrap();
-    let base = trace_raw(&mut renderer, b.tlas(t).unwrap());
+    let base = trace_tlas(&mut renderer, b.tlas(t).unwrap());
     assert!(hits_of(&base, 0) > 200, "the grid fills the view");
     let f16_sizes = b.blas_sizes(
         &dgeom(
@@ -1147,7 +1147,7 @@ fn refits_in_another_format_stride_or_from_the_cpu_trace_their_pose() {
         let t = b.build_tlas(&records, TlasDelta::ALL).unwrap();
         b.end_frame(f).unwrap();
         b.wait_idle().unwrap();
-        let hits = trace_raw(&mut renderer, b.tlas(t).unwrap());
+        let hits = trace_tlas(&mut renderer, b.tlas(t).unwrap());
         let n = hits_of(&hits, 0);
         eprintln!("frame {f}: {n} pixels hit");
         if r.is_ok() {

@@ -75,7 +75,7 @@ fn record_submit(
     desc: &RenderDesc,
 ) {
     let cmd = frames.begin(f).expect("begin");
-    r.record(&cmd, scene.accel.tlas.raw, &scene.shading, desc)
+    r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, desc)
         .expect("record");
     frames.submit(cmd).expect("submit");
 }
@@ -395,9 +395,9 @@ fn recording_a_frame_twice_is_refused() {
     let mut frames = FrameLoop::new(&ctx, 2).unwrap();
     let mut d = Defects::default();
     let cmd = frames.begin(0).unwrap();
-    r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(8, 8))
+    r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8))
         .unwrap();
-    let again = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(12, 4));
+    let again = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(12, 4));
     eprintln!("second record of frame 0: {again:?}");
     d.check(in_flight(&again), format!("second record: {again:?}"));
     frames.submit(cmd).unwrap();
@@ -437,7 +437,7 @@ fn frames_recorded_out_of_order_are_refused() {
     match frames.begin(2) {
         Err(e) => eprintln!("begin(2) after frame 5: {e}"),
         Ok(cmd) => {
-            let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(8, 8));
+            let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8));
             eprintln!("begin(2) after frame 5 accepted; renderer record(2): {rec:?}");
             d.check(
                 rec.is_err(),
@@ -498,7 +498,7 @@ fn more_frames_in_flight_than_the_renderer_keeps_is_a_typed_error() {
         record_submit(&mut frames, &mut r, f, &scene, &desc(8, 8));
     }
     let cmd = frames.begin(4).unwrap();
-    let fifth = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(16, 4));
+    let fifth = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(16, 4));
     eprintln!("fifth frame in flight: {fifth:?}");
     d.check(
         matches!(
@@ -561,7 +561,7 @@ fn render_size_can_change_between_frames_in_flight() {
         while let Some(img) = r.take(images.len() as u64, cmd.completed()).unwrap() {
             images.push(img);
         }
-        r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(w, h))
+        r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(w, h))
             .unwrap();
         frames.submit(cmd).unwrap();
     }
@@ -608,11 +608,11 @@ fn a_zero_sized_frame_is_an_invalid_request() {
         let b = scene.render(&mut r, &desc(w, h));
         d.check(invalid(&b), format!("render {w}x{h}: {:?}", b.map(|_| ())));
         let cmd = frames.begin(0).unwrap();
-        let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(w, h));
+        let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(w, h));
         d.check(invalid(&rec), format!("record {w}x{h}: {rec:?}"));
     }
     let cmd = frames.begin(0).unwrap();
-    let ok = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(8, 8));
+    let ok = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8));
     d.check(
         ok.is_ok(),
         format!("a valid record after refused ones: {ok:?}"),
@@ -653,11 +653,11 @@ fn a_huge_frame_is_refused_or_recorded_cleanly() {
         format!("render 8193x8192: {:?}", b.map(|_| ())),
     );
     let cmd = frames.begin(0).unwrap();
-    let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &over);
+    let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &over);
     d.check(invalid(&rec), format!("record 8193x8192: {rec:?}"));
     for (f, (w, h)) in [(600_000u32, 1u32), (1, 600_000)].into_iter().enumerate() {
         let cmd = frames.begin(f as u64 + 1).unwrap();
-        let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(w, h));
+        let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(w, h));
         let log = ctx.validation_log();
         eprintln!(
             "record {w}x{h}: {rec:?}; validation messages so far {}",
@@ -680,7 +680,7 @@ fn a_huge_frame_is_refused_or_recorded_cleanly() {
 fn rendering_a_destroyed_tlas_is_refused() {
     let ctx = common::context();
     let scene = one_grid(&ctx);
-    let raw = scene.accel.tlas.raw;
+    let raw = scene.accel.tlas_ref();
     scene.destroy(&ctx);
     let mut r = Renderer::new(ctx.clone()).unwrap();
     let mut d = Defects::default();
@@ -813,7 +813,7 @@ fn a_shading_table_shorter_than_the_largest_custom_index_shades_magenta() {
     let hits = |f: &Frame| f.hits.iter().filter(|h| h.is_hit()).count();
     let short3 = &scene3.shading[..3];
     let blocking = r
-        .render(scene3.accel.tlas.raw, short3, &desc(8, 8))
+        .render(scene3.accel.tlas_ref(), short3, &desc(8, 8))
         .unwrap();
     d.check(
         hits(&blocking) > 0 && magenta(&blocking) == hits(&blocking),
@@ -825,7 +825,7 @@ fn a_shading_table_shorter_than_the_largest_custom_index_shades_magenta() {
     );
     // Frame 0 (slot 0): a 3-entry table, customIndex 3.
     let cmd = frames.begin(0).unwrap();
-    r.record(&cmd, scene3.accel.tlas.raw, short3, &desc(8, 8))
+    r.record(&cmd, scene3.accel.tlas_ref(), short3, &desc(8, 8))
         .unwrap();
     frames.submit(cmd).unwrap();
     frames.wait_all().unwrap();
@@ -848,7 +848,7 @@ fn a_shading_table_shorter_than_the_largest_custom_index_shades_magenta() {
     let cmd = frames.begin(4).unwrap();
     r.record(
         &cmd,
-        scene1.accel.tlas.raw,
+        scene1.accel.tlas_ref(),
         &scene1.shading[..1],
         &desc(8, 8),
     )
@@ -860,7 +860,7 @@ fn a_shading_table_shorter_than_the_largest_custom_index_shades_magenta() {
         .unwrap()
         .expect("frame 4");
     let blocking1 = r
-        .render(scene1.accel.tlas.raw, &scene1.shading[..1], &desc(8, 8))
+        .render(scene1.accel.tlas_ref(), &scene1.shading[..1], &desc(8, 8))
         .unwrap();
     d.check(
         magenta(&f4) == hits(&f4) && hits(&f4) > 0 && f4.color == blocking1.color,
@@ -931,12 +931,12 @@ fn begin_twice_without_submit_abandons_the_first_recording() {
     let truth = scene.render(&mut r, &desc(8, 8)).unwrap();
     // Frame 0 begun and recorded, then begun again (a retry of a failed frame).
     let a = frames.begin(0).unwrap();
-    r.record(&a, scene.accel.tlas.raw, &scene.shading, &desc(8, 8))
+    r.record(&a, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8))
         .unwrap();
     match frames.begin(0) {
         Err(e) => eprintln!("begin(0) twice: {e}"),
         Ok(b) => {
-            let retry = r.record(&b, scene.accel.tlas.raw, &scene.shading, &desc(8, 8));
+            let retry = r.record(&b, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8));
             eprintln!("begin(0) twice accepted; record into the retry: {retry:?}");
             // The first FrameCmd is now stale: submitting it must be refused or be the retry.
             frames.submit(b).unwrap();
@@ -944,7 +944,7 @@ fn begin_twice_without_submit_abandons_the_first_recording() {
     }
     // Frame 1 begun and recorded, abandoned by begin(2); frame 2 submitted.
     let c1 = frames.begin(1).unwrap();
-    r.record(&c1, scene.accel.tlas.raw, &scene.shading, &desc(8, 8))
+    r.record(&c1, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8))
         .unwrap();
     record_submit(&mut frames, &mut r, 2, &scene, &desc(8, 8));
     let stale = frames.submit(c1);
@@ -1155,7 +1155,7 @@ fn recording_into_an_abandoned_frame_cmd_is_refused() {
     let truth = scene.render(&mut r, &desc(8, 8)).unwrap();
     let c0 = frames.begin(0).unwrap();
     let c1 = frames.begin(1).unwrap();
-    let rec = r.record(&c0, scene.accel.tlas.raw, &scene.shading, &desc(8, 8));
+    let rec = r.record(&c0, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8));
     d.check(
         matches!(
             rec,
@@ -1166,7 +1166,7 @@ fn recording_into_an_abandoned_frame_cmd_is_refused() {
     frames.submit(c1).unwrap();
     // Frame 2 reuses frame 0's command buffer.
     let c2 = frames.begin(2).unwrap();
-    let rec = r.record(&c0, scene.accel.tlas.raw, &scene.shading, &desc(8, 8));
+    let rec = r.record(&c0, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8));
     d.check(
         matches!(
             rec,
@@ -1174,7 +1174,7 @@ fn recording_into_an_abandoned_frame_cmd_is_refused() {
         ),
         format!("record into frame 0 once frame 2 reuses its command buffer: {rec:?}"),
     );
-    r.record(&c2, scene.accel.tlas.raw, &scene.shading, &desc(8, 8))
+    r.record(&c2, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8))
         .unwrap();
     frames.submit(c2).unwrap();
     frames.wait_all().unwrap();
@@ -1268,7 +1268,7 @@ fn a_non_finite_camera_is_an_invalid_request() {
             ..RenderDesc::new(4, 4, cam)
         };
         let cmd = frames.begin(f as u64).unwrap();
-        let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc);
+        let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc);
         eprintln!("{what}: record {:?}", rec.as_ref().map(|_| ()));
         d.check(invalid(&rec), format!("{what}: record accepted ({rec:?})"));
         // Abandoned unsubmitted: nothing is traced.
@@ -1309,7 +1309,7 @@ fn an_unbounded_sample_count_is_an_invalid_request() {
     ];
     for (f, (what, desc)) in descs.into_iter().enumerate() {
         let cmd = frames.begin(f as u64).unwrap();
-        let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc);
+        let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc);
         d.check(
             invalid(&rec),
             format!("{what}: record accepted ({rec:?}): a 1x1 frame would trace ~4.3e9 rays"),
@@ -1357,7 +1357,7 @@ fn recording_into_another_contexts_frame_is_refused() {
     let mut frames = FrameLoop::new(&other, 2).unwrap();
     let mut d = Defects::default();
     let cmd = frames.begin(0).unwrap();
-    let rec = r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc(8, 8));
+    let rec = r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc(8, 8));
     eprintln!("record into another context's FrameCmd: {rec:?}");
     d.check(
         rec.is_err(),

@@ -350,7 +350,7 @@ fn recorded_frames_equal_blocking_frames_on_both_paths() {
                 while let Some(img) = r.take(recorded.len() as u64, cmd.completed()).unwrap() {
                     recorded.push(img);
                 }
-                r.record(&cmd, scene.accel.tlas.raw, &scene.shading, &desc_of(f))
+                r.record(&cmd, scene.accel.tlas_ref(), &scene.shading, &desc_of(f))
                     .unwrap();
                 frames.submit(cmd).unwrap();
             }

@@ -85,12 +85,12 @@ fn render(
             base_color: [1.0; 4],
         };
     }
-    let raw = backend.tlas(tlas).expect("TLAS of the last frame");
+    let traced = backend.tlas(tlas).expect("TLAS of the last frame");
     let desc = RenderDesc {
         primitive_bases: backend.primitive_bases(tlas),
         ..RenderDesc::new(size, size, cam)
     };
-    renderer.render(raw, &table, &desc).expect("render")
+    renderer.render(traced, &table, &desc).expect("render")
 }
 
 /// Pixels where GPU and CPU hit the same instance: (count, same primitive, normal agrees).

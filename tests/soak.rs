@@ -93,13 +93,13 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
             m.backend_mut().wait_idle().unwrap();
             let backend = m.backend();
             let table = bridge.shading(&records, |a| backend.shading_geometry(a));
-            let raw = backend.tlas(tlas).expect("this frame's TLAS");
+            let traced = backend.tlas(tlas).expect("this frame's TLAS");
             let cam = Camera::look_at(eye, eye + Vec3::X * 10.0, 1.0);
             let desc = RenderDesc {
                 primitive_bases: backend.primitive_bases(tlas),
                 ..RenderDesc::new(32, 18, cam)
             };
-            renderer.render(raw, &table, &desc).expect("render");
+            renderer.render(traced, &table, &desc).expect("render");
             renders += 1;
         }
         if frame >= probe_early && frame % 300 == 100 {

@@ -27,7 +27,7 @@ fn gpu_hits_match_cpu_reference_on_2cylinder_engine() {
     };
     let mut renderer = Renderer::new(ctx.clone()).expect("renderer");
     let frame = renderer
-        .render(gpu.accel.tlas.raw, &gpu.shading, &desc)
+        .render(gpu.accel.tlas_ref(), &gpu.shading, &desc)
         .expect("render");
 
     let cpu = reference_scene(&scene).cast(&camera, desc.width, desc.height);

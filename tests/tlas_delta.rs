@@ -338,9 +338,9 @@ fn tlas_updates_trace_what_builds_trace() {
             let backend = m.backend_mut();
             backend.wait_idle().unwrap();
             let table = common::shading_table(backend, &records, next_index as usize);
-            let raw = backend.tlas(tlas).expect("this frame's TLAS");
+            let traced = backend.tlas(tlas).expect("this frame's TLAS");
             let image = renderer
-                .render(raw, &table, &RenderDesc::new(48, 32, cam))
+                .render(traced, &table, &RenderDesc::new(48, 32, cam))
                 .expect("trace");
             seen.push((shown, image.hits));
         }

@@ -125,14 +125,14 @@ fn render(
     let backend = scene.manager.backend_mut();
     backend.wait_idle().expect("frame completes");
     let table = common::shading_table(backend, records, 64);
-    let raw = backend.tlas(tlas).expect("TLAS of this frame");
+    let traced = backend.tlas(tlas).expect("TLAS of this frame");
     let cam = Camera::look_at(
         eye + Vec3::new(0.0, 12.0, -30.0),
         eye + Vec3::new(0.0, 0.0, 20.0),
         60f32.to_radians(),
     );
     let frame = renderer
-        .render(raw, &table, &RenderDesc::new(24, 16, cam))
+        .render(traced, &table, &RenderDesc::new(24, 16, cam))
         .expect("trace without device error");
     frame
         .hits
@@ -311,10 +311,10 @@ fn streamed_camera_path_on_vulkan() {
         let (tlas, records) = (out.tlas, out.instances.to_vec());
         m.backend_mut().wait_idle().expect("frame completes");
         let shading = bridge.shading(&records, |a| m.backend().shading_geometry(a));
-        let raw = m.backend().tlas(tlas).expect("TLAS");
+        let traced = m.backend().tlas(tlas).expect("TLAS");
         let cam = Camera::look_at(pos, pos + fwd, 60f32.to_radians());
         let f = renderer
-            .render(raw, &shading, &RenderDesc::new(16, 12, cam))
+            .render(traced, &shading, &RenderDesc::new(16, 12, cam))
             .expect("trace without device error");
         hits += f.hits.iter().filter(|h| h.is_hit()).count();
     }
@@ -508,10 +508,10 @@ fn a_compaction_named_by_its_own_frames_tlas_runs_before_it() {
     let trace = |b: &mut VulkanBackend, renderer: &mut Renderer, tlas, records: &[TlasInstance]| {
         b.wait_idle().expect("frames complete");
         let table = common::shading_table(b, records, 4);
-        let raw = b.tlas(tlas).expect("TLAS of a frame in flight");
+        let traced = b.tlas(tlas).expect("TLAS of a frame in flight");
         let cam = Camera::look_at(Vec3::new(0.0, 15.0, -8.0), Vec3::ZERO, 60f32.to_radians());
         let f = renderer
-            .render(raw, &table, &RenderDesc::new(24, 16, cam))
+            .render(traced, &table, &RenderDesc::new(24, 16, cam))
             .expect("trace without device error");
         f.hits
             .iter()

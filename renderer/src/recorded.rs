@@ -8,7 +8,7 @@
 
 use rtstream_as_manager::backend::vulkan::{
     ash::vk, read_timer, Bound, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind,
-    QueryPool, RECORDED_SETS,
+    QueryPool, TlasRef, VulkanContext, RECORDED_SETS,
 };
 
 use crate::error::{RenderError, Result};
@@ -39,14 +39,15 @@ impl Renderer {
     /// (`cmd.frame() - RECORDED_SETS`) has not completed, or when the frame was recorded already
     /// ([`RenderError::FrameInFlight`]); when `cmd` cannot be recorded into (another device's,
     /// or submitted or abandoned already: [`VulkanError::FrameCmdUnusable`]); and when `tlas`
-    /// is not a live TLAS of the renderer's device ([`RenderError::InvalidRequest`]). `tlas`
-    /// must stay alive until the frame completes (the manager's TLAS of the frame does).
+    /// is not live on the renderer's device: destroyed, another device's, or stale, its TLAS
+    /// destroyed or built again since ([`RenderError::InvalidRequest`]). `tlas` must stay
+    /// alive until the frame completes (the manager's TLAS of the frame does).
     ///
     /// [`VulkanError::FrameCmdUnusable`]: rtstream_as_manager::backend::vulkan::VulkanError::FrameCmdUnusable
     pub fn record(
         &mut self,
         cmd: &FrameCmd,
-        tlas: vk::AccelerationStructureKHR,
+        tlas: TlasRef,
         instances: &[InstanceShading],
         desc: &RenderDesc,
     ) -> Result<()> {
@@ -145,7 +146,7 @@ impl Renderer {
         // The table's own length: the buffer is reused and may be longer, and the shader
         // shades a customIndex past `length()` magenta.
         let bound = [
-            Bound::AccelRaw(tlas),
+            Bound::AccelRaw(tlas.raw()),
             Bound::Buffer(&outputs[0]),
             Bound::Buffer(&outputs[1]),
             Bound::BufferPrefix(
@@ -232,20 +233,32 @@ impl Renderer {
     }
 }
 
-/// Refuses a TLAS handle that is not a live TLAS of `ctx` (destroyed, another device's, or
-/// not a TLAS): tracing one reads freed memory.
-pub(crate) fn check_tlas(
-    ctx: &rtstream_as_manager::backend::vulkan::VulkanContext,
-    tlas: vk::AccelerationStructureKHR,
-) -> Result<()> {
+/// Refuses a TLAS ref that is not live on `ctx`: destroyed or another device's (tracing one
+/// reads freed memory), or stale (it would trace a newer TLAS that has its handle value, or
+/// a later build of its slot). The message names the case.
+pub(crate) fn check_tlas(ctx: &VulkanContext, tlas: TlasRef) -> Result<()> {
     if ctx.is_live_tlas(tlas) {
-        Ok(())
-    } else {
-        Err(RenderError::InvalidRequest(format!(
-            "TLAS {tlas:?} is not a live top-level acceleration structure of this device \
-             (destroyed, another device's, or null)"
-        )))
+        return Ok(());
     }
+    let (raw, serial) = (tlas.raw(), tlas.serial());
+    let why = match ctx.live_tlas_serial(raw) {
+        None if raw == vk::AccelerationStructureKHR::null() => "the null handle".to_string(),
+        None => format!(
+            "TLAS {raw:?} (serial {serial}) is not a live top-level acceleration structure of \
+             this device: destroyed, or another device's"
+        ),
+        // Serials are process-wide and a live TLAS's only grows: a newer serial than the live
+        // one of that handle value was never this device's.
+        Some(live) if live < serial => format!(
+            "TLAS {raw:?} (serial {serial}) is another device's: this device's TLAS with that \
+             handle value is serial {live}"
+        ),
+        Some(live) => format!(
+            "TLAS {raw:?} (serial {serial}) is stale: it was destroyed or built again since, \
+             and a newer TLAS or build (serial {live}) now has that handle value"
+        ),
+    };
+    Err(RenderError::InvalidRequest(why))
 }
 
 /// The passes' GPU times of a completed slot: its timestamps were copied into `times` on the GPU.

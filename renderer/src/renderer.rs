@@ -7,7 +7,7 @@ use std::sync::Arc;
 use glam::Vec3;
 use rtstream_as_manager::backend::vulkan::{
     ash::vk, BindingKind, Bound, BufferDesc, ComputePipeline, GpuBuffer, MemoryKind,
-    RayTracingPipeline, RtShaders, VulkanContext,
+    RayTracingPipeline, RtShaders, TlasRef, VulkanContext,
 };
 
 use crate::camera::Camera;
@@ -226,11 +226,15 @@ impl Renderer {
     /// Traces `tlas` and returns the frame. `instances[customIndex]` shades each hit (a hit
     /// whose customIndex is out of range is shaded magenta with a view-facing normal).
     ///
+    /// Fails with [`RenderError::InvalidRequest`] when `tlas` is not live on the renderer's
+    /// device: destroyed, another device's, or stale (its TLAS was destroyed or built again,
+    /// and a newer TLAS or build now has that handle value; see [`TlasRef`]).
+    ///
     /// Runs three passes, each its own submission so each can be timed: primary, shadow, AO +
     /// shading.
     pub fn render(
         &mut self,
-        tlas: vk::AccelerationStructureKHR,
+        tlas: TlasRef,
         instances: &[InstanceShading],
         desc: &RenderDesc,
     ) -> Result<Frame> {
@@ -261,7 +265,7 @@ impl Renderer {
             )?);
             let mut push = push_constants(desc);
             let bound = [
-                Bound::AccelRaw(tlas),
+                Bound::AccelRaw(tlas.raw()),
                 Bound::Buffer(&bufs[0]),
                 Bound::Buffer(&bufs[1]),
                 Bound::Buffer(&bufs[4]),

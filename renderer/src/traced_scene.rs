@@ -84,7 +84,7 @@ impl TracedScene {
 
     /// Renders the scene.
     pub fn render(&self, renderer: &mut Renderer, desc: &RenderDesc) -> Result<Frame> {
-        renderer.render(self.accel.tlas.raw, &self.shading, desc)
+        renderer.render(self.accel.tlas_ref(), &self.shading, desc)
     }
 
     /// Destroys the GPU objects, once the device has finished what it was given (frames

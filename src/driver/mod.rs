@@ -36,8 +36,8 @@ use std::time::Instant;
 use glam::Vec3;
 use rtstream_as_manager::backend::vulkan::ash::vk;
 use rtstream_as_manager::backend::vulkan::{
-    ContextDesc, FrameLoop, Recording, TlasUpdates, Validation, VulkanBackend, VulkanBackendDesc,
-    VulkanContext, RECORDED_SETS,
+    ContextDesc, FrameLoop, Recording, TlasRef, TlasUpdates, Validation, VulkanBackend,
+    VulkanBackendDesc, VulkanContext, RECORDED_SETS,
 };
 use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
@@ -287,13 +287,9 @@ impl PolicyRun {
     fn render_input(
         &self,
         desc: RenderDesc,
-    ) -> Option<(
-        vk::AccelerationStructureKHR,
-        Vec<rtstream_renderer::InstanceShading>,
-        RenderDesc,
-    )> {
+    ) -> Option<(TlasRef, Vec<rtstream_renderer::InstanceShading>, RenderDesc)> {
         let backend = self.manager.backend();
-        let raw = backend.tlas(self.tlas)?;
+        let tlas = backend.tlas(self.tlas)?;
         let shading = self.bridge.shading(&self.records, |addr| {
             backend.shading_geometry_in(self.tlas, addr).ok().flatten()
         });
@@ -301,7 +297,7 @@ impl PolicyRun {
             primitive_bases: backend.primitive_bases(self.tlas),
             ..desc
         };
-        Some((raw, shading, desc))
+        Some((tlas, shading, desc))
     }
 }
 
@@ -668,10 +664,10 @@ pub fn run_cached(
             }
             let n = policies.len();
             for (pi, p) in policies.iter_mut().enumerate() {
-                let Some((raw, shading, desc)) = p.render_input(desc) else {
+                let Some((tlas, shading, desc)) = p.render_input(desc) else {
                     continue;
                 };
-                renderers[pi].record(&cmd, raw, &shading, &desc)?;
+                renderers[pi].record(&cmd, tlas, &shading, &desc)?;
                 // The instance behind each customIndex now: the bridge reuses slots later.
                 let ids = (0..p.bridge.slot_count())
                     .map(|ci| {
@@ -695,10 +691,10 @@ pub fn run_cached(
         let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
         if render_now && !config.blocking_render {
             for (pi, p) in policies.iter().enumerate() {
-                let Some((raw, shading, desc)) = p.render_input(render_desc) else {
+                let Some((tlas, shading, desc)) = p.render_input(render_desc) else {
                     continue;
                 };
-                renderers[pi].record(&cmd, raw, &shading, &desc)?;
+                renderers[pi].record(&cmd, tlas, &shading, &desc)?;
                 pending_renders.push((frame, pi));
             }
         }
@@ -707,10 +703,10 @@ pub fn run_cached(
             // The old path: wait for the frame, then three passes, each waited for.
             frames.wait(frame)?;
             for (pi, p) in policies.iter().enumerate() {
-                let Some((raw, shading, desc)) = p.render_input(render_desc) else {
+                let Some((tlas, shading, desc)) = p.render_input(render_desc) else {
                     continue;
                 };
-                let img = renderers[pi].render(raw, &shading, &desc)?;
+                let img = renderers[pi].render(tlas, &shading, &desc)?;
                 if pi == 0 {
                     passes_ms.push((frame, img.render_ms));
                 }

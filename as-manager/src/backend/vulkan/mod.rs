@@ -43,6 +43,7 @@ pub use device::pipeline::ring::{read_timer, Pass, PassTimer, RECORDED_SETS};
 pub use device::pipeline::rt_pipeline::{RayTracingPipeline, RtShaders};
 pub use device::query::{QueryKind, QueryPool};
 pub use device::scene::{GpuMesh, SceneBuildStats, StaticInstance, StaticScene};
+pub use device::tlas_ref::TlasRef;
 pub use error::{VkResult, VulkanError, INSTALL_HINT};
 
 pub use ash;

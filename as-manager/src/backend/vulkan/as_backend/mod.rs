@@ -74,6 +74,7 @@ use crate::backend::vulkan::device::buffer::{BufferDesc, GpuBuffer, MemoryKind};
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::frames::FrameCmd;
 use crate::backend::vulkan::device::query::{QueryKind, QueryPool};
+use crate::backend::vulkan::device::tlas_ref::TlasRef;
 use crate::backend::vulkan::error::{VkResult, VkResultExt, VulkanError};
 use crate::backend::{
     AsBackend, BackendError, BackendResult, BlasBuild, BlasClass, BlasHandle, BlasRefit, BlasSizes,

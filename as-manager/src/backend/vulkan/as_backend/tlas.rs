@@ -126,11 +126,13 @@ impl VulkanBackend {
         self.slot_of(tlas).map_or(0, |s| s.bases_address)
     }
 
-    /// The raw TLAS of a handle returned by `build_tlas`; None once its slot was reused for a
-    /// later frame (`frames_in_flight` frames later): a stale handle never resolves to a newer
-    /// TLAS.
-    pub fn tlas(&self, handle: TlasHandle) -> Option<vk::AccelerationStructureKHR> {
-        self.slot_of(handle)?.tlas.as_ref().map(|t| t.raw)
+    /// The TLAS of a handle returned by `build_tlas`, as the ref the renderer traces (its raw
+    /// handle is [`TlasRef::raw`]); None once its slot was reused for a later frame
+    /// (`frames_in_flight` frames later): a stale handle never resolves to a newer TLAS. A ref
+    /// kept past that is stale too: the slot's TLAS is rebuilt then, and
+    /// [`VulkanContext::is_live_tlas`] is false for it from its rebuild on.
+    pub fn tlas(&self, handle: TlasHandle) -> Option<TlasRef> {
+        self.ctx.tlas_ref(self.slot_of(handle)?.tlas.as_ref()?)
     }
 
     /// [`VulkanBackend::shading_geometry`] for a record of the TLAS `tlas`, with the TLAS
@@ -148,8 +150,9 @@ impl VulkanBackend {
         Ok(self.shading_geometry(blas_address))
     }
 
-    /// The raw TLAS of `handle`, or [`VulkanError::StaleHandle`] once its slot was reused.
-    pub fn resolve_tlas(&self, handle: TlasHandle) -> VkResult<vk::AccelerationStructureKHR> {
+    /// The TLAS of `handle` ([`VulkanBackend::tlas`]), or [`VulkanError::StaleHandle`] once its
+    /// slot was reused.
+    pub fn resolve_tlas(&self, handle: TlasHandle) -> VkResult<TlasRef> {
         self.tlas(handle).ok_or_else(|| VulkanError::StaleHandle {
             what: "TLAS",
             detail: format!(

@@ -418,6 +418,8 @@ impl VulkanContext {
     }
 
     /// Records a TLAS build (or update) over `instance_count` records at `instances_address`.
+    /// `dst` gets a new serial: [`TlasRef`](super::tlas_ref::TlasRef)s of its earlier contents
+    /// are stale from now on (take a new one with [`VulkanContext::tlas_ref`]).
     ///
     /// # Safety
     /// As [`Self::cmd_build_blases`]; the instance buffer holds `instance_count` 64-byte records
@@ -433,6 +435,7 @@ impl VulkanContext {
         instance_count: u32,
         scratch_address: vk::DeviceAddress,
     ) {
+        self.tlas_rebuilt(dst);
         let geoms = [instances_geometry(instances_address)];
         let info = vk::AccelerationStructureBuildGeometryInfoKHR::default()
             .ty(vk::AccelerationStructureTypeKHR::TOP_LEVEL)

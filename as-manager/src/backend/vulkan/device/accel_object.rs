@@ -115,7 +115,7 @@ impl VulkanContext {
             .map_err(|e| VulkanError::from_vk("vkCreateAccelerationStructureKHR", e))?;
         self.set_name(raw, name);
         if ty == vk::AccelerationStructureTypeKHR::TOP_LEVEL {
-            self.live_tlases.lock().insert(raw);
+            self.tlas_created(raw);
         }
         // SAFETY: raw is a valid acceleration structure of this device.
         let address = unsafe {
@@ -127,18 +127,11 @@ impl VulkanContext {
         Ok((raw, address))
     }
 
-    /// Whether `raw` is a top-level acceleration structure created on this context and not
-    /// destroyed: what the renderer checks before it traces a raw handle. (A handle value that
-    /// the driver reuses for a newer TLAS reads as that one.)
-    pub fn is_live_tlas(&self, raw: vk::AccelerationStructureKHR) -> bool {
-        raw != vk::AccelerationStructureKHR::null() && self.live_tlases.lock().contains(&raw)
-    }
-
     /// Destroys an acceleration structure made by [`VulkanContext::create_accel`]. The caller
     /// guarantees the GPU no longer uses it. (One in an arena's range is destroyed too, but its
     /// range stays taken until the arena is: use [`VulkanContext::destroy_accel_in`].)
     pub fn destroy_accel(&self, accel: AccelStruct) {
-        self.live_tlases.lock().remove(&accel.raw);
+        self.tlas_destroyed(accel.raw);
         // SAFETY: by contract no pending GPU work references it.
         unsafe { self.accel.destroy_acceleration_structure(accel.raw, None) };
         match accel.storage {
@@ -155,7 +148,7 @@ impl VulkanContext {
     /// Destroys an acceleration structure, giving its range back to `arena` if it has one
     /// there. The caller guarantees the GPU no longer uses it.
     pub fn destroy_accel_in(&self, accel: AccelStruct, arena: &mut BufferArena) {
-        self.live_tlases.lock().remove(&accel.raw);
+        self.tlas_destroyed(accel.raw);
         // SAFETY: by contract no pending GPU work references it.
         unsafe { self.accel.destroy_acceleration_structure(accel.raw, None) };
         match accel.storage {

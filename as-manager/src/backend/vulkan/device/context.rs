@@ -188,9 +188,10 @@ pub struct VulkanContext {
     pub(crate) info: DeviceInfo,
     /// A failure armed by `inject_failure` (test-only).
     pub(crate) failpoint: Mutex<Option<&'static str>>,
-    /// The top-level acceleration structures alive on this context (see
+    /// The top-level acceleration structures alive on this context, each with the serial of
+    /// its last recorded build (see [`TlasRef`](super::tlas_ref::TlasRef) and
     /// [`VulkanContext::is_live_tlas`]).
-    pub(crate) live_tlases: Mutex<rustc_hash::FxHashSet<vk::AccelerationStructureKHR>>,
+    pub(crate) live_tlases: Mutex<rustc_hash::FxHashMap<vk::AccelerationStructureKHR, u64>>,
 }
 
 impl std::fmt::Debug for VulkanContext {

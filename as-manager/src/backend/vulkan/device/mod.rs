@@ -15,3 +15,4 @@ pub(crate) mod pipeline;
 pub(crate) mod query;
 pub(crate) mod scene;
 mod select;
+pub(crate) mod tlas_ref;

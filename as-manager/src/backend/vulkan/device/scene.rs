@@ -14,6 +14,7 @@ use crate::backend::vulkan::device::accel::{
 use crate::backend::vulkan::device::buffer::GpuBuffer;
 use crate::backend::vulkan::device::context::VulkanContext;
 use crate::backend::vulkan::device::geometry::{GpuGeometry, SceneMesh};
+use crate::backend::vulkan::device::tlas_ref::TlasRef;
 use crate::backend::vulkan::error::{caller_index, VkResult, VulkanError};
 use crate::backend::BlasClass;
 use crate::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
@@ -65,8 +66,10 @@ pub struct SceneBuildStats {
 pub struct StaticScene {
     /// The meshes, in the order given.
     pub meshes: Vec<GpuMesh>,
-    /// The TLAS.
+    /// The TLAS (trace it through [`StaticScene::tlas_ref`]).
     pub tlas: AccelStruct,
+    /// The ref of `tlas` as built here.
+    tlas_ref: TlasRef,
     instance_buffer: GpuBuffer,
     /// What the build took.
     pub stats: SceneBuildStats,
@@ -103,9 +106,14 @@ impl StaticScene {
             Ok((tlas, instance_buffer, mut stats)) => {
                 stats.build_ms = start.elapsed().as_secs_f64() * 1e3;
                 tracing::debug!(?stats, "static scene built");
+                // Created TOP_LEVEL on `ctx` and built just now: a broken invariant otherwise.
+                let tlas_ref = ctx
+                    .tlas_ref(&tlas)
+                    .expect("a static scene's TLAS is a live TLAS of its context");
                 Ok(Self {
                     meshes: built,
                     tlas,
+                    tlas_ref,
                     instance_buffer,
                     stats,
                 })
@@ -243,6 +251,12 @@ impl StaticScene {
             return Err(e);
         }
         Ok((tlas, instance_buffer, stats))
+    }
+
+    /// The scene's TLAS as the renderer traces it. Stale once the scene is destroyed, or once
+    /// `tlas` is built again by someone else (then take [`VulkanContext::tlas_ref`] of it).
+    pub fn tlas_ref(&self) -> TlasRef {
+        self.tlas_ref
     }
 
     /// Destroys every GPU object of the scene. The caller guarantees the GPU is done with it.

@@ -23,7 +23,8 @@ pub enum BindingKind {
 pub enum Bound<'a> {
     /// A TLAS.
     Accel(&'a AccelStruct),
-    /// A raw TLAS handle (e.g. the manager's current frame TLAS).
+    /// A raw TLAS handle (e.g. [`TlasRef::raw`](crate::backend::vulkan::TlasRef::raw) of the
+    /// manager's current frame TLAS, checked by the caller).
     AccelRaw(vk::AccelerationStructureKHR),
     /// A whole buffer.
     Buffer(&'a GpuBuffer),
