@@ -675,16 +675,16 @@ fn a_huge_frame_is_refused_or_recorded_cleanly() {
 // ---------------------------------------------------------------------------------------------
 // 3. What is traced: destroyed, stale and empty TLASes; a short shading table.
 
-/// Rendering a raw TLAS that was destroyed is refused (or at least does not reach the GPU).
+/// Rendering a TLAS that was destroyed is refused (or at least does not reach the GPU).
 #[test]
 fn rendering_a_destroyed_tlas_is_refused() {
     let ctx = common::context();
     let scene = one_grid(&ctx);
-    let raw = scene.accel.tlas_ref();
+    let destroyed = scene.accel.tlas_ref();
     scene.destroy(&ctx);
     let mut r = Renderer::new(ctx.clone()).unwrap();
     let mut d = Defects::default();
-    let res = catch_unwind(AssertUnwindSafe(|| r.render(raw, &[], &desc(8, 8))));
+    let res = catch_unwind(AssertUnwindSafe(|| r.render(destroyed, &[], &desc(8, 8))));
     match &res {
         Err(p) => d.check(false, format!("panic: {}", panic_text(&**p))),
         Ok(r) => eprintln!(
@@ -702,9 +702,66 @@ fn rendering_a_destroyed_tlas_is_refused() {
     d.assert_none();
 }
 
+/// A TLAS destroyed and another created (the driver may give the new one the old handle
+/// value): the old ref is refused on both paths with `RenderError::InvalidRequest`, never
+/// traced as the new TLAS; the new ref renders.
+#[test]
+fn a_stale_tlas_ref_is_refused_after_a_newer_tlas_is_created() {
+    let ctx = common::context();
+    let mut r = Renderer::new(ctx.clone()).unwrap();
+    let mut frames = FrameLoop::new(&ctx, 2).unwrap();
+    let old_scene = one_grid(&ctx);
+    let old = old_scene.accel.tlas_ref();
+    old_scene.destroy(&ctx);
+    let scene = one_grid(&ctx);
+    let new = scene.accel.tlas_ref();
+    let reused = old.raw() == new.raw();
+    eprintln!("handle value reused for the new TLAS: {reused}");
+    assert_ne!(old, new);
+
+    let blocking = r.render(old, &scene.shading, &desc(8, 8));
+    match &blocking {
+        Err(RenderError::InvalidRequest(why)) => {
+            eprintln!("render of the stale ref: {why}");
+            // When the value was reused the message says so; otherwise it names a destroyed one.
+            let case = if reused {
+                "is stale"
+            } else {
+                "destroyed, or another device's"
+            };
+            assert!(
+                why.contains(case),
+                "the message names the case ({case}): {why}"
+            );
+        }
+        other => panic!("render of a stale TLAS ref: {other:?}"),
+    }
+    let cmd = frames.begin(0).unwrap();
+    let recorded = r.record(&cmd, old, &scene.shading, &desc(8, 8));
+    assert!(
+        matches!(recorded, Err(RenderError::InvalidRequest(_))),
+        "record of a stale TLAS ref: {recorded:?}"
+    );
+    // The live ref works on both paths, in the same frame.
+    r.record(&cmd, new, &scene.shading, &desc(8, 8))
+        .expect("record of the live TLAS ref");
+    frames.submit(cmd).unwrap();
+    frames.wait_all().unwrap();
+    let img = r
+        .take(0, frames.completed().unwrap())
+        .unwrap()
+        .expect("the recorded frame ran");
+    assert!(img.hit_fraction() > 0.5, "the grid fills most of the view");
+    let f = r.render(new, &scene.shading, &desc(8, 8)).unwrap();
+    assert!(f.hit_fraction() > 0.5, "the grid fills most of the view");
+    drop(frames);
+    drop(r);
+    scene.destroy(&ctx);
+}
+
 /// A TLAS handle of a frame whose slot was reused no longer resolves (typed error), and the
-/// raw TLAS an engine kept from it does not trace as the newer frame's TLAS or reach freed
-/// memory.
+/// TLAS ref an engine kept from it is refused (`RenderError::InvalidRequest`) instead of
+/// tracing the newer frame's TLAS, which the slot's TLAS was rebuilt into.
 #[test]
 fn a_stale_tlas_handle_does_not_resolve() {
     use common::direct::{backend, build_one, geom, record_at};
@@ -720,7 +777,7 @@ fn a_stale_tlas_handle_does_not_resolve() {
     let far = [record_at(b.blas_address(blas), 1, 1000.0)];
     let h0 = b.build_tlas(&here, TlasDelta::ALL).unwrap();
     b.end_frame(0).unwrap();
-    let raw0 = b.tlas(h0).expect("current TLAS resolves");
+    let kept = b.tlas(h0).expect("current TLAS resolves");
     for f in 1..=3 {
         b.begin_frame(f).unwrap();
         b.build_tlas(&far, TlasDelta::ALL).unwrap();
@@ -733,7 +790,7 @@ fn a_stale_tlas_handle_does_not_resolve() {
         resolved.is_err() && b.tlas(h0).is_none(),
         format!("frame 0's handle still resolves: {resolved:?}"),
     );
-    let frame = r.render(raw0, &[], &desc(16, 12));
+    let frame = r.render(kept, &[], &desc(16, 12));
     match &frame {
         Ok(f) => {
             let hit = f.hits.iter().filter(|h| h.is_hit()).count();
@@ -743,9 +800,16 @@ fn a_stale_tlas_handle_does_not_resolve() {
                 .filter(|h| h.is_hit())
                 .map(|h| h.instance)
                 .collect();
-            eprintln!("render of frame 0's raw TLAS after its slot was reused: {hit} of 192 pixels hit, customIndex {ids:?}");
+            d.check(false, format!("render of frame 0's TLAS ref after its slot was reused: {hit} of 192 pixels hit, customIndex {ids:?}"));
         }
-        Err(e) => eprintln!("render of the stale raw TLAS: {e}"),
+        Err(RenderError::InvalidRequest(e)) => {
+            eprintln!("render of the stale TLAS ref: {e}");
+            d.check(
+                e.contains("is stale"),
+                format!("the message names the case: {e}"),
+            );
+        }
+        Err(e) => d.check(false, format!("render of the stale TLAS ref: {e}")),
     }
     drop(r);
     drop(b);
@@ -882,7 +946,7 @@ fn a_shading_table_shorter_than_the_largest_custom_index_shades_magenta() {
 }
 
 /// A scene destroyed while a recorded frame that traces it is in flight: the renderer's
-/// safe API takes a raw TLAS and `TracedScene::destroy` is safe, so either must keep the
+/// safe API takes a TLAS ref and `TracedScene::destroy` is safe, so either must keep the
 /// frame's TLAS alive (or refuse). The frame is held on the GPU by the gate.
 #[test]
 fn destroying_a_traced_scene_while_its_frame_is_in_flight_is_safe() {
@@ -1370,4 +1434,29 @@ fn recording_into_another_contexts_frame_is_refused() {
     d.validation(&ctx);
     d.validation(&other);
     d.assert_none();
+}
+
+/// Another context's TLAS is refused on both paths (`RenderError::InvalidRequest`), whatever
+/// handle values the two devices use: a ref's serial is unique in the process.
+#[test]
+fn rendering_another_contexts_tlas_is_refused() {
+    let ctx = common::context();
+    let other = common::context();
+    let theirs = one_grid(&other);
+    let mut r = Renderer::new(ctx.clone()).unwrap();
+    let mut frames = FrameLoop::new(&ctx, 2).unwrap();
+    let blocking = r.render(theirs.accel.tlas_ref(), &theirs.shading, &desc(8, 8));
+    assert!(
+        matches!(&blocking, Err(RenderError::InvalidRequest(why)) if why.contains("another device's")),
+        "render of another context's TLAS: {blocking:?}"
+    );
+    let cmd = frames.begin(0).unwrap();
+    let rec = r.record(&cmd, theirs.accel.tlas_ref(), &theirs.shading, &desc(8, 8));
+    assert!(
+        matches!(rec, Err(RenderError::InvalidRequest(_))),
+        "record of another context's TLAS: {rec:?}"
+    );
+    drop(frames);
+    drop(r);
+    theirs.destroy(&other);
 }
