@@ -8,13 +8,13 @@
 
 use rtstream_as_manager::backend::vulkan::{
     ash::vk, read_timer, Bound, BufferDesc, FrameCmd, MemoryKind, Pass, PassTimer, QueryKind,
-    QueryPool, TlasRef, VulkanContext, RECORDED_SETS,
+    QueryPool, TlasRef, RECORDED_SETS,
 };
 
 use crate::error::{RenderError, Result};
 use crate::frame::Frame;
 use crate::renderer::{
-    push_constants, read_frame, shading_table, validate, InstanceShading, Tracer,
+    check_tlas, push_constants, read_frame, shading_table, validate, InstanceShading, Tracer,
 };
 use crate::slot::RenderSlot;
 use crate::{RenderDesc, Renderer};
@@ -231,34 +231,6 @@ impl Renderer {
             .find(|s| s.frame == Some(frame) && !s.taken)
             .filter(|s| read_timer(&s.times, TIMESTAMPS).is_some())
     }
-}
-
-/// Refuses a TLAS ref that is not live on `ctx`: destroyed or another device's (tracing one
-/// reads freed memory), or stale (it would trace a newer TLAS that has its handle value, or
-/// a later build of its slot). The message names the case.
-pub(crate) fn check_tlas(ctx: &VulkanContext, tlas: TlasRef) -> Result<()> {
-    if ctx.is_live_tlas(tlas) {
-        return Ok(());
-    }
-    let (raw, serial) = (tlas.raw(), tlas.serial());
-    let why = match ctx.live_tlas_serial(raw) {
-        None if raw == vk::AccelerationStructureKHR::null() => "the null handle".to_string(),
-        None => format!(
-            "TLAS {raw:?} (serial {serial}) is not a live top-level acceleration structure of \
-             this device: destroyed, or another device's"
-        ),
-        // Serials are process-wide and a live TLAS's only grows: a newer serial than the live
-        // one of that handle value was never this device's.
-        Some(live) if live < serial => format!(
-            "TLAS {raw:?} (serial {serial}) is another device's: this device's TLAS with that \
-             handle value is serial {live}"
-        ),
-        Some(live) => format!(
-            "TLAS {raw:?} (serial {serial}) is stale: it was destroyed or built again since, \
-             and a newer TLAS or build (serial {live}) now has that handle value"
-        ),
-    };
-    Err(RenderError::InvalidRequest(why))
 }
 
 /// The passes' GPU times of a completed slot: its timestamps were copied into `times` on the GPU.

@@ -239,7 +239,7 @@ impl Renderer {
         desc: &RenderDesc,
     ) -> Result<Frame> {
         validate(desc)?;
-        crate::recorded::check_tlas(&self.ctx, tlas)?;
+        check_tlas(&self.ctx, tlas)?;
         let (w, h) = (desc.width, desc.height);
         let pixels = u64::from(w) * u64::from(h);
         let ctx = &*self.ctx;
@@ -427,6 +427,34 @@ impl Drop for Renderer {
             None => {}
         }
     }
+}
+
+/// Refuses a TLAS ref that is not live on `ctx`: destroyed or another device's (tracing one
+/// reads freed memory), or stale (it would trace a newer TLAS that has its handle value, or
+/// a later build of its slot). The message names the case.
+pub(crate) fn check_tlas(ctx: &VulkanContext, tlas: TlasRef) -> Result<()> {
+    if ctx.is_live_tlas(tlas) {
+        return Ok(());
+    }
+    let (raw, serial) = (tlas.raw(), tlas.serial());
+    let why = match ctx.live_tlas_serial(raw) {
+        None if raw == vk::AccelerationStructureKHR::null() => "the null handle".to_string(),
+        None => format!(
+            "TLAS {raw:?} (serial {serial}) is not a live top-level acceleration structure of \
+             this device: destroyed, or another device's"
+        ),
+        // Serials are process-wide and a live TLAS's only grows: a newer serial than the live
+        // one of that handle value was never this device's.
+        Some(live) if live < serial => format!(
+            "TLAS {raw:?} (serial {serial}) is another device's: this device's TLAS with that \
+             handle value is serial {live}"
+        ),
+        Some(live) => format!(
+            "TLAS {raw:?} (serial {serial}) is stale: it was destroyed or built again since, \
+             and a newer TLAS or build (serial {live}) now has that handle value"
+        ),
+    };
+    Err(RenderError::InvalidRequest(why))
 }
 
 #[cfg(test)]
