@@ -817,6 +817,64 @@ fn a_stale_tlas_handle_does_not_resolve() {
     d.assert_none();
 }
 
+/// A TLAS whose BLAS was destroyed once its frame completed, while its slot still holds it (not
+/// reused yet): its handle no longer resolves and a ref kept from it is refused, since tracing
+/// it would read the freed BLAS. Before the free the same ref renders and hits.
+#[test]
+fn a_tlas_naming_a_freed_blas_is_refused() {
+    use common::direct::{backend, build_one, geom, record_at};
+    use rtstream::as_manager::backend::{AsBackend, BlasClass, TlasDelta};
+    let ctx = common::context();
+    let mut b = backend(&ctx);
+    let mut r = Renderer::new(ctx.clone()).unwrap();
+    let mut d = Defects::default();
+    let g = grid_geometry(4, 20.0);
+    b.begin_frame(0).unwrap();
+    let blas = build_one(&mut b, geom(&g.positions, &g.indices), BlasClass::Static).unwrap();
+    let here = [record_at(b.blas_address(blas), 0, 0.0)];
+    let h0 = b.build_tlas(&here, TlasDelta::ALL).unwrap();
+    // Freed after the records that name it, as the manager frees: it lives until frame 0 ran.
+    b.free_blas(blas, 0);
+    b.end_frame(0).unwrap();
+    let kept = b.tlas(h0).expect("current TLAS resolves");
+    b.wait_idle().unwrap();
+    match r.render(kept, &[], &desc(16, 12)) {
+        Ok(f) => d.check(
+            f.hits.iter().any(|h| h.is_hit()),
+            "frame 0's TLAS renders its BLAS before the free: no pixel hit".to_string(),
+        ),
+        Err(e) => d.check(false, format!("frame 0's TLAS before the free: {e}")),
+    }
+    // Frame 0 completed: this frame's begin destroys the BLAS (frame 1 has the other slot).
+    b.begin_frame(1).unwrap();
+    let resolved = b.resolve_tlas(h0);
+    d.check(
+        resolved.is_err() && b.tlas(h0).is_none(),
+        format!("frame 0's handle resolves after its BLAS was destroyed: {resolved:?}"),
+    );
+    match r.render(kept, &[], &desc(16, 12)) {
+        Ok(_) => d.check(
+            false,
+            "a TLAS naming a destroyed BLAS rendered (it read freed memory)".to_string(),
+        ),
+        Err(RenderError::InvalidRequest(e)) => d.check(
+            e.contains("is stale"),
+            format!("the message names the case: {e}"),
+        ),
+        Err(e) => d.check(
+            false,
+            format!("render of the TLAS naming a freed BLAS: {e}"),
+        ),
+    }
+    b.build_tlas(&[], TlasDelta::ALL).unwrap();
+    b.end_frame(1).unwrap();
+    b.wait_idle().unwrap();
+    drop(r);
+    drop(b);
+    d.validation(&ctx);
+    d.assert_none();
+}
+
 /// An empty TLAS renders sky: every pixel a miss, on both the blocking and recorded paths.
 #[test]
 fn rendering_an_empty_tlas_gives_only_misses() {

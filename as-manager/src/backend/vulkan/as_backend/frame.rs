@@ -379,15 +379,29 @@ impl VulkanBackend {
         if let Some(done) = self.completed {
             self.retired_shading.retain(|_, &mut (last, _)| last > done);
         }
+        let freed_before = self.freed_through;
         while let Some((f, _)) = self.retiring.front() {
             if self.completed.is_some_and(|c| c >= *f) {
-                let (_, r) = self.retiring.pop_front().expect("front exists");
+                let (f, r) = self.retiring.pop_front().expect("front exists");
                 if matches!(r, Retired::BlasAccel(_)) {
                     self.counters.destroyed += 1;
+                    self.freed_through = Some(self.freed_through.map_or(f, |t| t.max(f)));
                 }
                 self.destroy(r);
             } else {
                 break;
+            }
+        }
+        if let Some(through) = self
+            .freed_through
+            .filter(|_| self.freed_through != freed_before)
+        {
+            // The TLASes of frames up to `through` may name a BLAS just destroyed: their refs
+            // go stale, so a renderer refuses them rather than trace freed memory.
+            for s in self.slots.iter().filter(|s| s.frame <= through) {
+                if let Some(t) = &s.tlas {
+                    self.ctx.tlas_rebuilt(t.raw);
+                }
             }
         }
         drop(retire);

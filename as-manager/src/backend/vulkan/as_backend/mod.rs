@@ -460,6 +460,10 @@ pub struct VulkanBackend {
     /// frame that may use it, its shading buffers), until that frame completes.
     retired_shading: FxHashMap<u64, (u64, (u64, u64))>,
     retiring: VecDeque<(u64, Retired)>,
+    /// The last frame that may have named a BLAS destroyed so far: a TLAS of this frame or an
+    /// earlier one may name freed memory, so its handle no longer resolves and its refs are
+    /// stale (`VulkanBackend::tlas`).
+    freed_through: Option<u64>,
     completed: Option<u64>,
     measurements: Vec<Measurement>,
     /// The most recent measurements (kept after `take_measurements`), newest last.
@@ -678,6 +682,7 @@ impl VulkanBackend {
             by_address: FxHashMap::default(),
             retired_shading: FxHashMap::default(),
             retiring: VecDeque::new(),
+            freed_through: None,
             completed: None,
             measurements: Vec::new(),
             log: VecDeque::new(),

@@ -130,8 +130,13 @@ impl VulkanBackend {
     /// handle is [`TlasRef::raw`]); None once its slot was reused for a later frame
     /// (`frames_in_flight` frames later): a stale handle never resolves to a newer TLAS. A ref
     /// kept past that is stale too: the slot's TLAS is rebuilt then, and
-    /// [`VulkanContext::is_live_tlas`] is false for it from its rebuild on.
+    /// [`VulkanContext::is_live_tlas`] is false for it from its rebuild on. Also None, and its
+    /// refs stale, once a BLAS that the frame may name was destroyed (a `begin_frame` after
+    /// the frame completed freed it): tracing the TLAS then would read freed memory.
     pub fn tlas(&self, handle: TlasHandle) -> Option<TlasRef> {
+        if self.freed_through.is_some_and(|t| handle.frame() <= t) {
+            return None;
+        }
         self.ctx.tlas_ref(self.slot_of(handle)?.tlas.as_ref()?)
     }
 
