@@ -759,23 +759,64 @@ fn a_stale_tlas_ref_is_refused_after_a_newer_tlas_is_created() {
     scene.destroy(&ctx);
 }
 
+/// Frame 0 of `backend`'s direct backend, left open: one grid BLAS and a TLAS with one record
+/// of it at the origin, where `desc(16, 12)`'s camera sees it.
+fn frame0_one_grid(
+    b: &mut rtstream::as_manager::backend::vulkan::VulkanBackend,
+) -> (
+    rtstream::as_manager::backend::BlasHandle,
+    rtstream::as_manager::backend::TlasHandle,
+) {
+    use common::direct::{build_one, geom, record_at};
+    use rtstream::as_manager::backend::{AsBackend, BlasClass, TlasDelta};
+    let g = grid_geometry(4, 20.0);
+    b.begin_frame(0).unwrap();
+    let blas = build_one(b, geom(&g.positions, &g.indices), BlasClass::Static).unwrap();
+    let here = [record_at(b.blas_address(blas), 0, 0.0)];
+    let h0 = b.build_tlas(&here, TlasDelta::ALL).unwrap();
+    (blas, h0)
+}
+
+/// `frame`, a render of a stale TLAS ref, must be refused as stale; `what` names the ref.
+fn check_refused_as_stale(d: &mut Defects, frame: rtstream::renderer::Result<Frame>, what: &str) {
+    match frame {
+        Ok(f) => {
+            let ids: std::collections::BTreeSet<u32> = f
+                .hits
+                .iter()
+                .filter(|h| h.is_hit())
+                .map(|h| h.instance)
+                .collect();
+            let hit = f.hits.iter().filter(|h| h.is_hit()).count();
+            d.check(
+                false,
+                format!("{what} rendered: {hit} of 192 pixels hit, customIndex {ids:?}"),
+            );
+        }
+        Err(RenderError::InvalidRequest(e)) => {
+            eprintln!("render of {what}: {e}");
+            d.check(
+                e.contains("is stale"),
+                format!("the message names the case: {e}"),
+            );
+        }
+        Err(e) => d.check(false, format!("render of {what}: {e}")),
+    }
+}
+
 /// A TLAS handle of a frame whose slot was reused no longer resolves (typed error), and the
 /// TLAS ref an engine kept from it is refused (`RenderError::InvalidRequest`) instead of
 /// tracing the newer frame's TLAS, which the slot's TLAS was rebuilt into.
 #[test]
 fn a_stale_tlas_handle_does_not_resolve() {
-    use common::direct::{backend, build_one, geom, record_at};
-    use rtstream::as_manager::backend::{AsBackend, BlasClass, TlasDelta};
+    use common::direct::{backend, record_at};
+    use rtstream::as_manager::backend::{AsBackend, TlasDelta};
     let ctx = common::context();
     let mut b = backend(&ctx);
     let mut r = Renderer::new(ctx.clone()).unwrap();
     let mut d = Defects::default();
-    let g = grid_geometry(4, 20.0);
-    b.begin_frame(0).unwrap();
-    let blas = build_one(&mut b, geom(&g.positions, &g.indices), BlasClass::Static).unwrap();
-    let here = [record_at(b.blas_address(blas), 0, 0.0)];
+    let (blas, h0) = frame0_one_grid(&mut b);
     let far = [record_at(b.blas_address(blas), 1, 1000.0)];
-    let h0 = b.build_tlas(&here, TlasDelta::ALL).unwrap();
     b.end_frame(0).unwrap();
     let kept = b.tlas(h0).expect("current TLAS resolves");
     for f in 1..=3 {
@@ -791,26 +832,11 @@ fn a_stale_tlas_handle_does_not_resolve() {
         format!("frame 0's handle still resolves: {resolved:?}"),
     );
     let frame = r.render(kept, &[], &desc(16, 12));
-    match &frame {
-        Ok(f) => {
-            let hit = f.hits.iter().filter(|h| h.is_hit()).count();
-            let ids: std::collections::BTreeSet<u32> = f
-                .hits
-                .iter()
-                .filter(|h| h.is_hit())
-                .map(|h| h.instance)
-                .collect();
-            d.check(false, format!("render of frame 0's TLAS ref after its slot was reused: {hit} of 192 pixels hit, customIndex {ids:?}"));
-        }
-        Err(RenderError::InvalidRequest(e)) => {
-            eprintln!("render of the stale TLAS ref: {e}");
-            d.check(
-                e.contains("is stale"),
-                format!("the message names the case: {e}"),
-            );
-        }
-        Err(e) => d.check(false, format!("render of the stale TLAS ref: {e}")),
-    }
+    check_refused_as_stale(
+        &mut d,
+        frame,
+        "frame 0's TLAS ref after its slot was reused",
+    );
     drop(r);
     drop(b);
     d.validation(&ctx);
@@ -822,17 +848,13 @@ fn a_stale_tlas_handle_does_not_resolve() {
 /// it would read the freed BLAS. Before the free the same ref renders and hits.
 #[test]
 fn a_tlas_naming_a_freed_blas_is_refused() {
-    use common::direct::{backend, build_one, geom, record_at};
-    use rtstream::as_manager::backend::{AsBackend, BlasClass, TlasDelta};
+    use common::direct::backend;
+    use rtstream::as_manager::backend::{AsBackend, TlasDelta};
     let ctx = common::context();
     let mut b = backend(&ctx);
     let mut r = Renderer::new(ctx.clone()).unwrap();
     let mut d = Defects::default();
-    let g = grid_geometry(4, 20.0);
-    b.begin_frame(0).unwrap();
-    let blas = build_one(&mut b, geom(&g.positions, &g.indices), BlasClass::Static).unwrap();
-    let here = [record_at(b.blas_address(blas), 0, 0.0)];
-    let h0 = b.build_tlas(&here, TlasDelta::ALL).unwrap();
+    let (blas, h0) = frame0_one_grid(&mut b);
     // Freed after the records that name it, as the manager frees: it lives until frame 0 ran.
     b.free_blas(blas, 0);
     b.end_frame(0).unwrap();
@@ -852,20 +874,8 @@ fn a_tlas_naming_a_freed_blas_is_refused() {
         resolved.is_err() && b.tlas(h0).is_none(),
         format!("frame 0's handle resolves after its BLAS was destroyed: {resolved:?}"),
     );
-    match r.render(kept, &[], &desc(16, 12)) {
-        Ok(_) => d.check(
-            false,
-            "a TLAS naming a destroyed BLAS rendered (it read freed memory)".to_string(),
-        ),
-        Err(RenderError::InvalidRequest(e)) => d.check(
-            e.contains("is stale"),
-            format!("the message names the case: {e}"),
-        ),
-        Err(e) => d.check(
-            false,
-            format!("render of the TLAS naming a freed BLAS: {e}"),
-        ),
-    }
+    let frame = r.render(kept, &[], &desc(16, 12));
+    check_refused_as_stale(&mut d, frame, "a TLAS naming a destroyed BLAS");
     b.build_tlas(&[], TlasDelta::ALL).unwrap();
     b.end_frame(1).unwrap();
     b.wait_idle().unwrap();
