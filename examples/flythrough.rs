@@ -202,6 +202,30 @@ fn print_table(r: &RunReport) {
         });
         println!("  {:<w$} {}{all}", p.policy, bands.join(", "));
     }
+    println!(
+        "what the peak holds, MB (BLASes): in the TLAS / requested, not in it / an LOD left, \
+         kept / kept, nothing near / skinned; proxies held, of them in the TLAS"
+    );
+    for p in &s.policies {
+        let Some(m) = &p.peak_memory_split else {
+            continue;
+        };
+        let mb = |x: &rtstream::as_manager::SplitPart| {
+            format!("{:.1} ({})", x.bytes as f64 / 1e6, x.count)
+        };
+        println!(
+            "  {:<w$} frame {}: {} / {} / {} / {} / {}; proxies {}, {}",
+            p.policy,
+            m.frame,
+            mb(&m.in_tlas),
+            mb(&m.requested),
+            mb(&m.superseded),
+            mb(&m.kept),
+            mb(&m.skinned),
+            mb(&m.proxies),
+            mb(&m.proxies_in_tlas)
+        );
+    }
     if let Some(t) = &s.frame_timing {
         println!(
             "frame timing ({}, {} frames in flight, {}x{}): frame p50 {:.2} / p99 {:.2} ms, \

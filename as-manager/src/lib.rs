@@ -86,8 +86,8 @@ pub use config::{
 pub use error::{AsError, Result};
 pub use ids::{GroupId, InstanceId, MeshId};
 pub use manager::{
-    AsManager, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc, Registrar,
-    Viewpoint,
+    AsManager, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc,
+    MemorySplit, Registrar, SplitPart, Viewpoint,
 };
 pub use mesh::{
     DeviceGeometry, DeviceGeometryError, DeviceIndices, DeviceVertices, GeometryData, IndexType,

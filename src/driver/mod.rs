@@ -41,7 +41,7 @@ use rtstream_as_manager::backend::vulkan::{
 };
 use rtstream_as_manager::backend::TlasHandle;
 use rtstream_as_manager::record::TlasInstance;
-use rtstream_as_manager::{AsManager, Config, FrameInput, PolicyKind, Viewpoint};
+use rtstream_as_manager::{AsManager, Config, FrameInput, MemorySplit, PolicyKind, Viewpoint};
 use rtstream_renderer::{side_by_side, Camera, Frame, RenderDesc, Renderer};
 use rtstream_stats::Summary;
 use rtstream_streaming::{
@@ -309,6 +309,8 @@ struct PolicyRun {
     tlas: TlasHandle,
     records: Vec<TlasInstance>,
     worst: Option<(f64, u64, u32, Vec<[u8; 4]>)>,
+    /// What the BLASes held at the frame of the peak of `blas_bytes` (off the timed path).
+    peak_split: Option<MemorySplit>,
 }
 
 /// Generates the preset's world and makes sure `dir` holds its bake (a stamp file names the
@@ -505,6 +507,7 @@ pub fn run_cached(
             tlas: TlasHandle::default(),
             records: Vec::new(),
             worst: None,
+            peak_split: None,
         });
     }
     // One renderer per policy (each keeps its frames in flight), recording into the frame's
@@ -633,6 +636,12 @@ pub fn run_cached(
             row.tlas_updated = uploaded_after.2 > uploaded_before.2;
             row.tlas_slots_joined = uploaded_after.3 - uploaded_before.3;
             row.tlas_slots_misplaced = uploaded_after.4 - uploaded_before.4;
+            if p.peak_split
+                .as_ref()
+                .is_none_or(|s| row.blas_bytes > s.total.bytes)
+            {
+                p.peak_split = Some(p.manager.memory_split());
+            }
             rows.push(row);
             for m in p.manager.gpu_measurements() {
                 gpu_ops.push_str(&format!(
@@ -776,6 +785,9 @@ pub fn run_cached(
         started.elapsed().as_secs_f64(),
         ctx.info().name.clone(),
     );
+    for (summary, p) in report.summary.policies.iter_mut().zip(&policies) {
+        summary.peak_memory_split = p.peak_split.clone();
+    }
     report.rows = rows;
     if config.render_every > 0 {
         // Steady state: after the first tenth of the run.

@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use rtstream_as_manager::FrameStats;
+use rtstream_as_manager::{FrameStats, MemorySplit};
 use rtstream_stats::Summary;
 use serde::Serialize;
 
@@ -289,6 +289,9 @@ pub struct PolicySummary {
     pub p95_blas_bytes: u64,
     /// Peak built BLASes.
     pub peak_blas_count: u32,
+    /// What the BLASes were for at the first frame of the peak of `blas_bytes`
+    /// ([`AsManager::memory_split`](rtstream_as_manager::AsManager::memory_split)).
+    pub peak_memory_split: Option<MemorySplit>,
     /// Peak TLAS instances.
     pub peak_tlas_instances: u32,
     /// Peak far-field proxy records in the TLAS.
@@ -506,6 +509,7 @@ impl RunReport {
                 peak_blas_bytes: mine.iter().map(|r| r.blas_bytes).max().unwrap_or(0),
                 p95_blas_bytes: bytes.p95 as u64,
                 peak_blas_count: mine.iter().map(|r| r.blas_count).max().unwrap_or(0),
+                peak_memory_split: None,
                 peak_tlas_instances: mine.iter().map(|r| r.tlas_instances).max().unwrap_or(0),
                 peak_proxy_instances: mine.iter().map(|r| r.proxy_instances).max().unwrap_or(0),
                 peak_proxy_blas_bytes: mine.iter().map(|r| r.proxy_blas_bytes).max().unwrap_or(0),

@@ -15,6 +15,7 @@ mod managed;
 mod memory;
 mod registrar;
 mod schedule;
+mod split;
 mod state;
 
 use std::collections::VecDeque;
@@ -22,6 +23,7 @@ use std::collections::VecDeque;
 use glam::{Affine3A, Vec3};
 
 pub use registrar::{GroupDesc, InstanceDesc, Registrar};
+pub use split::{MemorySplit, SplitPart};
 use state::{EntryKey, EntryState, Tables};
 
 use crate::backend::model::CostModel;
