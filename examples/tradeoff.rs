@@ -1,5 +1,5 @@
 //! The speed–accuracy trade-off: sweeps the managed policy's culling angle, culling distance,
-//! r1/r2, LOD pixel error, memory budget, far-field cut and far keep angle over the same
+//! r1/r2, LOD pixel error, memory budget, far-field cut, far keep angle, release threshold and the far field's children built ahead over the same
 //! deterministic path, scores every point against the full-world ground truth, and charts
 //! error against memory, TLAS instances, GPU ms and `update` ms with the Pareto front, the
 //! defaults, `naive` and `seed` marked.
@@ -9,7 +9,7 @@
 //!
 //! ```text
 //! cargo run --release --example tradeoff -- [--frames 600] [--eval-every 20] [--size 320x180]
-//!     [--render-every 1] [--out out/tradeoff] [--only angle,distance,radii,lod,budget,far,keep]
+//!     [--render-every 1] [--out out/tradeoff] [--only angle,distance,radii,lod,budget,far,keep,release,ahead]
 //!     [--json]
 //! ```
 //! Writes `points.csv`, `points.json` and `error_vs_{memory,tlas,gpu,update}.{png,svg}` to
@@ -49,6 +49,11 @@ enum Knob {
     Far,
     /// Far keep angle: landmarks beyond r2 stay in the TLAS (off, 0.25, 0.5, 1, 2, 4 degrees).
     Keep,
+    /// Release threshold: frames a BLAS nothing keeps stays built (0, 2, 4, 8, 15, 30, 60).
+    Release,
+    /// The far field's children built ahead: share of the proxy pixel error above which a
+    /// wanted node's children are built too (0.25, 0.5, 0.75, 1 = none).
+    Ahead,
 }
 
 /// Sweeps the managed policy's knobs over one path and charts error against cost.
@@ -129,6 +134,14 @@ fn points(knob: Knob) -> Vec<Point> {
             v
         }
         Knob::Keep => angles(|c, a| c.far_field.keep_angle = a),
+        Knob::Release => [0u32, 2, 4, 8, 15, 30, 60]
+            .into_iter()
+            .map(|n| p(format!("{n}fr"), move |c| c.residency.release_threshold = n))
+            .collect(),
+        Knob::Ahead => [0.25f32, 0.5, 0.75, 1.0]
+            .into_iter()
+            .map(|a| p(format!("{a}"), move |c| c.far_field.refine_ahead = a))
+            .collect(),
     }
 }
 
@@ -141,6 +154,8 @@ fn knob_name(k: Knob) -> &'static str {
         Knob::Budget => "budget",
         Knob::Far => "far_field",
         Knob::Keep => "far_keep_angle",
+        Knob::Release => "release_frames",
+        Knob::Ahead => "refine_ahead",
     }
 }
 
@@ -159,6 +174,8 @@ fn main() -> anyhow::Result<()> {
             Knob::Budget,
             Knob::Far,
             Knob::Keep,
+            Knob::Release,
+            Knob::Ahead,
         ]
     } else {
         cli.only.clone()

@@ -212,6 +212,10 @@ pub struct FarFieldConfig {
     /// Proxies of groups within r2 plus this many metres are built ahead, so a group that
     /// leaves r2 finds its proxy ready.
     pub lookahead: f32,
+    /// A node whose proxy the cut wants has its children's proxies built ahead (they replace
+    /// it as the cameras come nearer) once its error projects to more than this share of
+    /// `max_pixel_error`; 1 builds no child ahead. Default 0.5.
+    pub refine_ahead: f32,
     /// Share of the per-frame build budget proxies may use (they are built first, so the far
     /// field keeps up while near detail streams; detail takes the rest).
     pub build_share: f32,
@@ -254,6 +258,7 @@ impl Default for FarFieldConfig {
             max_pixel_error: 48.0,
             handover_margin: 25.0,
             lookahead: 150.0,
+            refine_ahead: 0.5,
             build_share: 0.5,
             memory_share: 0.5,
             keep_angle: 0.5f32.to_radians(),
@@ -369,6 +374,10 @@ impl Config {
             (
                 (0.0..=1.0).contains(&f.build_share) && (0.0..=1.0).contains(&f.memory_share),
                 "far_field.build_share and memory_share must be in [0, 1]",
+            ),
+            (
+                (0.0..=1.0).contains(&f.refine_ahead),
+                "far_field.refine_ahead must be in [0, 1]",
             ),
             (
                 nonneg(f.keep_angle) && f.keep_angle < std::f32::consts::FRAC_PI_2,

@@ -98,6 +98,10 @@ pub struct RunArgs {
     /// LOD pixel error.
     #[arg(long, value_parser = finite_positive_f32)]
     pub lod_px: Option<f32>,
+    /// Frames a BLAS that nothing keeps stays built before it is released
+    /// (`ResidencyConfig::release_threshold`).
+    #[arg(long)]
+    pub release_frames: Option<u32>,
     /// Estimated GPU ms of BLAS builds admitted per frame.
     #[arg(long, value_parser = finite_positive_f32)]
     pub max_build_ms: Option<f32>,
@@ -463,6 +467,9 @@ impl RunArgs {
         }
         if let Some(px) = self.lod_px {
             m.lod.max_pixel_error = px;
+        }
+        if let Some(n) = self.release_frames {
+            m.residency.release_threshold = n;
         }
         m.far_field.enabled = self.far_field;
         if let Some(px) = self.far_px {

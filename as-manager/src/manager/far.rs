@@ -485,7 +485,7 @@ impl<B: AsBackend> AsManager<B> {
             if n.dist > r2 + f.lookahead && px <= f.max_pixel_error {
                 want.push(i);
                 // Its children will replace it when the camera comes closer: build them ahead.
-                if px > f.max_pixel_error * 0.5 {
+                if px > f.max_pixel_error * f.refine_ahead {
                     want.extend(n.children.iter().copied());
                 }
             } else {
