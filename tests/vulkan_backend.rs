@@ -336,10 +336,16 @@ fn streamed_camera_path_on_vulkan() {
 #[test]
 fn a_stale_tlas_handle_resolves_to_nothing() {
     let ctx = common::context();
+    // Deterministic retirement: a handle also goes stale once a BLAS its frame names is
+    // destroyed, and without it that happens as soon as the GPU finishes the frame (the LOD
+    // chain's first, coarse BLAS is freed when the finer one replaces it), so which handles
+    // resolve would depend on GPU speed. With it, only slot reuse and the retirement schedule
+    // decide, and two frames stay in flight.
     let backend = VulkanBackend::new(
         ctx.clone(),
         VulkanBackendDesc {
             frames_in_flight: 2,
+            deterministic: true,
             ..VulkanBackendDesc::default()
         },
     )
@@ -474,10 +480,14 @@ fn a_compaction_named_by_its_own_frames_tlas_runs_before_it() {
     use rtstream::as_manager::backend::{BlasBuild, BlasClass, CostOp, GeometryRef, TlasDelta};
     use rtstream::as_manager::record::{TlasInstance, INSTANCE_FORCE_OPAQUE};
     let ctx = common::context();
+    // Deterministic retirement: the original's free counts from the copy's frame, and without
+    // it the original is destroyed as soon as the GPU finishes that frame, which makes that
+    // frame's TLAS handle stale before the test traces it whenever the GPU is quick.
     let mut b = VulkanBackend::new(
         ctx.clone(),
         VulkanBackendDesc {
             frames_in_flight: 2,
+            deterministic: true,
             ..VulkanBackendDesc::default()
         },
     )
