@@ -16,7 +16,8 @@ use rtstream::streaming::{load_gltf, GltfScene, TriMesh, ASSIMP_GLTF2_DIR};
 use rtstream::{Error, Result};
 
 /// The asset directory: `RTSTREAM_ASSETS` when set (e.g. a copy carried to the GPU machine,
-/// which has no assimp-testmodels), else Debian's ([`ASSIMP_GLTF2_DIR`]).
+/// which has no assimp-testmodels), else Debian's ([`ASSIMP_GLTF2_DIR`]). The world
+/// generator's `--asset-dir` defaults to the same variable, so one setting serves both.
 pub fn asset_dir() -> PathBuf {
     std::env::var_os("RTSTREAM_ASSETS")
         .map(PathBuf::from)

@@ -25,8 +25,9 @@ pub fn parse_preset(s: &str) -> Result<WorldPreset, String> {
 #[derive(Debug, Clone, Default, Args)]
 pub struct AssetArgs {
     /// Directory of Debian's assimp-testmodels glTF2 models the world generator places
-    /// (default: the preset's, /usr/share/assimp/models/glTF2).
-    #[arg(long, value_name = "DIR")]
+    /// (default: `RTSTREAM_ASSETS` when set, the directory the full-world evaluation loads
+    /// its models from too, else the preset's, /usr/share/assimp/models/glTF2).
+    #[arg(long, value_name = "DIR", env = "RTSTREAM_ASSETS")]
     pub asset_dir: Option<PathBuf>,
 }
 
