@@ -728,6 +728,8 @@ impl WorldBridge {
     /// The renderer's shading table for a frame's records, indexed by customIndex:
     /// base colours from the slots, geometry addresses from `geometry(blas_address)` (e.g.
     /// `VulkanBackend::shading_geometry`). Entries without a record get zero addresses.
+    /// A fresh table each call; a frame loop keeps a [`ShadingTable`] instead, which costs
+    /// the frame's records rather than every slot.
     pub fn shading(
         &self,
         records: &[TlasInstance],
@@ -736,19 +738,17 @@ impl WorldBridge {
         let mut table: Vec<InstanceShading> = self
             .slots
             .iter()
-            .map(|s| InstanceShading::colour_only(s.map_or([0.5, 0.5, 0.5, 1.0], |s| s.base_color)))
+            .map(|s| InstanceShading::colour_only(s.map_or(UNSHADED, |s| s.base_color)))
             .collect();
         if table.is_empty() {
             table.push(InstanceShading::colour_only([0.5; 4]));
         }
-        for r in records {
-            let ci = (r.custom_index_and_mask & 0x00ff_ffff) as usize;
-            if let (Some(e), Some((v, i))) = (table.get_mut(ci), geometry(r.blas_address)) {
-                e.vertices = v;
-                e.indices = i;
-            }
-        }
-        table
+        let mut t = ShadingTable {
+            table,
+            ..ShadingTable::default()
+        };
+        t.fill(self, records, geometry);
+        t.table
     }
 
     /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
@@ -773,5 +773,84 @@ impl WorldBridge {
             .flatten()
             .next()
             .cloned()
+    }
+}
+
+/// The colour of a shading entry no live slot names.
+const UNSHADED: [f32; 4] = [0.5, 0.5, 0.5, 1.0];
+
+/// A shading table kept from frame to frame ([`WorldBridge::shading`] for a frame loop).
+///
+/// The renderer reads an entry only for a customIndex the traced TLAS holds, so each frame
+/// rewrites just the entries its records name, and resets those the previous frame named
+/// but this one does not (colour-only, zero addresses, as [`WorldBridge::shading`] leaves
+/// them): a frame costs its records, not the whole customIndex range. With hundreds of
+/// thousands of loaded instances and a TLAS a quarter of that, rebuilding the table every
+/// frame was the largest cost on the fly-through's frame path outside `update`.
+#[derive(Debug, Default)]
+pub struct ShadingTable {
+    table: Vec<InstanceShading>,
+    /// customIndexes written with this frame's records (reset on the next frame).
+    named: Vec<u32>,
+}
+
+impl ShadingTable {
+    /// The table for `records` (one frame's, with `geometry` as in [`WorldBridge::shading`]).
+    /// On the entries the records name it equals `bridge.shading(records, geometry)`; every
+    /// other entry has zero addresses.
+    pub fn update(
+        &mut self,
+        bridge: &WorldBridge,
+        records: &[TlasInstance],
+        geometry: impl Fn(u64) -> Option<(u64, u64)>,
+    ) -> &[InstanceShading] {
+        for ci in std::mem::take(&mut self.named) {
+            if let Some(e) = self.table.get_mut(ci as usize) {
+                *e = InstanceShading::colour_only(UNSHADED);
+            }
+        }
+        // One entry per customIndex the bridge gave out (at least one, as `shading` gives).
+        self.table.resize(
+            bridge.slots.len().max(1),
+            InstanceShading::colour_only(UNSHADED),
+        );
+        self.fill(bridge, records, geometry);
+        &self.table
+    }
+
+    /// Writes each record's entry: its slot's colour and its BLAS's geometry.
+    fn fill(
+        &mut self,
+        bridge: &WorldBridge,
+        records: &[TlasInstance],
+        geometry: impl Fn(u64) -> Option<(u64, u64)>,
+    ) {
+        // Records of one mesh LOD name one BLAS and often come together: ask once for a run.
+        let mut last: Option<(u64, Option<(u64, u64)>)> = None;
+        for r in records {
+            let ci = r.custom_index_and_mask & 0x00ff_ffff;
+            let Some(e) = self.table.get_mut(ci as usize) else {
+                continue;
+            };
+            let g = match last {
+                Some((a, g)) if a == r.blas_address => g,
+                _ => {
+                    let g = geometry(r.blas_address);
+                    last = Some((r.blas_address, g));
+                    g
+                }
+            };
+            let colour = bridge
+                .slots
+                .get(ci as usize)
+                .and_then(|s| s.as_ref())
+                .map_or(UNSHADED, |s| s.base_color);
+            *e = InstanceShading::colour_only(colour);
+            if let Some((v, i)) = g {
+                e.vertices = v;
+                e.indices = i;
+            }
+            self.named.push(ci);
+        }
     }
 }

@@ -25,6 +25,6 @@ pub mod driver;
 mod error;
 mod gltf_scene;
 
-pub use bridge::{BridgeStats, ShadingSlot, WorldBridge};
+pub use bridge::{BridgeStats, ShadingSlot, ShadingTable, WorldBridge};
 pub use error::{Error, Result};
 pub use gltf_scene::{reference_scene, scene_mesh, world_bounds, GpuGltfScene};

@@ -260,3 +260,97 @@ fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
     assert_eq!(bridge.stats().rejected, 0);
     m.check_invariants().unwrap();
 }
+
+/// The shading table a frame loop keeps ([`rtstream::ShadingTable`]) equals a fresh
+/// [`WorldBridge::shading`] on every entry the frame's records name, and holds zero addresses
+/// everywhere else, frame after frame while the records change: a camera sweeps a row of
+/// instances, so instances enter and leave the TLAS, and a level unloads and another loads
+/// (its instances reuse the freed customIndexes).
+#[test]
+fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
+    let (mut m, mut bridge) = manager_and_bridge();
+    let g = grid(4);
+    let bounds = Aabb::from_points(&g.positions);
+    bridge.apply(&m, &[loaded(0, 0.0, &g)]);
+    let row = |first: u32, x0: f32| -> Arc<[Instance]> {
+        (0..40)
+            .map(|i| {
+                Instance::new(
+                    WorldInstanceId(first + i),
+                    WorldMeshId(0),
+                    Mat4::from_translation(Vec3::new(x0 + i as f32 * 40.0, 0.0, 0.0)),
+                    &bounds,
+                    MaterialClass::Opaque,
+                    Motion::Static,
+                )
+            })
+            .collect()
+    };
+    let (a, b) = (row(0, 0.0), row(100, 0.0));
+    let level = |id: u32, instances: &Arc<[Instance]>, load: bool| {
+        if load {
+            WorldEvent::LevelLoaded {
+                level: LevelId(id),
+                bounds,
+                instances: instances.clone(),
+            }
+        } else {
+            WorldEvent::LevelUnloaded {
+                level: LevelId(id),
+                instances: instances.clone(),
+            }
+        }
+    };
+    bridge.apply(&m, &[level(0, &a, true)]);
+    // Geometry answers that differ per BLAS, as the backend's do.
+    let geometry = |addr: u64| (addr % 3 != 0).then_some((addr, addr ^ 0xff));
+    let mut kept = rtstream::ShadingTable::default();
+    let (mut named_max, mut changes) = (0usize, 0usize);
+    let mut last_named: Vec<u32> = Vec::new();
+    for f in 0..60u64 {
+        if f == 30 {
+            bridge.apply(&m, &[level(0, &a, false), level(1, &b, true)]);
+        }
+        let x = (f % 30) as f32 * 50.0;
+        let cams = [Viewpoint::new(Vec3::new(x, 2.0, 0.0), Vec3::X)];
+        let out = m
+            .update(FrameInput {
+                frame: f,
+                cameras: &cams,
+            })
+            .unwrap();
+        let records = out.instances.to_vec();
+        let fresh = bridge.shading(&records, geometry);
+        let table = kept.update(&bridge, &records, geometry).to_vec();
+        assert_eq!(
+            table.len(),
+            fresh.len(),
+            "frame {f}: one entry per customIndex"
+        );
+        let mut named: Vec<u32> = records
+            .iter()
+            .map(|r| r.custom_index_and_mask & 0x00ff_ffff)
+            .collect();
+        named.sort_unstable();
+        named.dedup();
+        for (ci, (k, fr)) in table.iter().zip(&fresh).enumerate() {
+            if named.binary_search(&(ci as u32)).is_ok() {
+                assert_eq!(k, fr, "frame {f}: customIndex {ci} is named by a record");
+            } else {
+                assert_eq!(
+                    (k.vertices, k.indices),
+                    (0, 0),
+                    "frame {f}: customIndex {ci} has no record"
+                );
+            }
+        }
+        named_max = named_max.max(named.len());
+        changes += usize::from(named != last_named);
+        last_named = named;
+    }
+    assert!(
+        named_max >= 3,
+        "the TLAS held several instances: {named_max}"
+    );
+    assert!(changes >= 5, "the records changed across frames: {changes}");
+}

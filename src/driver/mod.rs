@@ -48,7 +48,7 @@ use rtstream_streaming::{
     bake, generate, read_manifest, GeneratedWorld, StreamConfig, World, WorldPreset,
 };
 
-use crate::bridge::WorldBridge;
+use crate::bridge::{ShadingTable, WorldBridge};
 use crate::error::{Error, Result};
 pub use path::{CameraPath, PathPoint};
 pub use report::{frames_to_coverage, FrameRow, PolicySummary, RunReport, RunSummary};
@@ -285,13 +285,16 @@ impl PolicyRun {
     /// What rendering this policy's last frame needs: its TLAS, the shading of its records
     /// and `desc` with the TLAS's primitive bases; None when the TLAS is gone.
     fn render_input(
-        &self,
+        &mut self,
         desc: RenderDesc,
-    ) -> Option<(TlasRef, Vec<rtstream_renderer::InstanceShading>, RenderDesc)> {
+    ) -> Option<(TlasRef, &[rtstream_renderer::InstanceShading], RenderDesc)> {
         let backend = self.manager.backend();
+        // Resolved once for the frame: while it resolves, every BLAS its records name is
+        // retained, so `shading_geometry` answers for them (`shading_geometry_in` checks the
+        // handle for each record).
         let tlas = backend.tlas(self.tlas)?;
-        let shading = self.bridge.shading(&self.records, |addr| {
-            backend.shading_geometry_in(self.tlas, addr).ok().flatten()
+        let shading = self.shading.update(&self.bridge, &self.records, |addr| {
+            backend.shading_geometry(addr)
         });
         let desc = RenderDesc {
             primitive_bases: backend.primitive_bases(self.tlas),
@@ -308,6 +311,8 @@ struct PolicyRun {
     /// The last frame's TLAS and its records.
     tlas: TlasHandle,
     records: Vec<TlasInstance>,
+    /// The renderer's shading table, kept across frames (rewritten for each frame's records).
+    shading: ShadingTable,
     worst: Option<(f64, u64, u32, Vec<[u8; 4]>)>,
     /// What the BLASes held at the frame of the peak of `blas_bytes` (off the timed path).
     peak_split: Option<MemorySplit>,
@@ -506,6 +511,7 @@ pub fn run_cached(
             bridge,
             tlas: TlasHandle::default(),
             records: Vec::new(),
+            shading: ShadingTable::default(),
             worst: None,
             peak_split: None,
         });
@@ -676,7 +682,7 @@ pub fn run_cached(
                 let Some((tlas, shading, desc)) = p.render_input(desc) else {
                     continue;
                 };
-                renderers[pi].record(&cmd, tlas, &shading, &desc)?;
+                renderers[pi].record(&cmd, tlas, shading, &desc)?;
                 // The instance behind each customIndex now: the bridge reuses slots later.
                 let ids = (0..p.bridge.slot_count())
                     .map(|ci| {
@@ -699,11 +705,11 @@ pub fn run_cached(
         let view = Camera::look_at(cam.position, cam.position + cam.look, 60f32.to_radians());
         let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
         if render_now && !config.blocking_render {
-            for (pi, p) in policies.iter().enumerate() {
+            for (pi, p) in policies.iter_mut().enumerate() {
                 let Some((tlas, shading, desc)) = p.render_input(render_desc) else {
                     continue;
                 };
-                renderers[pi].record(&cmd, tlas, &shading, &desc)?;
+                renderers[pi].record(&cmd, tlas, shading, &desc)?;
                 pending_renders.push((frame, pi));
             }
         }
@@ -711,11 +717,11 @@ pub fn run_cached(
         if render_now && config.blocking_render {
             // The old path: wait for the frame, then three passes, each waited for.
             frames.wait(frame)?;
-            for (pi, p) in policies.iter().enumerate() {
+            for (pi, p) in policies.iter_mut().enumerate() {
                 let Some((tlas, shading, desc)) = p.render_input(render_desc) else {
                     continue;
                 };
-                let img = renderers[pi].render(tlas, &shading, &desc)?;
+                let img = renderers[pi].render(tlas, shading, &desc)?;
                 if pi == 0 {
                     passes_ms.push((frame, img.render_ms));
                 }
