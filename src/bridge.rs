@@ -40,7 +40,7 @@ use rtstream_as_manager::{
     AsManager, GroupId, InstanceDesc, InstanceId, LodDesc, LodGeometry, MeshData, MeshDesc, MeshId,
     MeshKind,
 };
-use rtstream_renderer::InstanceShading;
+use rtstream_renderer::{InstanceShading, ShadingUpdate};
 use rtstream_streaming::{
     Aabb, Instance, LevelId, Manifest, MaterialClass, MeshLod, Motion, ProxyId, ProxyTree, World,
     WorldEvent, WorldInstanceId, WorldMeshId,
@@ -743,12 +743,13 @@ impl WorldBridge {
         if table.is_empty() {
             table.push(InstanceShading::colour_only([0.5; 4]));
         }
-        let mut t = ShadingTable {
-            table,
-            ..ShadingTable::default()
-        };
-        t.fill(self, records, geometry);
-        t.table
+        for r in records {
+            let ci = r.custom_index_and_mask & 0x00ff_ffff;
+            if let Some(e) = table.get_mut(ci as usize) {
+                *e = entry(self, ci, geometry(r.blas_address));
+            }
+        }
+        table
     }
 
     /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
@@ -782,49 +783,64 @@ const UNSHADED: [f32; 4] = [0.5, 0.5, 0.5, 1.0];
 /// A shading table kept from frame to frame ([`WorldBridge::shading`] for a frame loop).
 ///
 /// The renderer reads an entry only for a customIndex the traced TLAS holds, so each frame
-/// rewrites just the entries its records name, and resets those the previous frame named
-/// but this one does not (colour-only, zero addresses, as [`WorldBridge::shading`] leaves
-/// them): a frame costs its records, not the whole customIndex range. With hundreds of
-/// thousands of loaded instances and a TLAS a quarter of that, rebuilding the table every
-/// frame was the largest cost on the fly-through's frame path outside `update`.
-#[derive(Debug, Default)]
+/// writes just the entries its records name, and resets those the previous frame named but
+/// this one does not (colour-only, zero addresses, as [`WorldBridge::shading`] leaves them):
+/// a frame costs its records, not the whole customIndex range. With hundreds of thousands of
+/// loaded instances and a TLAS a quarter of that, rebuilding the table every frame was the
+/// largest cost on the fly-through's frame path outside `update`.
+///
+/// Each [`update`](Self::update) also lists the entries whose value it changed, so the
+/// renderer writes only those into a frame's instance buffer
+/// ([`Renderer::record_update`](rtstream_renderer::Renderer::record_update)); most records
+/// name the same BLAS and colour from frame to frame, so a frame changes few entries.
+#[derive(Debug)]
 pub struct ShadingTable {
     table: Vec<InstanceShading>,
-    /// customIndexes written with this frame's records (reset on the next frame).
+    /// customIndexes named by the last update's records (each once).
     named: Vec<u32>,
+    /// Per entry, the last update (serial) whose records named it.
+    stamp: Vec<u64>,
+    /// Entries the last update changed (below the previous table's length).
+    changed: Vec<u32>,
+    id: u64,
+    serial: u64,
+}
+
+impl Default for ShadingTable {
+    fn default() -> Self {
+        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        Self {
+            table: Vec::new(),
+            named: Vec::new(),
+            stamp: Vec::new(),
+            changed: Vec::new(),
+            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            serial: 0,
+        }
+    }
 }
 
 impl ShadingTable {
-    /// The table for `records` (one frame's, with `geometry` as in [`WorldBridge::shading`]).
-    /// On the entries the records name it equals `bridge.shading(records, geometry)`; every
-    /// other entry has zero addresses.
+    /// The table for `records` (one frame's, with `geometry` as in [`WorldBridge::shading`]),
+    /// with the entries it changed since the previous update. On the entries the records
+    /// name the table equals `bridge.shading(records, geometry)`; every other entry has zero
+    /// addresses.
     pub fn update(
         &mut self,
         bridge: &WorldBridge,
         records: &[TlasInstance],
         geometry: impl Fn(u64) -> Option<(u64, u64)>,
-    ) -> &[InstanceShading] {
-        for ci in std::mem::take(&mut self.named) {
-            if let Some(e) = self.table.get_mut(ci as usize) {
-                *e = InstanceShading::colour_only(UNSHADED);
-            }
-        }
+    ) -> ShadingUpdate<'_> {
+        self.serial += 1;
+        let serial = self.serial;
+        self.changed.clear();
+        let prev_len = self.table.len();
         // One entry per customIndex the bridge gave out (at least one, as `shading` gives).
-        self.table.resize(
-            bridge.slots.len().max(1),
-            InstanceShading::colour_only(UNSHADED),
-        );
-        self.fill(bridge, records, geometry);
-        &self.table
-    }
-
-    /// Writes each record's entry: its slot's colour and its BLAS's geometry.
-    fn fill(
-        &mut self,
-        bridge: &WorldBridge,
-        records: &[TlasInstance],
-        geometry: impl Fn(u64) -> Option<(u64, u64)>,
-    ) {
+        let len = bridge.slots.len().max(1);
+        self.table
+            .resize(len, InstanceShading::colour_only(UNSHADED));
+        self.stamp.resize(len, 0);
+        let previous = std::mem::take(&mut self.named);
         // Records of one mesh LOD name one BLAS and often come together: ask once for a run.
         let mut last: Option<(u64, Option<(u64, u64)>)> = None;
         for r in records {
@@ -840,17 +856,54 @@ impl ShadingTable {
                     g
                 }
             };
-            let colour = bridge
-                .slots
-                .get(ci as usize)
-                .and_then(|s| s.as_ref())
-                .map_or(UNSHADED, |s| s.base_color);
-            *e = InstanceShading::colour_only(colour);
-            if let Some((v, i)) = g {
-                e.vertices = v;
-                e.indices = i;
+            let new = entry(bridge, ci, g);
+            if *e != new {
+                *e = new;
+                if (ci as usize) < prev_len {
+                    self.changed.push(ci);
+                }
             }
-            self.named.push(ci);
+            let stamp = &mut self.stamp[ci as usize];
+            if *stamp != serial {
+                *stamp = serial;
+                self.named.push(ci);
+            }
+        }
+        // Named last time, not now: back to colour-only.
+        for ci in previous {
+            let i = ci as usize;
+            if i >= len || self.stamp[i] == serial {
+                continue;
+            }
+            let reset = InstanceShading::colour_only(UNSHADED);
+            if self.table[i] != reset {
+                self.table[i] = reset;
+                if i < prev_len {
+                    self.changed.push(ci);
+                }
+            }
+        }
+        ShadingUpdate {
+            table: &self.table,
+            changed: &self.changed,
+            table_id: self.id,
+            serial,
         }
     }
+}
+
+/// The shading entry of customIndex `ci` for a record whose BLAS has geometry `g`: its
+/// slot's colour and the BLAS's vertex and index addresses.
+fn entry(bridge: &WorldBridge, ci: u32, g: Option<(u64, u64)>) -> InstanceShading {
+    let colour = bridge
+        .slots
+        .get(ci as usize)
+        .and_then(|s| s.as_ref())
+        .map_or(UNSHADED, |s| s.base_color);
+    let mut e = InstanceShading::colour_only(colour);
+    if let Some((v, i)) = g {
+        e.vertices = v;
+        e.indices = i;
+    }
+    e
 }

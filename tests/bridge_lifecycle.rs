@@ -265,7 +265,8 @@ fn far_landmarks_are_placed_from_their_proxy_until_the_proxy_leaves() {
 /// [`WorldBridge::shading`] on every entry the frame's records name, and holds zero addresses
 /// everywhere else, frame after frame while the records change: a camera sweeps a row of
 /// instances, so instances enter and leave the TLAS, and a level unloads and another loads
-/// (its instances reuse the freed customIndexes).
+/// (its instances reuse the freed customIndexes). Each update lists the entries it changed,
+/// and applying them to the previous version gives the new one.
 #[test]
 fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
     let (mut m, mut bridge) = manager_and_bridge();
@@ -307,6 +308,7 @@ fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
     let mut kept = rtstream::ShadingTable::default();
     let (mut named_max, mut changes) = (0usize, 0usize);
     let mut last_named: Vec<u32> = Vec::new();
+    let (mut previous, mut listed, mut named_total) = (Vec::new(), 0usize, 0usize);
     for f in 0..60u64 {
         if f == 30 {
             bridge.apply(&m, &[level(0, &a, false), level(1, &b, true)]);
@@ -321,7 +323,26 @@ fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
             .unwrap();
         let records = out.instances.to_vec();
         let fresh = bridge.shading(&records, geometry);
-        let table = kept.update(&bridge, &records, geometry).to_vec();
+        let up = kept.update(&bridge, &records, geometry);
+        let table = up.table.to_vec();
+        // The changes it lists bring the previous version to this one (what the renderer
+        // writes into a frame's instance buffer), and they are fewer than the records.
+        let mut shadow = previous.clone();
+        shadow.truncate(table.len());
+        for &ci in up.changed {
+            if let Some(e) = shadow.get_mut(ci as usize) {
+                *e = table[ci as usize];
+            }
+        }
+        let held = shadow.len();
+        shadow.extend_from_slice(&table[held..]);
+        assert!(
+            shadow == table,
+            "frame {f}: the changed entries miss a change"
+        );
+        assert_eq!(up.serial, f + 1, "one version per update");
+        listed += up.changed.len();
+        previous = table.clone();
         assert_eq!(
             table.len(),
             fresh.len(),
@@ -345,6 +366,7 @@ fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
             }
         }
         named_max = named_max.max(named.len());
+        named_total += named.len();
         changes += usize::from(named != last_named);
         last_named = named;
     }
@@ -353,4 +375,8 @@ fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
         "the TLAS held several instances: {named_max}"
     );
     assert!(changes >= 5, "the records changed across frames: {changes}");
+    assert!(
+        listed * 2 < named_total,
+        "an update lists what changed, not every record: {listed} of {named_total}"
+    );
 }

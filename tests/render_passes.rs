@@ -370,3 +370,108 @@ fn recorded_frames_equal_blocking_frames_on_both_paths() {
         }
     });
 }
+
+/// A shading table kept across frames and recorded with `record_update` (three frames in
+/// flight, so each frame's instance buffer misses the two versions written into the others)
+/// renders what a whole table renders, frame after frame, while one visible instance changes
+/// colour each frame, the table grows, and a version is skipped; only the changed entries are
+/// written once every buffer holds the table.
+#[test]
+fn recorded_table_updates_render_what_whole_tables_render() {
+    use rtstream::as_manager::backend::vulkan::{FrameLoop, RECORDED_SETS};
+    use rtstream::renderer::ShadingUpdate;
+    on_reference_scene(|_, ctx, scene| {
+        let mut r = Renderer::with_path(ctx.clone(), RenderPath::for_device(ctx).unwrap()).unwrap();
+        let desc = RenderDesc::new(W, H, EvalWorld::demo_camera());
+        let first = scene.render(&mut r, &desc).unwrap();
+        let mut visible: Vec<u32> = first
+            .hits
+            .iter()
+            .map(|h| h.instance)
+            .filter(|&i| i != rtstream::renderer::PixelHit::MISS)
+            .collect();
+        visible.sort_unstable();
+        visible.dedup();
+        assert!(visible.len() >= 3, "the camera sees several instances");
+        let mut table = scene.shading.clone();
+        // Spare entries no instance names, so a quarter of the table is more than a frame's
+        // changes of three buffers.
+        table.resize(table.len() * 8, table[0]);
+        let frames_n = 12u64;
+        let mut tables = Vec::new();
+        let mut frames = FrameLoop::new(ctx, RECORDED_SETS).unwrap();
+        let mut recorded = Vec::new();
+        let mut written = Vec::new();
+        let mut serial = 0u64;
+        for f in 0..frames_n {
+            // One visible instance changes colour; the one changed last frame keeps its own.
+            let ci = visible[f as usize % visible.len()] as usize;
+            let c = [
+                (f as f32 * 0.37) % 1.0,
+                1.0 - (f as f32 * 0.21) % 1.0,
+                0.1,
+                1.0,
+            ];
+            table[ci].base_color = c;
+            let mut changed = vec![ci as u32];
+            if f == 5 {
+                table.push(table[0]);
+            }
+            if f == 8 {
+                // A version skipped: the renderer cannot chain and writes whole tables.
+                serial += 1;
+                changed.clear();
+            }
+            serial += 1;
+            let cmd = frames.begin(f).unwrap();
+            while let Some(img) = r.take(recorded.len() as u64, cmd.completed()).unwrap() {
+                recorded.push(img);
+            }
+            let update = ShadingUpdate {
+                table: &table,
+                changed: &changed,
+                table_id: 7,
+                serial,
+            };
+            r.record_update(&cmd, scene.accel.tlas_ref(), update, &desc)
+                .unwrap();
+            written.push(r.shading_entries_written());
+            tables.push(table.clone());
+            frames.submit(cmd).unwrap();
+        }
+        frames.wait_all().unwrap();
+        while let Some(img) = r.take(recorded.len() as u64, Some(frames_n - 1)).unwrap() {
+            recorded.push(img);
+        }
+        assert_eq!(recorded.len(), frames_n as usize, "every frame reads back");
+        let sets = RECORDED_SETS as usize;
+        for (f, img) in recorded.iter().enumerate() {
+            let whole = r.render(scene.accel.tlas_ref(), &tables[f], &desc).unwrap();
+            let differ = img
+                .color
+                .iter()
+                .zip(&whole.color)
+                .filter(|(a, b)| a != b)
+                .count();
+            assert_eq!(differ, 0, "frame {f}: pixels differ from the whole table's");
+            let n = tables[f].len();
+            if f < sets || (8..8 + sets).contains(&f) {
+                assert_eq!(
+                    written[f], n,
+                    "frame {f}: a buffer new or off the chain is whole"
+                );
+            } else {
+                // This frame's change and the other buffers' since (the growth adds one).
+                assert!(
+                    written[f] <= sets + 1,
+                    "frame {f}: wrote {} of {n} entries",
+                    written[f]
+                );
+            }
+        }
+        assert!(
+            recorded[0].color != recorded[sets].color,
+            "the colour changes show in the image"
+        );
+    });
+}

@@ -33,6 +33,7 @@ pub mod metrics;
 mod recorded;
 pub mod reference;
 mod renderer;
+mod shading;
 pub mod skinning;
 mod slot;
 mod traced_scene;
@@ -45,4 +46,5 @@ pub use renderer::{
     check_size, InstanceShading, RenderDesc, RenderPath, Renderer, MAX_PIXELS, MAX_SAMPLES,
     MAX_SIDE,
 };
+pub use shading::ShadingUpdate;
 pub use traced_scene::{cpu_reference, SceneInstance, TracedScene};

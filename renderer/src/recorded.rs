@@ -16,6 +16,7 @@ use crate::frame::Frame;
 use crate::renderer::{
     check_tlas, push_constants, read_frame, shading_table, validate, InstanceShading, Tracer,
 };
+use crate::shading::{write_table, ShadingUpdate, TableState};
 use crate::slot::RenderSlot;
 use crate::{RenderDesc, Renderer};
 
@@ -51,6 +52,38 @@ impl Renderer {
         instances: &[InstanceShading],
         desc: &RenderDesc,
     ) -> Result<()> {
+        self.record_table(cmd, tlas, instances, None, desc)
+    }
+
+    /// [`record`](Self::record) for a shading table kept across frames: writes into the
+    /// frame's instance buffer only the entries changed since that buffer was last written
+    /// (the changes of `update` and of the versions recorded into the other frames' buffers
+    /// since), not the whole table. Falls back to the whole table when `update` does not
+    /// follow the version recorded last (see [`ShadingUpdate`]). Fails as `record` does.
+    pub fn record_update(
+        &mut self,
+        cmd: &FrameCmd,
+        tlas: TlasRef,
+        update: ShadingUpdate<'_>,
+        desc: &RenderDesc,
+    ) -> Result<()> {
+        self.record_table(cmd, tlas, update.table, Some(&update), desc)
+    }
+
+    /// Shading entries written into the instance buffer by the last frame recorded (the
+    /// whole table, or what changed: see [`record_update`](Self::record_update)).
+    pub fn shading_entries_written(&self) -> usize {
+        self.table_written
+    }
+
+    fn record_table(
+        &mut self,
+        cmd: &FrameCmd,
+        tlas: TlasRef,
+        instances: &[InstanceShading],
+        update: Option<&ShadingUpdate<'_>>,
+        desc: &RenderDesc,
+    ) -> Result<()> {
         validate(desc)?;
         cmd.check(&self.ctx)?;
         check_tlas(&self.ctx, tlas)?;
@@ -83,6 +116,7 @@ impl Renderer {
                 size: (0, 0),
                 outputs: Vec::new(),
                 instances: None,
+                table: TableState::fresh(),
                 timer,
             });
         }
@@ -94,6 +128,10 @@ impl Renderer {
                 });
             }
         }
+        // Every buffer's view of the table moves to this version (the other frames' buffers
+        // keep its changes for their next write) before anything below can fail.
+        self.chain
+            .advance(self.slots.iter_mut().map(|s| &mut s.table), update);
         let ctx = self.ctx.clone();
         let (w, h) = (desc.width, desc.height);
         let pixels = u64::from(w) * u64::from(h);
@@ -128,9 +166,10 @@ impl Renderer {
                 usage: vk::BufferUsageFlags::STORAGE_BUFFER,
                 memory: MemoryKind::Upload,
             })?);
+            slot.table = TableState::fresh();
         }
         let ibuf = slot.instances.as_mut().expect("allocated above");
-        ibuf.write(0, bytes);
+        self.table_written = write_table(ibuf, &mut slot.table, instances);
         slot.timer.reset(&ctx);
         // Availability words at zero until this frame's timestamps are copied (see `take`).
         slot.times.write(0, &[0; TIMESTAMPS * 16]);

@@ -169,6 +169,10 @@ pub struct Renderer {
     pub(crate) tracer: Option<Tracer>,
     /// Per-frame resources of recorded frames ([`record`](Self::record)).
     pub(crate) slots: Vec<crate::slot::RenderSlot>,
+    /// The shading table's versions as recorded (`record_update`).
+    pub(crate) chain: crate::shading::TableChain,
+    /// Shading entries the last recorded frame wrote.
+    pub(crate) table_written: usize,
 }
 
 impl Renderer {
@@ -212,6 +216,8 @@ impl Renderer {
             ctx,
             tracer: Some(tracer),
             slots: Vec::new(),
+            chain: Default::default(),
+            table_written: 0,
         })
     }
 

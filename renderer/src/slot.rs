@@ -3,6 +3,8 @@
 
 use rtstream_as_manager::backend::vulkan::{GpuBuffer, QueryPool};
 
+use crate::shading::TableState;
+
 /// What one frame in flight owns.
 #[derive(Debug)]
 pub(crate) struct RenderSlot {
@@ -12,6 +14,8 @@ pub(crate) struct RenderSlot {
     pub(crate) size: (u32, u32),
     pub(crate) outputs: Vec<GpuBuffer>,
     pub(crate) instances: Option<GpuBuffer>,
+    /// What `instances` holds of the shading table.
+    pub(crate) table: TableState,
     pub(crate) timer: QueryPool,
     /// The timer's results, copied there on the GPU.
     pub(crate) times: GpuBuffer,

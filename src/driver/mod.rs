@@ -287,7 +287,7 @@ impl PolicyRun {
     fn render_input(
         &mut self,
         desc: RenderDesc,
-    ) -> Option<(TlasRef, &[rtstream_renderer::InstanceShading], RenderDesc)> {
+    ) -> Option<(TlasRef, rtstream_renderer::ShadingUpdate<'_>, RenderDesc)> {
         let backend = self.manager.backend();
         // Resolved once for the frame: while it resolves, every BLAS its records name is
         // retained, so `shading_geometry` answers for them (`shading_geometry_in` checks the
@@ -682,7 +682,7 @@ pub fn run_cached(
                 let Some((tlas, shading, desc)) = p.render_input(desc) else {
                     continue;
                 };
-                renderers[pi].record(&cmd, tlas, shading, &desc)?;
+                renderers[pi].record_update(&cmd, tlas, shading, &desc)?;
                 // The instance behind each customIndex now: the bridge reuses slots later.
                 let ids = (0..p.bridge.slot_count())
                     .map(|ci| {
@@ -706,10 +706,13 @@ pub fn run_cached(
         let render_desc = RenderDesc::new(config.size.0, config.size.1, view);
         if render_now && !config.blocking_render {
             for (pi, p) in policies.iter_mut().enumerate() {
+                // The frame path's rendering work on the host (the profile samples spans
+                // that name an update beside the manager's).
+                let _s = tracing::trace_span!("record_update").entered();
                 let Some((tlas, shading, desc)) = p.render_input(render_desc) else {
                     continue;
                 };
-                renderers[pi].record(&cmd, tlas, shading, &desc)?;
+                renderers[pi].record_update(&cmd, tlas, shading, &desc)?;
                 pending_renders.push((frame, pi));
             }
         }
@@ -721,7 +724,7 @@ pub fn run_cached(
                 let Some((tlas, shading, desc)) = p.render_input(render_desc) else {
                     continue;
                 };
-                let img = renderers[pi].render(tlas, shading, &desc)?;
+                let img = renderers[pi].render(tlas, shading.table, &desc)?;
                 if pi == 0 {
                     passes_ms.push((frame, img.render_ms));
                 }
