@@ -31,7 +31,10 @@
 //! across files.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+
+use rustc_hash::{FxHashMap, FxHashSet};
 
 use glam::{Affine3A, Vec3};
 use rtstream_as_manager::backend::AsBackend;
@@ -115,6 +118,8 @@ pub struct WorldBridge {
     placed: HashMap<WorldInstanceId, Placed>,
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
+    /// The slots assigned or cleared, in order (what a [`ShadingTable`] catches up on).
+    slot_log: SlotLog,
     stats: BridgeStats,
     counts_only: bool,
     /// Far field: the manager group of each proxy node, its level's leaf, and each node's
@@ -205,6 +210,7 @@ impl WorldBridge {
                     if self.slots.len() <= slot as usize {
                         self.slots.resize(slot as usize + 1, None);
                     }
+                    self.slot_log.push(slot);
                     self.slots[slot as usize] = Some(ShadingSlot {
                         instance: WorldInstanceId(u32::MAX),
                         proxy: Some(n.id),
@@ -604,6 +610,7 @@ impl WorldBridge {
                 if self.slots.len() <= slot as usize {
                     self.slots.resize(slot as usize + 1, None);
                 }
+                self.slot_log.push(slot);
                 self.slots[slot as usize] = Some(ShadingSlot {
                     instance: inst.id,
                     proxy: None,
@@ -651,6 +658,7 @@ impl WorldBridge {
             self.reject("instance removal", e);
         }
         self.slots[p.slot as usize] = None;
+        self.slot_log.push(p.slot);
         self.free_slots.push(p.slot);
         if let Some(ms) = self.meshes.get_mut(&p.mesh) {
             ms.placed = ms.placed.saturating_sub(1);
@@ -780,41 +788,118 @@ impl WorldBridge {
 /// The colour of a shading entry no live slot names.
 const UNSHADED: [f32; 4] = [0.5, 0.5, 0.5, 1.0];
 
+/// The slots a bridge assigned or cleared, in order, for readers that catch up
+/// ([`ShadingTable`]). Bounded: past [`SlotLog::MAX`] entries it drops what it holds, and a
+/// reader behind that point starts over (it re-reads every slot its records name).
+#[derive(Debug)]
+struct SlotLog {
+    /// Which bridge's log (so a reader never mixes two bridges).
+    id: u64,
+    /// Entries dropped so far: `entries[i]` is change number `dropped + i`.
+    dropped: u64,
+    entries: Vec<u32>,
+}
+
+impl Default for SlotLog {
+    fn default() -> Self {
+        static NEXT_ID: AtomicU64 = AtomicU64::new(1);
+        Self {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            dropped: 0,
+            entries: Vec::new(),
+        }
+    }
+}
+
+impl SlotLog {
+    /// Changes it holds at most (a reader reads every frame; a level loads a few thousand).
+    const MAX: usize = 1 << 18;
+
+    fn push(&mut self, slot: u32) {
+        if self.entries.len() >= Self::MAX {
+            self.dropped += self.entries.len() as u64;
+            self.entries.clear();
+        }
+        self.entries.push(slot);
+    }
+
+    /// The position after the last change.
+    fn end(&self) -> (u64, u64) {
+        (self.id, self.dropped + self.entries.len() as u64)
+    }
+
+    /// The changes since `from` (a position of this log), or None when they were dropped or
+    /// `from` is another log's.
+    fn since(&self, from: (u64, u64)) -> Option<&[u32]> {
+        let (id, at) = from;
+        if id != self.id || at < self.dropped {
+            return None;
+        }
+        self.entries.get((at - self.dropped) as usize..)
+    }
+}
+
 /// A shading table kept from frame to frame ([`WorldBridge::shading`] for a frame loop).
 ///
-/// The renderer reads an entry only for a customIndex the traced TLAS holds, so each frame
-/// writes just the entries its records name, and resets those the previous frame named but
-/// this one does not (colour-only, zero addresses, as [`WorldBridge::shading`] leaves them):
-/// a frame costs its records, not the whole customIndex range. With hundreds of thousands of
+/// The renderer reads an entry only for a customIndex the traced TLAS holds, so an update
+/// writes just the entries its records name, and resets those no record names any more
+/// (colour-only, zero addresses, as [`WorldBridge::shading`] leaves them). Most records
+/// stand where they stood in the last update's list, with the same customIndex and BLAS
+/// (the landmarks' records stay put while they show the same BLAS), so an update looks only
+/// at the records that changed, at those whose slot the bridge reassigned since, and at
+/// those whose BLAS's geometry answer changed (it asks `geometry` once per BLAS address the
+/// records name): a frame costs what changed, not its records. With hundreds of thousands of
 /// loaded instances and a TLAS a quarter of that, rebuilding the table every frame was the
 /// largest cost on the fly-through's frame path outside `update`.
 ///
 /// Each [`update`](Self::update) also lists the entries whose value it changed, so the
 /// renderer writes only those into a frame's instance buffer
-/// ([`Renderer::record_update`](rtstream_renderer::Renderer::record_update)); most records
-/// name the same BLAS and colour from frame to frame, so a frame changes few entries.
+/// ([`Renderer::record_update`](rtstream_renderer::Renderer::record_update)).
 #[derive(Debug)]
 pub struct ShadingTable {
     table: Vec<InstanceShading>,
-    /// customIndexes named by the last update's records (each once).
-    named: Vec<u32>,
-    /// Per entry, the last update (serial) whose records named it.
-    stamp: Vec<u64>,
+    /// The last update's records, by position: (customIndex, BLAS address).
+    prev: Vec<(u32, u64)>,
+    /// Per entry, the records naming it in `prev`.
+    refs: Vec<u32>,
+    /// Per BLAS address `prev` names: its geometry answer then, and the records naming it.
+    geometry: FxHashMap<u64, (Option<(u64, u64)>, u32)>,
+    /// Where the bridge's slot log stood at the last update (None: never updated).
+    log_at: Option<(u64, u64)>,
     /// Entries the last update changed (below the previous table's length).
     changed: Vec<u32>,
+    /// Scratch: entries a record left, addresses and slots to look at again, records that
+    /// left a position (with their count) and records that came to one.
+    left: Vec<u32>,
+    moved: FxHashMap<(u32, u64), u32>,
+    came: Vec<(u32, u64)>,
+    stale_addresses: FxHashSet<u64>,
+    stale_slots: FxHashSet<u32>,
     id: u64,
     serial: u64,
 }
 
+/// A new table identity ([`ShadingUpdate::table_id`]).
+fn next_table_id() -> u64 {
+    static NEXT_ID: AtomicU64 = AtomicU64::new(1);
+    NEXT_ID.fetch_add(1, Ordering::Relaxed)
+}
+
 impl Default for ShadingTable {
     fn default() -> Self {
-        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
         Self {
             table: Vec::new(),
-            named: Vec::new(),
-            stamp: Vec::new(),
+            prev: Vec::new(),
+            refs: Vec::new(),
+            geometry: FxHashMap::default(),
+            log_at: None,
             changed: Vec::new(),
-            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            left: Vec::new(),
+            moved: FxHashMap::default(),
+            came: Vec::new(),
+            stale_addresses: FxHashSet::default(),
+            stale_slots: FxHashSet::default(),
+            id: next_table_id(),
             serial: 0,
         }
     }
@@ -824,7 +909,8 @@ impl ShadingTable {
     /// The table for `records` (one frame's, with `geometry` as in [`WorldBridge::shading`]),
     /// with the entries it changed since the previous update. On the entries the records
     /// name the table equals `bridge.shading(records, geometry)`; every other entry has zero
-    /// addresses.
+    /// addresses. Use one table with one bridge; another bridge's update starts over (every
+    /// record is looked at), as does the first.
     pub fn update(
         &mut self,
         bridge: &WorldBridge,
@@ -832,47 +918,93 @@ impl ShadingTable {
         geometry: impl Fn(u64) -> Option<(u64, u64)>,
     ) -> ShadingUpdate<'_> {
         self.serial += 1;
-        let serial = self.serial;
         self.changed.clear();
         let prev_len = self.table.len();
         // One entry per customIndex the bridge gave out (at least one, as `shading` gives).
+        // The bridge's slots only grow; should they shrink, the table starts over.
         let len = bridge.slots.len().max(1);
+        let changes = self.log_at.and_then(|at| bridge.slot_log.since(at));
+        let all = changes.is_none() || len < prev_len;
+        if len < prev_len {
+            // A new table to the renderer: it writes the whole of it.
+            self.id = next_table_id();
+            self.table.clear();
+            self.prev.clear();
+            self.refs.clear();
+            self.geometry.clear();
+        }
         self.table
             .resize(len, InstanceShading::colour_only(UNSHADED));
-        self.stamp.resize(len, 0);
-        let previous = std::mem::take(&mut self.named);
-        // Records of one mesh LOD name one BLAS and often come together: ask once for a run.
-        let mut last: Option<(u64, Option<(u64, u64)>)> = None;
-        for r in records {
-            let ci = r.custom_index_and_mask & 0x00ff_ffff;
-            let Some(e) = self.table.get_mut(ci as usize) else {
-                continue;
-            };
-            let g = match last {
-                Some((a, g)) if a == r.blas_address => g,
-                _ => {
-                    let g = geometry(r.blas_address);
-                    last = Some((r.blas_address, g));
-                    g
-                }
-            };
-            let new = entry(bridge, ci, g);
-            if *e != new {
-                *e = new;
-                if (ci as usize) < prev_len {
-                    self.changed.push(ci);
-                }
-            }
-            let stamp = &mut self.stamp[ci as usize];
-            if *stamp != serial {
-                *stamp = serial;
-                self.named.push(ci);
+        self.refs.resize(len, 0);
+        self.stale_slots.clear();
+        self.stale_slots.extend(changes.unwrap_or_default());
+        self.log_at = Some(bridge.slot_log.end());
+        // The geometry answers for the addresses the last records named.
+        self.stale_addresses.clear();
+        for (&addr, (g, _)) in self.geometry.iter_mut() {
+            let now = geometry(addr);
+            if now != *g {
+                *g = now;
+                self.stale_addresses.insert(addr);
             }
         }
-        // Named last time, not now: back to colour-only.
-        for ci in previous {
+        // The records against the last update's, position by position: a record equal to
+        // the one it replaces (same customIndex and BLAS, neither slot nor geometry changed
+        // since) changes nothing. The others moved, came or left; a moved one (its key left
+        // one position and came to another) changes nothing either, and only what came or
+        // left for good touches the table.
+        let key = |r: &TlasInstance| (r.custom_index_and_mask & 0x00ff_ffff, r.blas_address);
+        let fresh = |this: &Self, (ci, addr): (u32, u64)| {
+            !all && !this.stale_slots.contains(&ci) && !this.stale_addresses.contains(&addr)
+        };
+        let mut prev = std::mem::take(&mut self.prev);
+        let mut moved = std::mem::take(&mut self.moved);
+        moved.clear();
+        let mut came = std::mem::take(&mut self.came);
+        came.clear();
+        for i in 0..records.len().max(prev.len()) {
+            let old = prev.get(i).copied();
+            let new = records.get(i).map(key);
+            // The list this update leaves for the next, written as it is read.
+            match (new, prev.get_mut(i)) {
+                (Some(k), Some(p)) => *p = k,
+                (Some(k), None) => prev.push(k),
+                (None, _) => {}
+            }
+            if old == new && new.is_some_and(|k| fresh(self, k)) {
+                continue;
+            }
+            if let Some(k) = old {
+                if fresh(self, k) {
+                    *moved.entry(k).or_insert(0) += 1;
+                } else {
+                    self.leave(k);
+                }
+            }
+            if let Some(k) = new {
+                came.push(k);
+            }
+        }
+        for &k in &came {
+            match moved.get_mut(&k) {
+                Some(n) if *n > 0 && fresh(self, k) => *n -= 1,
+                _ => self.come(bridge, k, prev_len, &geometry),
+            }
+        }
+        for (&k, &n) in &moved {
+            for _ in 0..n {
+                self.leave(k);
+            }
+        }
+        prev.truncate(records.len());
+        self.moved = moved;
+        self.came = came;
+        self.prev = prev;
+        // Named before, by no record now: back to colour-only.
+        let mut left = std::mem::take(&mut self.left);
+        for &ci in &left {
             let i = ci as usize;
-            if i >= len || self.stamp[i] == serial {
+            if self.refs[i] > 0 {
                 continue;
             }
             let reset = InstanceShading::colour_only(UNSHADED);
@@ -883,11 +1015,61 @@ impl ShadingTable {
                 }
             }
         }
+        left.clear();
+        self.left = left;
         ShadingUpdate {
             table: &self.table,
             changed: &self.changed,
             table_id: self.id,
-            serial,
+            serial: self.serial,
+        }
+    }
+
+    /// A record of the last update that no record of this one pairs with.
+    fn leave(&mut self, (ci, addr): (u32, u64)) {
+        if let Some(r) = self.refs.get_mut(ci as usize) {
+            *r -= 1;
+            if *r == 0 {
+                self.left.push(ci);
+            }
+        }
+        if let Some(g) = self.geometry.get_mut(&addr) {
+            g.1 -= 1;
+            if g.1 == 0 {
+                self.geometry.remove(&addr);
+            }
+        }
+    }
+
+    /// A record of this update that pairs with none of the last: its entry, written.
+    fn come(
+        &mut self,
+        bridge: &WorldBridge,
+        (ci, addr): (u32, u64),
+        prev_len: usize,
+        geometry: &impl Fn(u64) -> Option<(u64, u64)>,
+    ) {
+        let g = match self.geometry.get_mut(&addr) {
+            Some(g) => {
+                g.1 += 1;
+                g.0
+            }
+            None => {
+                let g = geometry(addr);
+                self.geometry.insert(addr, (g, 1));
+                g
+            }
+        };
+        let Some(e) = self.table.get_mut(ci as usize) else {
+            return;
+        };
+        self.refs[ci as usize] += 1;
+        let value = entry(bridge, ci, g);
+        if *e != value {
+            *e = value;
+            if (ci as usize) < prev_len {
+                self.changed.push(ci);
+            }
         }
     }
 }

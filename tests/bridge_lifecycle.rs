@@ -380,3 +380,132 @@ fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
         "an update lists what changed, not every record: {listed} of {named_total}"
     );
 }
+
+/// A kept shading table that skips the records standing where they stood still sees what
+/// changed under them: a slot the bridge gave to another instance (another mesh, another
+/// colour) while a record keeps its customIndex and BLAS address, a BLAS address whose
+/// geometry answer changed, and records that left or moved.
+#[test]
+fn a_kept_shading_table_sees_reassigned_slots_and_changed_geometry_under_unmoved_records() {
+    use rtstream::as_manager::record::TlasInstance;
+    use std::cell::Cell;
+    let (m, mut bridge) = manager_and_bridge();
+    let g = grid(2);
+    let bounds = Aabb::from_points(&g.positions);
+    let mesh = |id: u32| WorldEvent::MeshLodLoaded {
+        mesh: WorldMeshId(id),
+        lod: 0,
+        lod_count: 1,
+        error: 0.0,
+        geometry: Arc::clone(&g),
+    };
+    bridge.apply(&m, &[mesh(0), mesh(1)]);
+    let level = |id: u32, mesh: u32, load: bool| {
+        let instances: Arc<[Instance]> = (0..4)
+            .map(|i| {
+                Instance::new(
+                    WorldInstanceId(id * 100 + i),
+                    WorldMeshId(mesh),
+                    Mat4::from_translation(Vec3::new(i as f32 * 10.0, 0.0, 0.0)),
+                    &bounds,
+                    MaterialClass::Opaque,
+                    Motion::Static,
+                )
+            })
+            .collect();
+        if load {
+            WorldEvent::LevelLoaded {
+                level: LevelId(id),
+                bounds,
+                instances,
+            }
+        } else {
+            WorldEvent::LevelUnloaded {
+                level: LevelId(id),
+                instances,
+            }
+        }
+    };
+    bridge.apply(&m, &[level(0, 0, true)]);
+    let slots: Vec<u32> = bridge
+        .placed_within(Vec3::ZERO, 1000.0)
+        .iter()
+        .map(|p| p.0)
+        .collect();
+    assert_eq!(slots.len(), 4, "four instances placed");
+    let record = |ci: u32, addr: u64| TlasInstance {
+        transform: [0.0; 12],
+        custom_index_and_mask: ci | 0xff << 24,
+        sbt_offset_and_flags: 0,
+        blas_address: addr,
+    };
+    let answer = Cell::new(1u64);
+    let geometry = |addr: u64| Some((addr * 10 + answer.get(), addr * 10 + 5));
+    let mut kept = rtstream::ShadingTable::default();
+    let mut check = |bridge: &WorldBridge, records: &[TlasInstance], what: &str| {
+        let fresh = bridge.shading(records, geometry);
+        let up = kept.update(bridge, records, geometry);
+        assert_eq!(up.table.len(), fresh.len(), "{what}: one entry per slot");
+        for r in records {
+            let ci = (r.custom_index_and_mask & 0x00ff_ffff) as usize;
+            assert_eq!(up.table[ci], fresh[ci], "{what}: customIndex {ci}");
+        }
+        for (ci, e) in up.table.iter().enumerate() {
+            if !records
+                .iter()
+                .any(|r| (r.custom_index_and_mask & 0x00ff_ffff) as usize == ci)
+            {
+                assert_eq!(
+                    (e.vertices, e.indices),
+                    (0, 0),
+                    "{what}: {ci} has no record"
+                );
+            }
+        }
+        up.changed.len()
+    };
+    let records: Vec<_> = slots.iter().map(|&s| record(s, 100 + s as u64)).collect();
+    check(&bridge, &records, "first update");
+    assert_eq!(
+        check(&bridge, &records, "same records"),
+        0,
+        "nothing changed"
+    );
+    // The level goes and another, of another mesh, takes its slots; the records stay put.
+    bridge.apply(&m, &[level(0, 0, false), level(1, 1, true)]);
+    let reused: Vec<u32> = bridge
+        .placed_within(Vec3::ZERO, 1000.0)
+        .iter()
+        .map(|p| p.0)
+        .collect();
+    assert_eq!(
+        {
+            let mut a = reused.clone();
+            a.sort_unstable();
+            a
+        },
+        {
+            let mut b = slots.clone();
+            b.sort_unstable();
+            b
+        },
+        "the new level reuses the slots"
+    );
+    assert!(
+        check(&bridge, &records, "slots reassigned") > 0,
+        "the colours changed"
+    );
+    // One address answers with other geometry.
+    answer.set(2);
+    assert_eq!(
+        check(&bridge, &records, "geometry changed"),
+        records.len(),
+        "every entry's geometry changed"
+    );
+    // Records leave and the rest move.
+    let mut fewer = records[1..].to_vec();
+    fewer.reverse();
+    check(&bridge, &fewer, "records left and moved");
+    check(&bridge, &[], "no records");
+    check(&bridge, &records, "records back");
+}
