@@ -30,7 +30,6 @@
 //! and each handler is short; splitting it by event would scatter that shared state's invariants
 //! across files.
 
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -114,8 +113,8 @@ struct Placed {
 #[derive(Debug, Default)]
 pub struct WorldBridge {
     manifest_meshes: Vec<rtstream_streaming::bake::MeshEntry>,
-    meshes: HashMap<WorldMeshId, MeshSlot>,
-    placed: HashMap<WorldInstanceId, Placed>,
+    meshes: FxHashMap<WorldMeshId, MeshSlot>,
+    placed: FxHashMap<WorldInstanceId, Placed>,
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
     /// The slots assigned or cleared, in order (what a [`ShadingTable`] catches up on).
@@ -126,14 +125,14 @@ pub struct WorldBridge {
     /// proxy mesh while resident.
     groups: Vec<Option<GroupId>>,
     level_leaf: Vec<Option<ProxyId>>,
-    proxy_meshes: HashMap<ProxyId, MeshId>,
+    proxy_meshes: FxHashMap<ProxyId, MeshId>,
     proxy_errors: Vec<f32>,
     proxy_bounds: Vec<Aabb>,
     /// Each resident leaf's landmark list, and each listed instance's leaf.
-    proxy_landmarks: HashMap<ProxyId, Arc<[(LevelId, Instance)]>>,
-    landmark_leaf: HashMap<WorldInstanceId, ProxyId>,
+    proxy_landmarks: FxHashMap<ProxyId, Arc<[(LevelId, Instance)]>>,
+    landmark_leaf: FxHashMap<WorldInstanceId, ProxyId>,
     /// Landmarks waiting for their mesh's registration (its first resident LOD).
-    pending_landmarks: HashMap<WorldMeshId, Vec<WorldInstanceId>>,
+    pending_landmarks: FxHashMap<WorldMeshId, Vec<(WorldInstanceId, u32)>>,
 }
 
 /// The base colour of far-field proxies (they merge terrain and buildings).
@@ -268,13 +267,21 @@ impl WorldBridge {
             return; // nothing listed, or no proxy tree registered
         }
         self.proxy_landmarks.insert(node, Arc::clone(landmarks));
-        for (level, inst) in landmarks.iter() {
+        for (at, (level, inst)) in landmarks.iter().enumerate() {
             self.landmark_leaf.insert(inst.id, node);
-            self.place_landmark(m, *level, inst);
+            self.place_landmark(m, *level, inst, at as u32);
         }
     }
 
-    fn place_landmark<B: AsBackend>(&mut self, m: &AsManager<B>, level: LevelId, inst: &Instance) {
+    /// Places a listed landmark (`at`: its place in its leaf's list), or keeps it for when
+    /// its mesh registers.
+    fn place_landmark<B: AsBackend>(
+        &mut self,
+        m: &AsManager<B>,
+        level: LevelId,
+        inst: &Instance,
+        at: u32,
+    ) {
         if self.placed.contains_key(&inst.id) {
             return; // its level is loaded: placed already
         }
@@ -282,7 +289,7 @@ impl WorldBridge {
             self.pending_landmarks
                 .entry(inst.mesh)
                 .or_default()
-                .push(inst.id);
+                .push((inst.id, at));
             return;
         }
         self.place(m, level, inst, true);
@@ -293,16 +300,23 @@ impl WorldBridge {
         let Some(ids) = self.pending_landmarks.remove(&mesh) else {
             return;
         };
-        for id in ids {
-            let Some((level, inst)) = self
+        for (id, at) in ids {
+            // Where it was listed; the leaf's list may have been loaded again since.
+            let Some((level, inst, at)) = self
                 .landmark_leaf
                 .get(&id)
                 .and_then(|n| self.proxy_landmarks.get(n))
-                .and_then(|list| list.iter().find(|(_, i)| i.id == id).copied())
+                .and_then(|list| match list.get(at as usize) {
+                    Some(&(level, inst)) if inst.id == id => Some((level, inst, at)),
+                    _ => list
+                        .iter()
+                        .position(|(_, i)| i.id == id)
+                        .map(|k| (list[k].0, list[k].1, k as u32)),
+                })
             else {
                 continue; // its proxy left meanwhile
             };
-            self.place_landmark(m, level, &inst);
+            self.place_landmark(m, level, &inst, at);
         }
     }
 

@@ -602,8 +602,12 @@ pub fn run_cached(
                 p.manager.backend_mut().frame_done(d);
             }
             let max_prims = p.manager.config().build.max_primitives;
+            // The bridge's share of the frame path (the profile samples spans that name an
+            // update beside the manager's).
+            let bridge_span = tracing::trace_span!("bridge_update").entered();
             p.bridge.apply(&p.manager, &events);
             p.bridge.pose_skinned(&p.manager, &world, time, 2);
+            drop(bridge_span);
             // Names the policy for a profiler of the manager's spans (examples' `--profile`).
             let _policy = tracing::trace_span!("policy", name = p.name).entered();
             let uploaded = |m: &AsManager<VulkanBackend>| {
