@@ -763,7 +763,7 @@ impl WorldBridge {
             .map(|s| InstanceShading::colour_only(s.map_or(UNSHADED, |s| s.base_color)))
             .collect();
         if table.is_empty() {
-            table.push(InstanceShading::colour_only([0.5; 4]));
+            table.push(InstanceShading::colour_only(UNSHADED));
         }
         for r in records {
             let ci = r.custom_index_and_mask & 0x00ff_ffff;

@@ -509,3 +509,14 @@ fn a_kept_shading_table_sees_reassigned_slots_and_changed_geometry_under_unmoved
     check(&bridge, &[], "no records");
     check(&bridge, &records, "records back");
 }
+
+#[test]
+fn an_empty_world_gets_the_same_one_entry_table_fresh_and_kept() {
+    let (_m, bridge) = manager_and_bridge();
+    let geometry = |_: u64| None;
+    let fresh = bridge.shading(&[], geometry);
+    let mut kept = rtstream::ShadingTable::default();
+    let up = kept.update(&bridge, &[], geometry);
+    assert_eq!(fresh.len(), 1, "a table is never empty");
+    assert_eq!(up.table, &fresh[..], "both pad an empty world the same way");
+}
