@@ -204,8 +204,8 @@ pub struct World {
     /// LOD streaming's per-mesh nearest distances, kept between frames (`lod_stream.rs`).
     lod_eff: Vec<f32>,
     /// The loaded instances of streamed meshes as LOD streaming reads them every frame, all
-    /// levels in one array.
-    lod_points: ranges::LevelRanges<LodPoint>,
+    /// levels in one array, with what lets the pass skip a level.
+    lod_points: lod_stream::LodPoints,
     /// The loaded skinned instances (level, index in its instances), for `skin_frame`: a
     /// few dozen among tens of thousands.
     skinned: ranges::LevelRanges<(u32, u32)>,
@@ -314,7 +314,7 @@ impl World {
             ],
             proxies,
             lod_eff: Vec::new(),
-            lod_points: ranges::LevelRanges::default(),
+            lod_points: lod_stream::LodPoints::default(),
             skinned: ranges::LevelRanges::default(),
         })
     }

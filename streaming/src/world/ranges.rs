@@ -76,6 +76,13 @@ impl<T> LevelRanges<T> {
     pub(super) fn live(&self) -> impl Iterator<Item = &T> {
         self.items.iter().flatten()
     }
+
+    /// One level's items, in the order inserted (empty for a level without any; a loaded
+    /// level's items are all `Some`).
+    pub(super) fn level(&self, level: u32) -> &[Option<T>] {
+        let (start, len) = self.ranges.get(&level).copied().unwrap_or((0, 0));
+        &self.items[start..start + len]
+    }
 }
 
 #[cfg(test)]
