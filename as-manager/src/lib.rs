@@ -87,7 +87,7 @@ pub use error::{AsError, Result};
 pub use ids::{GroupId, InstanceId, MeshId};
 pub use manager::{
     AsManager, FrameInput, FrameOutput, FrameStats, GroupDesc, ImageError, InstanceDesc,
-    MemorySplit, Registrar, SplitPart, Viewpoint,
+    MemorySplit, RecordChanges, Registrar, SplitPart, Viewpoint,
 };
 pub use mesh::{
     DeviceGeometry, DeviceGeometryError, DeviceIndices, DeviceVertices, GeometryData, IndexType,

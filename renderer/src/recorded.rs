@@ -70,6 +70,16 @@ impl Renderer {
         self.record_table(cmd, tlas, update.table, Some(&update), desc)
     }
 
+    /// Makes each recorded frame's instance buffer hold at least `entries` shading entries
+    /// from its first frame on. A table that outgrows its buffer gets one twice as large, in
+    /// the frame that needs it: an allocation of several megabytes (about 14 ms on the H100
+    /// host, for each of the frames in flight) on the frame path. A frame loop that knows how
+    /// many customIndexes it may hand out (say the world's instances and proxies) reserves
+    /// them before its first frame. Takes effect for buffers made after the call.
+    pub fn reserve_shading(&mut self, entries: usize) {
+        self.reserved_entries = entries;
+    }
+
     /// Shading entries written into the instance buffer by the last frame recorded (the
     /// whole table, or what changed: see [`record_update`](Self::record_update)).
     pub fn shading_entries_written(&self) -> usize {
@@ -160,9 +170,12 @@ impl Renderer {
             if let Some(b) = slot.instances.take() {
                 ctx.destroy_buffer(b);
             }
+            let reserved = self.reserved_entries * std::mem::size_of::<InstanceShading>();
             slot.instances = Some(ctx.create_buffer(&BufferDesc {
                 name: "render instances",
-                size: (bytes.len() as u64).next_power_of_two(),
+                size: (bytes.len() as u64)
+                    .next_power_of_two()
+                    .max(reserved as u64),
                 usage: vk::BufferUsageFlags::STORAGE_BUFFER,
                 memory: MemoryKind::Upload,
             })?);

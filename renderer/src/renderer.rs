@@ -173,6 +173,9 @@ pub struct Renderer {
     pub(crate) chain: crate::shading::TableChain,
     /// Shading entries the last recorded frame wrote.
     pub(crate) table_written: usize,
+    /// Shading entries each recorded frame's instance buffer holds at least
+    /// ([`reserve_shading`](Self::reserve_shading)).
+    pub(crate) reserved_entries: usize,
 }
 
 impl Renderer {
@@ -218,6 +221,7 @@ impl Renderer {
             slots: Vec::new(),
             chain: Default::default(),
             table_written: 0,
+            reserved_entries: 0,
         })
     }
 

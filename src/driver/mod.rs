@@ -40,7 +40,6 @@ use rtstream_as_manager::backend::vulkan::{
     VulkanBackendDesc, VulkanContext, RECORDED_SETS,
 };
 use rtstream_as_manager::backend::TlasHandle;
-use rtstream_as_manager::record::TlasInstance;
 use rtstream_as_manager::{AsManager, Config, FrameInput, MemorySplit, PolicyKind, Viewpoint};
 use rtstream_renderer::{side_by_side, Camera, Frame, RenderDesc, Renderer};
 use rtstream_stats::Summary;
@@ -293,9 +292,14 @@ impl PolicyRun {
         // retained, so `shading_geometry` answers for them (`shading_geometry_in` checks the
         // handle for each record).
         let tlas = backend.tlas(self.tlas)?;
-        let shading = self.shading.update(&self.bridge, &self.records, |addr| {
-            backend.shading_geometry(addr)
-        });
+        let shading = {
+            let _s = tracing::trace_span!("shading_table").entered();
+            let changes = self.manager.record_changes();
+            self.shading
+                .update_changes(&self.bridge, self.manager.records(), changes, |addr| {
+                    backend.shading_geometry(addr)
+                })
+        };
         let desc = RenderDesc {
             primitive_bases: backend.primitive_bases(self.tlas),
             ..desc
@@ -308,9 +312,8 @@ struct PolicyRun {
     name: &'static str,
     manager: AsManager<VulkanBackend>,
     bridge: WorldBridge,
-    /// The last frame's TLAS and its records.
+    /// The last frame's TLAS (its records: `manager.records()`).
     tlas: TlasHandle,
-    records: Vec<TlasInstance>,
     /// The renderer's shading table, kept across frames (rewritten for each frame's records).
     shading: ShadingTable,
     worst: Option<(f64, u64, u32, Vec<[u8; 4]>)>,
@@ -510,7 +513,6 @@ pub fn run_cached(
             manager,
             bridge,
             tlas: TlasHandle::default(),
-            records: Vec::new(),
             shading: ShadingTable::default(),
             worst: None,
             peak_split: None,
@@ -520,8 +522,13 @@ pub fn run_cached(
     // command buffer; references are rendered apart, blocking, off the frame path.
     let mut renderers = Vec::new();
     if config.eval_every > 0 || config.render_every > 0 {
+        // Every customIndex a bridge may hand out (the world's instances and proxies): the
+        // instance buffers never grow on the frame path.
+        let proxies = world.proxy_tree().map_or(0, |t| t.nodes.len());
         for _ in &policies {
-            renderers.push(Renderer::new(ctx.clone())?);
+            let mut r = Renderer::new(ctx.clone())?;
+            r.reserve_shading(truth.world_instances() + proxies + 1);
+            renderers.push(r);
         }
     }
     // The frame loop: one submission per frame holding every policy's work and the scored
@@ -636,8 +643,6 @@ pub fn run_cached(
                 .with_update_cpu(update_cpu_ms)
                 .with_build_budget(max_prims, out.stats);
             p.tlas = out.tlas;
-            p.records.clear();
-            p.records.extend_from_slice(out.instances);
             let uploaded_after = uploaded(&p.manager);
             let mut row = row.with_writes(
                 uploaded_after.0 - uploaded_before.0,
@@ -745,7 +750,7 @@ pub fn run_cached(
                 &manifest,
                 |l| world.is_loaded(l),
                 &p.bridge,
-                &p.records,
+                p.manager.records(),
                 &trail,
                 cam.position,
                 &config.managed,

@@ -184,6 +184,46 @@ pub struct FrameOutput<'a> {
     pub instances: &'a [TlasInstance],
     /// Statistics.
     pub stats: &'a FrameStats,
+    /// Which of `instances` stand as they stood in the previous successful `update`'s
+    /// records (see [`RecordChanges`]).
+    pub changes: RecordChanges<'a>,
+}
+
+/// Which records of an `update` equal the records of the previous successful `update` at the
+/// same index: every index below `stable` that `changed` does not list. The far field's
+/// landmarks keep their records at the front of the list from frame to frame, so a reader
+/// that keeps something per record (a renderer's shading table, a copy of the TLAS
+/// records) can look at the listed records and those from `stable` on instead of every
+/// record. Compare `since` with the frame of the records you saw last: on any other frame
+/// (you skipped an update, or `since` is `None`), look at every record.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RecordChanges<'a> {
+    /// The frame of these records.
+    pub frame: u64,
+    /// The frame of the records they are compared with: the previous successful `update`
+    /// (`None`: the first, or the first after a failed one, which dropped its records).
+    pub since: Option<u64>,
+    /// Records below this index are unchanged unless listed in `changed`.
+    pub stable: usize,
+    /// Indices below `stable` whose record changed, in increasing order, without repeats.
+    pub changed: &'a [u32],
+}
+
+impl RecordChanges<'_> {
+    /// Whether `changed` is as described (increasing, below `stable`); a reader given
+    /// changes it did not get from the manager checks this first.
+    pub fn is_well_formed(&self) -> bool {
+        self.changed.windows(2).all(|w| w[0] < w[1])
+            && self
+                .changed
+                .last()
+                .is_none_or(|&i| (i as usize) < self.stable)
+    }
+
+    /// Whether `records` at `i` may differ from the records of frame `since`.
+    pub fn may_differ(&self, i: usize) -> bool {
+        i >= self.stable || self.changed.binary_search(&(i as u32)).is_ok()
+    }
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -282,6 +322,12 @@ pub struct AsManager<B: AsBackend> {
     /// offset, flags), apart from the grid so that a grid entry is one cache line.
     templates: Vec<TlasInstance>,
     records: Vec<TlasInstance>,
+    /// The last successful update's record changes (`RecordChanges`), sorted, and its frame
+    /// and the frame before it (`None` after a failed update, which drops the records).
+    output_changed: Vec<u32>,
+    output_stable: usize,
+    output_frame: Option<u64>,
+    output_since: Option<u64>,
     /// Built static entries waiting for compaction (stale keys are skipped).
     compact_pending: Vec<EntryKey>,
     retiring: VecDeque<(u64, u64)>,
@@ -343,6 +389,10 @@ impl<B: AsBackend> AsManager<B> {
             tlas_list: Vec::new(),
             templates: Vec::new(),
             records: Vec::new(),
+            output_changed: Vec::new(),
+            output_stable: 0,
+            output_frame: None,
+            output_since: None,
             compact_pending: Vec::new(),
             retiring: VecDeque::new(),
             retiring_bytes: 0,
@@ -503,6 +553,8 @@ impl<B: AsBackend> AsManager<B> {
             || detail_kept(&config) != self.landmarks.detail();
         if retrack || landmarks_read(&config) != landmarks_read(&self.config) {
             self.records.clear();
+            // The last output's records are gone: the next is compared with none.
+            self.output_frame = None;
             self.landmarks.write_back_detail(&mut self.grid, self.frame);
             self.landmarks.invalidate();
         }
@@ -680,11 +732,16 @@ impl<B: AsBackend> AsManager<B> {
             Err(e) => {
                 tracing::warn!(frame, error = %e, "frame failed; rolled back");
                 self.rollback_frame();
+                // The records are gone: the next output is compared with none.
+                self.output_frame = None;
+                self.output_since = None;
                 return Err(e);
             }
         };
         // Only a submitted frame counts: a failed frame's number may be retried.
         self.last_frame = Some(frame);
+        self.output_since = self.output_frame;
+        self.output_frame = Some(frame);
         self.commit_frame();
         self.stats.instances = self.live_instances;
         self.stats.meshes = self.live_meshes;
@@ -717,6 +774,33 @@ impl<B: AsBackend> AsManager<B> {
             tlas,
             instances: &self.records,
             stats: &self.stats,
+            changes: RecordChanges {
+                frame,
+                since: self.output_since,
+                stable: self.output_stable,
+                changed: &self.output_changed,
+            },
+        })
+    }
+
+    /// The records of the last successful `update` (its `FrameOutput::instances`; empty
+    /// before the first and after a failed one).
+    pub fn records(&self) -> &[TlasInstance] {
+        if self.output_frame.is_some() {
+            &self.records
+        } else {
+            &[]
+        }
+    }
+
+    /// The last successful `update`'s [`RecordChanges`] (`None` before the first and after a
+    /// failed one).
+    pub fn record_changes(&self) -> Option<RecordChanges<'_>> {
+        Some(RecordChanges {
+            frame: self.output_frame?,
+            since: self.output_since,
+            stable: self.output_stable,
+            changed: &self.output_changed,
         })
     }
 
@@ -748,7 +832,15 @@ impl<B: AsBackend> AsManager<B> {
             changed: &self.landmarks.changed,
         };
         let tlas = self.backend.build_tlas(&self.records, delta)?;
+        // Kept for the frame's output (`RecordChanges`), sorted and without repeats.
+        std::mem::swap(&mut self.output_changed, &mut self.landmarks.changed);
         self.landmarks.changed.clear();
+        self.output_stable = self.landmarks.len();
+        self.output_changed.sort_unstable();
+        self.output_changed.dedup();
+        let stable = self.output_stable as u32;
+        let listed = self.output_changed.partition_point(|&i| i < stable);
+        self.output_changed.truncate(listed);
         self.backend.end_frame(frame)?;
         Ok(tlas)
     }
