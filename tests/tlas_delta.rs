@@ -77,6 +77,8 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
     };
     let mut live: Vec<InstanceId> = (0..600).map(|k| place(&m, &mut rng, k)).collect();
     let (mut frames_compared, mut max_landmarks) = (0, 0);
+    let mut last_records: Option<(u64, Vec<TlasInstance>)> = None;
+    let mut unlisted = 0usize;
     let (mut stayed, mut kept, mut shifted, mut kept_shifted) = (0usize, 0usize, 0usize, 0usize);
     let mut before: HashMap<(u32, [u32; 3]), usize> = HashMap::new();
     let mut listed_before = before.clone();
@@ -128,6 +130,34 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
             out.tlas,
             bytemuck::cast_slice::<_, u8>(out.instances).to_vec(),
         );
+        // The output's record changes (`RecordChanges`) against the last successful frame's
+        // records: every record below `stable` that `changed` does not list stands as it stood.
+        let c = out.changes;
+        assert_eq!(c.frame, frame);
+        assert!(c.is_well_formed(), "frame {frame}: {c:?}");
+        let expected_since = if frame == 91 {
+            None
+        } else {
+            frame.checked_sub(1)
+        };
+        assert_eq!(
+            c.since, expected_since,
+            "frame {frame}: compared with the last success"
+        );
+        if let (Some(since), Some((f, prev))) = (c.since, &last_records) {
+            assert_eq!(since, *f);
+            for (i, r) in out.instances.iter().enumerate().take(c.stable) {
+                if !c.may_differ(i) {
+                    assert_eq!(
+                        Some(r),
+                        prev.get(i),
+                        "frame {frame}: record {i} is unlisted"
+                    );
+                    unlisted += 1;
+                }
+            }
+        }
+        last_records = Some((frame, out.instances.to_vec()));
         max_landmarks = max_landmarks.max(out.stats.landmark_instances);
         let (built, updated) = made(&m);
         let tally = plans.entry(said).or_default();
@@ -190,7 +220,17 @@ fn instance_buffers_hold_the_records_while_only_changes_are_written() {
         before = now;
         listed_before = listed_now;
         frames_compared += 1;
+        assert_eq!(
+            bytemuck::cast_slice::<_, u8>(m.records()),
+            &want[..],
+            "records() are the frame's"
+        );
+        assert_eq!(m.record_changes().map(|c| c.frame), Some(frame));
     }
+    assert!(
+        unlisted > 10_000,
+        "the changes leave most landmark records unlisted: {unlisted}"
+    );
     // Slots are laid out anew only when too many are parked or the records outgrow them (a
     // failed frame keeps them: the next call matches every record by its place).
     assert!(

@@ -60,7 +60,9 @@
 //!   reports (or `mark_deformed` without data), or `set_skinned_pose_device(id, vertices)`
 //!   when the engine skins on the GPU (refit from its buffer, quality judged on the GPU).
 //! - Each frame: `update(FrameInput { frame, cameras })` → `FrameOutput { tlas, instances,
-//!   stats }`; the renderer takes the TLAS from the backend (`backend()`).
+//!   stats, changes }`; the renderer takes the TLAS from the backend (`backend()`). State kept
+//!   per record across frames (a shading table) follows `changes` ([`RecordChanges`]: which
+//!   records stand as in the previous successful update), not a pass over every record.
 
 #![warn(missing_docs)]
 

@@ -171,14 +171,16 @@ impl Renderer {
                 ctx.destroy_buffer(b);
             }
             let reserved = self.reserved_entries * std::mem::size_of::<InstanceShading>();
-            slot.instances = Some(ctx.create_buffer(&BufferDesc {
-                name: "render instances",
-                size: (bytes.len() as u64)
-                    .next_power_of_two()
-                    .max(reserved as u64),
-                usage: vk::BufferUsageFlags::STORAGE_BUFFER,
-                memory: MemoryKind::Upload,
-            })?);
+            slot.instances = Some(
+                ctx.create_buffer(&BufferDesc {
+                    name: "render instances",
+                    size: (bytes.len() as u64)
+                        .next_power_of_two()
+                        .max(reserved as u64),
+                    usage: vk::BufferUsageFlags::STORAGE_BUFFER,
+                    memory: MemoryKind::Upload,
+                })?,
+            );
             slot.table = TableState::fresh();
         }
         let ibuf = slot.instances.as_mut().expect("allocated above");
