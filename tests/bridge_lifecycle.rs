@@ -7,6 +7,8 @@
 //!   and comes back when a LOD arrives again;
 //! - far landmarks come and go with their proxy, one manager instance per world instance.
 
+mod common;
+
 use std::sync::Arc;
 
 use glam::{Mat4, Vec3};
@@ -327,44 +329,11 @@ fn a_kept_shading_table_matches_a_fresh_one_on_each_frames_records() {
         let table = up.table.to_vec();
         // The changes it lists bring the previous version to this one (what the renderer
         // writes into a frame's instance buffer), and they are fewer than the records.
-        let mut shadow = previous.clone();
-        shadow.truncate(table.len());
-        for &ci in up.changed {
-            if let Some(e) = shadow.get_mut(ci as usize) {
-                *e = table[ci as usize];
-            }
-        }
-        let held = shadow.len();
-        shadow.extend_from_slice(&table[held..]);
-        assert!(
-            shadow == table,
-            "frame {f}: the changed entries miss a change"
-        );
+        common::assert_changes_bring(f, &previous, &table, up.changed);
         assert_eq!(up.serial, f + 1, "one version per update");
         listed += up.changed.len();
         previous = table.clone();
-        assert_eq!(
-            table.len(),
-            fresh.len(),
-            "frame {f}: one entry per customIndex"
-        );
-        let mut named: Vec<u32> = records
-            .iter()
-            .map(|r| r.custom_index_and_mask & 0x00ff_ffff)
-            .collect();
-        named.sort_unstable();
-        named.dedup();
-        for (ci, (k, fr)) in table.iter().zip(&fresh).enumerate() {
-            if named.binary_search(&(ci as u32)).is_ok() {
-                assert_eq!(k, fr, "frame {f}: customIndex {ci} is named by a record");
-            } else {
-                assert_eq!(
-                    (k.vertices, k.indices),
-                    (0, 0),
-                    "frame {f}: customIndex {ci} has no record"
-                );
-            }
-        }
+        let named = common::assert_table_matches_fresh(f, &records, &table, &fresh);
         named_max = named_max.max(named.len());
         named_total += named.len();
         changes += usize::from(named != last_named);

@@ -12,20 +12,13 @@ use glam::Vec3;
 use rtstream::as_manager::backend::model::ModelBackend;
 use rtstream::as_manager::{AsManager, FrameInput, Viewpoint};
 use rtstream::renderer::InstanceShading;
-use rtstream::streaming::{StreamConfig, World};
+use rtstream::streaming::World;
 use rtstream::{ShadingTable, WorldBridge};
 
 #[test]
 fn a_table_kept_with_the_record_changes_matches_a_fresh_one() {
     let (dir, size) = common::baked_small("shading_changes", 12, 5);
-    let stream = StreamConfig {
-        load_radius: 150.0,
-        unload_radius: 200.0,
-        // Deterministic: loads land two frames after their request.
-        apply_after_frames: Some(2),
-        mesh_budget_bytes: 64 << 20,
-        ..StreamConfig::default()
-    };
+    let stream = common::small_world_stream();
     let mut world = World::open(&dir, stream).expect("open");
     let mut bridge = WorldBridge::new(world.manifest());
     let mut backend = ModelBackend::lavapipe();
@@ -73,38 +66,8 @@ fn a_table_kept_with_the_record_changes_matches_a_fresh_one() {
             with_landmarks += u32::from(stable > 0 && listed > 0);
             looked_less += u32::from(listed + (records.len() - stable) < records.len());
         }
-        assert_eq!(table.len(), fresh.len(), "frame {frame}: one entry a slot");
-        let mut named: Vec<u32> = records
-            .iter()
-            .map(|r| r.custom_index_and_mask & 0x00ff_ffff)
-            .collect();
-        named.sort_unstable();
-        named.dedup();
-        for (ci, (k, f)) in table.iter().zip(&fresh).enumerate() {
-            if named.binary_search(&(ci as u32)).is_ok() {
-                assert_eq!(k, f, "frame {frame}: customIndex {ci} is named by a record");
-            } else {
-                assert_eq!(
-                    (k.vertices, k.indices),
-                    (0, 0),
-                    "frame {frame}: customIndex {ci} is named by no record"
-                );
-            }
-        }
-        // The listed entries bring the previous version to this one.
-        let mut shadow = previous.clone();
-        shadow.truncate(table.len());
-        for &ci in &changed {
-            if let Some(e) = shadow.get_mut(ci as usize) {
-                *e = table[ci as usize];
-            }
-        }
-        let held = shadow.len();
-        shadow.extend_from_slice(&table[held..]);
-        assert!(
-            shadow == table,
-            "frame {frame}: the changed entries miss a change"
-        );
+        common::assert_table_matches_fresh(frame, &records, &table, &fresh);
+        common::assert_changes_bring(frame, &previous, &table, &changed);
         previous = table;
     }
     let _ = std::fs::remove_dir_all(&dir);

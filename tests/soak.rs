@@ -17,7 +17,7 @@ use rtstream::as_manager::backend::vulkan::{
 };
 use rtstream::as_manager::{AsManager, Config, Viewpoint};
 use rtstream::renderer::{Camera, RenderDesc, Renderer};
-use rtstream::streaming::{StreamConfig, World};
+use rtstream::streaming::World;
 use rtstream::WorldBridge;
 
 /// Resident set size of this process in KiB (Linux).
@@ -39,14 +39,7 @@ fn soak_teleports_and_streaming_leave_nothing_behind() {
     let handles_before = live_vulkan_handles();
     let ctx = common::context();
     let (dir, size) = common::baked_small("soak", 8, 3);
-    let stream = StreamConfig {
-        load_radius: 150.0,
-        unload_radius: 200.0,
-        // Deterministic: loads land two frames after their request, whatever the load.
-        apply_after_frames: Some(2),
-        mesh_budget_bytes: 64 << 20,
-        ..StreamConfig::default()
-    };
+    let stream = common::small_world_stream();
     let mut world = World::open(&dir, stream).expect("open");
     let mut bridge = WorldBridge::new(world.manifest());
     let backend = VulkanBackend::new(ctx.clone(), VulkanBackendDesc::default()).unwrap();

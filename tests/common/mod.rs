@@ -247,3 +247,71 @@ pub fn shading_table(
     }
     table
 }
+
+/// A kept shading table (`rtstream::ShadingTable`) against a fresh `WorldBridge::shading` of
+/// the same records: equal on every entry a record names, zero addresses on every other.
+/// Returns the customIndexes the records name (sorted).
+pub fn assert_table_matches_fresh(
+    frame: u64,
+    records: &[rtstream::as_manager::record::TlasInstance],
+    table: &[rtstream::renderer::InstanceShading],
+    fresh: &[rtstream::renderer::InstanceShading],
+) -> Vec<u32> {
+    assert_eq!(
+        table.len(),
+        fresh.len(),
+        "frame {frame}: one entry per customIndex"
+    );
+    let mut named: Vec<u32> = records.iter().map(|r| r.custom_index()).collect();
+    named.sort_unstable();
+    named.dedup();
+    for (ci, (k, f)) in table.iter().zip(fresh).enumerate() {
+        if named.binary_search(&(ci as u32)).is_ok() {
+            assert_eq!(k, f, "frame {frame}: customIndex {ci} is named by a record");
+        } else {
+            assert_eq!(
+                (k.vertices, k.indices),
+                (0, 0),
+                "frame {frame}: customIndex {ci} has no record"
+            );
+        }
+    }
+    named
+}
+
+/// The entries an update listed (`ShadingUpdate::changed`) bring its previous version to
+/// this one (what a renderer writes into a frame's instance buffer); entries past the
+/// previous version's length are new.
+pub fn assert_changes_bring(
+    frame: u64,
+    previous: &[rtstream::renderer::InstanceShading],
+    table: &[rtstream::renderer::InstanceShading],
+    changed: &[u32],
+) {
+    let mut shadow = previous.to_vec();
+    shadow.truncate(table.len());
+    for &ci in changed {
+        if let Some(e) = shadow.get_mut(ci as usize) {
+            *e = table[ci as usize];
+        }
+    }
+    let held = shadow.len();
+    shadow.extend_from_slice(&table[held..]);
+    assert!(
+        shadow == table,
+        "frame {frame}: the changed entries miss a change"
+    );
+}
+
+/// The streaming the small-world tests use: a 150 m load radius (200 m unload), loads applied
+/// two frames after their request whatever the machine's load (deterministic), 64 MB of
+/// meshes.
+pub fn small_world_stream() -> rtstream::streaming::StreamConfig {
+    rtstream::streaming::StreamConfig {
+        load_radius: 150.0,
+        unload_radius: 200.0,
+        apply_after_frames: Some(2),
+        mesh_budget_bytes: 64 << 20,
+        ..rtstream::streaming::StreamConfig::default()
+    }
+}
