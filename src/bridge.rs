@@ -906,6 +906,8 @@ pub struct ShadingTable {
     tail: Vec<(u32, u64)>,
     paired: Vec<bool>,
     marks: Vec<(u32, u32)>,
+    /// Scratch for `stale_beyond`: per stale slot and address, the listed records naming it.
+    stale_counts: (FxHashMap<u32, u32>, FxHashMap<u64, u32>),
     full: bool,
     full_updates: u64,
 }
@@ -938,6 +940,7 @@ impl Default for ShadingTable {
             tail: Vec::new(),
             paired: Vec::new(),
             marks: Vec::new(),
+            stale_counts: Default::default(),
             full: false,
             full_updates: 0,
         }
@@ -1202,12 +1205,13 @@ impl ShadingTable {
     /// Whether a record at a position `changes` does not list may be stale: the last
     /// records named a reassigned slot or a BLAS whose geometry answer changed more often
     /// than the listed positions held them.
-    fn stale_beyond(&self, changes: &RecordChanges<'_>) -> bool {
+    fn stale_beyond(&mut self, changes: &RecordChanges<'_>) -> bool {
         if self.stale_slots.is_empty() && self.stale_addresses.is_empty() {
             return false;
         }
-        let mut slots: FxHashMap<u32, u32> = FxHashMap::default();
-        let mut addresses: FxHashMap<u64, u32> = FxHashMap::default();
+        let (mut slots, mut addresses) = std::mem::take(&mut self.stale_counts);
+        slots.clear();
+        addresses.clear();
         // The last records an update with `changes` looks at: the listed places of both
         // blocks, and everything past the shorter block.
         let from = changes.stable.min(self.prev_stable).min(self.prev.len());
@@ -1225,13 +1229,15 @@ impl ShadingTable {
             }
         }
         let named = |n: Option<&u32>| n.copied().unwrap_or(0);
-        self.stale_slots.iter().any(|&ci| {
+        let beyond = self.stale_slots.iter().any(|&ci| {
             let refs = self.refs.get(ci as usize).copied().unwrap_or(0);
             refs > named(slots.get(&ci))
         }) || self.stale_addresses.iter().any(|&addr| {
             let refs = self.geometry.get(&addr).map_or(0, |g| g.1);
             refs > named(addresses.get(&addr))
-        })
+        });
+        self.stale_counts = (slots, addresses);
+        beyond
     }
 
     /// A record of the last update that no record of this one pairs with.
@@ -1285,7 +1291,7 @@ impl ShadingTable {
 
 /// What a shading table keeps of a record: its customIndex and BLAS address.
 fn shading_key(r: &TlasInstance) -> (u32, u64) {
-    (r.custom_index_and_mask & 0x00ff_ffff, r.blas_address)
+    (r.custom_index(), r.blas_address)
 }
 
 /// The shading entry of customIndex `ci` for a record whose BLAS has geometry `g`: its

@@ -774,12 +774,9 @@ impl<B: AsBackend> AsManager<B> {
             tlas,
             instances: &self.records,
             stats: &self.stats,
-            changes: RecordChanges {
-                frame,
-                since: self.output_since,
-                stable: self.output_stable,
-                changed: &self.output_changed,
-            },
+            changes: self
+                .record_changes()
+                .expect("a frame that succeeded has its output"),
         })
     }
 
