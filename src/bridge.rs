@@ -97,10 +97,10 @@ struct MeshSlot {
     placed: u32,
 }
 
+/// A placed streaming instance, at its slot (customIndex) in `WorldBridge::placed`.
 #[derive(Debug, Clone, Copy)]
 struct Placed {
     id: InstanceId,
-    slot: u32,
     mesh: WorldMeshId,
     skinned: bool,
     transform: glam::Mat4,
@@ -114,7 +114,11 @@ struct Placed {
 pub struct WorldBridge {
     manifest_meshes: Vec<rtstream_streaming::bake::MeshEntry>,
     meshes: FxHashMap<WorldMeshId, MeshSlot>,
-    placed: FxHashMap<WorldInstanceId, Placed>,
+    /// By slot (customIndex); `None` for free slots and proxies' slots.
+    placed: Vec<Option<Placed>>,
+    /// The slot of each placed streaming instance.
+    slot_of: InstanceSlots,
+    placed_count: usize,
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
     /// The slots assigned or cleared, in order (what a [`ShadingTable`] catches up on).
@@ -133,6 +137,67 @@ pub struct WorldBridge {
     landmark_leaf: FxHashMap<WorldInstanceId, ProxyId>,
     /// Landmarks waiting for their mesh's registration (its first resident LOD).
     pending_landmarks: FxHashMap<WorldMeshId, Vec<(WorldInstanceId, u32)>>,
+}
+
+/// Which slot each placed streaming instance holds: a table indexed by id for the ids a baked
+/// world hands out (dense from 0), a map for the rest (glTF levels' ids count from 2^31). At
+/// 10x density about 350,000 instances are placed at once and thousands come and go a frame:
+/// in a map of every placed instance each placement or removal was a probe into a table of
+/// tens of MB, and the map's growth rehashed it on the frame path (frames of up to 98 ms early
+/// in a lavapipe run); the table costs one read or write of four bytes.
+#[derive(Debug, Default)]
+struct InstanceSlots {
+    dense: Vec<u32>,
+    sparse: FxHashMap<WorldInstanceId, u32>,
+}
+
+impl InstanceSlots {
+    /// Ids below this go to the table (64 MB at most); a baked world's ids are below its
+    /// instance count.
+    const DENSE_IDS: u32 = 1 << 24;
+    const NONE: u32 = u32::MAX;
+
+    fn get(&self, id: WorldInstanceId) -> Option<u32> {
+        if id.0 < Self::DENSE_IDS {
+            let s = *self.dense.get(id.0 as usize)?;
+            (s != Self::NONE).then_some(s)
+        } else {
+            self.sparse.get(&id).copied()
+        }
+    }
+
+    fn insert(&mut self, id: WorldInstanceId, slot: u32) {
+        if id.0 < Self::DENSE_IDS {
+            let i = id.0 as usize;
+            if i >= self.dense.len() {
+                self.reserve(i + 1);
+            }
+            self.dense[i] = slot;
+        } else {
+            self.sparse.insert(id, slot);
+        }
+    }
+
+    fn remove(&mut self, id: WorldInstanceId) -> Option<u32> {
+        if id.0 < Self::DENSE_IDS {
+            let s = self.dense.get_mut(id.0 as usize)?;
+            let old = std::mem::replace(s, Self::NONE);
+            (old != Self::NONE).then_some(old)
+        } else {
+            self.sparse.remove(&id)
+        }
+    }
+
+    /// Room for the ids below `ids` (to the next power of two, within `DENSE_IDS`).
+    fn reserve(&mut self, ids: usize) {
+        let len = ids
+            .next_power_of_two()
+            .min(Self::DENSE_IDS as usize)
+            .max(ids.min(Self::DENSE_IDS as usize));
+        if len > self.dense.len() {
+            self.dense.resize(len, Self::NONE);
+        }
+    }
 }
 
 /// The base colour of far-field proxies (they merge terrain and buildings).
@@ -282,7 +347,7 @@ impl WorldBridge {
         inst: &Instance,
         at: u32,
     ) {
-        if self.placed.contains_key(&inst.id) {
+        if self.slot_of.get(inst.id).is_some() {
             return; // its level is loaded: placed already
         }
         if !self.meshes.contains_key(&inst.mesh) {
@@ -324,7 +389,7 @@ impl WorldBridge {
         if let Some(list) = self.proxy_landmarks.remove(&node) {
             for (_, inst) in list.iter() {
                 self.landmark_leaf.remove(&inst.id);
-                if self.placed.get(&inst.id).is_some_and(|p| p.far) {
+                if self.placed_ref(inst.id).is_some_and(|p| p.far) {
                     self.remove_placed(m, inst.id);
                 }
             }
@@ -363,8 +428,8 @@ impl WorldBridge {
     pub fn stats(&self) -> BridgeStats {
         BridgeStats {
             meshes: self.meshes.len(),
-            instances: self.placed.len(),
-            far_landmarks: self.placed.values().filter(|p| p.far).count(),
+            instances: self.placed_count,
+            far_landmarks: self.placed.iter().flatten().filter(|p| p.far).count(),
             ..self.stats
         }
     }
@@ -381,7 +446,7 @@ impl WorldBridge {
 
     /// The manager instance of a streaming instance, if placed.
     pub fn manager_instance(&self, id: WorldInstanceId) -> Option<InstanceId> {
-        self.placed.get(&id).map(|p| p.id)
+        self.placed_ref(id).map(|p| p.id)
     }
 
     /// Applies events in order. Rejected registrations are logged and counted, never fatal.
@@ -593,7 +658,7 @@ impl WorldBridge {
             self.stats.skipped_not_opaque += 1;
             return;
         }
-        if let Some(p) = self.placed.get_mut(&inst.id) {
+        if let Some(p) = self.placed_mut(inst.id) {
             p.far &= far;
             return;
         }
@@ -632,18 +697,19 @@ impl WorldBridge {
                     mesh: inst.mesh,
                     base_color: color,
                 });
-                self.placed.insert(
-                    inst.id,
-                    Placed {
-                        id,
-                        slot,
-                        mesh: inst.mesh,
-                        skinned: skinned && inst.motion == Motion::Skinned,
-                        transform: inst.transform,
-                        center: inst.sphere.center,
-                        far,
-                    },
-                );
+                if self.placed.len() <= slot as usize {
+                    self.placed.resize(slot as usize + 1, None);
+                }
+                self.placed[slot as usize] = Some(Placed {
+                    id,
+                    mesh: inst.mesh,
+                    skinned: skinned && inst.motion == Motion::Skinned,
+                    transform: inst.transform,
+                    center: inst.sphere.center,
+                    far,
+                });
+                self.slot_of.insert(inst.id, slot);
+                self.placed_count += 1;
             }
             Err(e) => {
                 self.free_slots.push(slot);
@@ -656,7 +722,7 @@ impl WorldBridge {
     /// landmark (then it stays, placed from the proxy).
     fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: WorldInstanceId) {
         if self.landmark_leaf.contains_key(&id) {
-            if let Some(p) = self.placed.get_mut(&id) {
+            if let Some(p) = self.placed_mut(id) {
                 p.far = true;
                 return;
             }
@@ -665,15 +731,19 @@ impl WorldBridge {
     }
 
     fn remove_placed<B: AsBackend>(&mut self, m: &AsManager<B>, id: WorldInstanceId) {
-        let Some(p) = self.placed.remove(&id) else {
+        let Some(slot) = self.slot_of.remove(id) else {
             return;
         };
+        let p = self.placed[slot as usize]
+            .take()
+            .expect("a placed instance's slot holds it");
+        self.placed_count -= 1;
         if let Err(e) = m.remove_instance(p.id) {
             self.reject("instance removal", e);
         }
-        self.slots[p.slot as usize] = None;
-        self.slot_log.push(p.slot);
-        self.free_slots.push(p.slot);
+        self.slots[slot as usize] = None;
+        self.slot_log.push(slot);
+        self.free_slots.push(slot);
         if let Some(ms) = self.meshes.get_mut(&p.mesh) {
             ms.placed = ms.placed.saturating_sub(1);
         }
@@ -720,7 +790,7 @@ impl WorldBridge {
         let mut sent = 0;
         let mut scratch = Vec::new();
         for f in world.skin_frame(time, threads) {
-            let Some(p) = self.placed.get(&f.instance).filter(|p| p.skinned) else {
+            let Some(p) = self.placed_ref(f.instance).filter(|p| p.skinned) else {
                 continue;
             };
             let lod = m.instance_lod(p.id).unwrap_or(f.lod as usize);
@@ -777,14 +847,31 @@ impl WorldBridge {
     /// The placed instances whose centre lies within `radius` of `at`: (customIndex, mesh,
     /// transform), for reference scenes.
     pub fn placed_within(&self, at: Vec3, radius: f32) -> Vec<(u32, WorldMeshId, glam::Mat4)> {
-        let mut v: Vec<_> = self
-            .placed
-            .values()
-            .filter(|p| p.center.distance(at) <= radius)
-            .map(|p| (p.slot, p.mesh, p.transform))
-            .collect();
-        v.sort_by_key(|p| p.0);
-        v
+        // By slot: in customIndex order.
+        self.placed
+            .iter()
+            .enumerate()
+            .filter_map(|(slot, p)| Some((slot as u32, p.as_ref()?)))
+            .filter(|(_, p)| p.center.distance(at) <= radius)
+            .map(|(slot, p)| (slot, p.mesh, p.transform))
+            .collect()
+    }
+
+    /// Room for the streaming instance ids below `ids` (a baked world's instance count), so
+    /// that no placement grows the bridge's id table on the frame path. Optional: it grows
+    /// as needed (what grows with the instances placed at once, by doubling, is the table by
+    /// slot).
+    pub fn reserve_instances(&mut self, ids: usize) {
+        self.slot_of.reserve(ids);
+    }
+
+    fn placed_ref(&self, id: WorldInstanceId) -> Option<&Placed> {
+        self.placed[self.slot_of.get(id)? as usize].as_ref()
+    }
+
+    fn placed_mut(&mut self, id: WorldInstanceId) -> Option<&mut Placed> {
+        let slot = self.slot_of.get(id)?;
+        self.placed[slot as usize].as_mut()
     }
 
     /// The finest LOD of `mesh` resident now.

@@ -489,3 +489,120 @@ fn an_empty_world_gets_the_same_one_entry_table_fresh_and_kept() {
     assert_eq!(fresh.len(), 1, "a table is never empty");
     assert_eq!(up.table, &fresh[..], "both pad an empty world the same way");
 }
+
+/// Instance ids of a baked world (dense from 0) and of glTF levels (from 2^31), and one at the
+/// end of the bridge's id table: each is placed once, found by id, removed with its level, and
+/// its slot handed out again; a level loading twice places nothing twice.
+#[test]
+fn baked_and_dynamic_ids_place_and_leave_alike() {
+    let (mut m, mut bridge) = manager_and_bridge();
+    let g = grid(2);
+    let bounds = Aabb::from_points(&g.positions);
+    bridge.apply(
+        &m,
+        &[WorldEvent::MeshLodLoaded {
+            mesh: WorldMeshId(0),
+            lod: 0,
+            lod_count: 1,
+            error: 0.0,
+            geometry: Arc::clone(&g),
+        }],
+    );
+    bridge.reserve_instances(1000);
+    let ids = [
+        0,
+        7,
+        999,
+        1000,
+        5_000_000,
+        (1 << 24) - 1,
+        1 << 24,
+        1 << 31,
+        u32::MAX,
+    ];
+    let level = |lv: u32, load: bool| {
+        let instances: Arc<[Instance]> = ids
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| k % 2 == lv as usize)
+            .map(|(k, &id)| {
+                Instance::new(
+                    WorldInstanceId(id),
+                    WorldMeshId(0),
+                    Mat4::from_translation(Vec3::new(k as f32 * 10.0, 0.0, 0.0)),
+                    &bounds,
+                    MaterialClass::Opaque,
+                    Motion::Static,
+                )
+            })
+            .collect();
+        if load {
+            WorldEvent::LevelLoaded {
+                level: LevelId(lv),
+                bounds,
+                instances,
+            }
+        } else {
+            WorldEvent::LevelUnloaded {
+                level: LevelId(lv),
+                instances,
+            }
+        }
+    };
+    bridge.apply(&m, &[level(0, true), level(1, true), level(0, true)]);
+    frame(&mut m, 0);
+    assert_eq!(
+        m.stats().instances as usize,
+        ids.len(),
+        "one manager instance per id"
+    );
+    assert_eq!(bridge.stats().instances, ids.len());
+    let placed: Vec<_> = ids
+        .iter()
+        .map(|&id| {
+            bridge
+                .manager_instance(WorldInstanceId(id))
+                .expect("placed")
+        })
+        .collect();
+    let mut distinct = placed.clone();
+    distinct.sort_unstable();
+    distinct.dedup();
+    assert_eq!(distinct.len(), ids.len(), "distinct manager instances");
+    let slots = bridge.placed_within(Vec3::ZERO, f32::INFINITY);
+    assert_eq!(slots.len(), ids.len());
+    assert!(slots.windows(2).all(|w| w[0].0 < w[1].0), "by slot");
+    assert!(bridge.manager_instance(WorldInstanceId(1)).is_none());
+    assert!(bridge
+        .manager_instance(WorldInstanceId((1 << 31) + 1))
+        .is_none());
+
+    // Level 1 leaves: its ids are gone, level 0's stay, and its slots come back.
+    bridge.apply(&m, &[level(1, false)]);
+    frame(&mut m, 1);
+    for (k, &id) in ids.iter().enumerate() {
+        let found = bridge.manager_instance(WorldInstanceId(id));
+        assert_eq!(found.is_some(), k % 2 == 0, "id {id}");
+        if k % 2 == 0 {
+            assert_eq!(found, Some(placed[k]), "id {id} kept its instance");
+        }
+    }
+    assert_eq!(m.stats().instances as usize, ids.len().div_ceil(2));
+    let before: Vec<u32> = slots.iter().map(|s| s.0).collect();
+    bridge.apply(&m, &[level(1, true)]);
+    frame(&mut m, 2);
+    let after: Vec<u32> = bridge
+        .placed_within(Vec3::ZERO, f32::INFINITY)
+        .iter()
+        .map(|s| s.0)
+        .collect();
+    assert_eq!(after, before, "the freed slots are handed out again");
+    bridge.apply(&m, &[level(0, false), level(1, false)]);
+    frame(&mut m, 3);
+    assert_eq!(m.stats().instances, 0);
+    assert_eq!(bridge.stats().instances, 0);
+    assert!(ids
+        .iter()
+        .all(|&id| bridge.manager_instance(WorldInstanceId(id)).is_none()));
+    m.check_invariants().unwrap();
+}

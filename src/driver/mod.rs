@@ -505,6 +505,8 @@ pub fn run_cached(
         let far_on = c.far_field.enabled;
         let manager = AsManager::new(c, backend)?;
         let mut bridge = WorldBridge::new(Some(&manifest));
+        // The baked world's ids count from 0 over every level's instances.
+        bridge.reserve_instances(generated.levels.iter().map(|l| l.instances.len()).sum());
         if let (true, Some(tree)) = (far_on, world.proxy_tree()) {
             bridge.register_proxy_tree(&manager, tree);
         }
