@@ -117,7 +117,7 @@ pub struct WorldBridge {
     /// By slot (customIndex); `None` for free slots and proxies' slots.
     placed: Vec<Option<Placed>>,
     /// The slot of each placed streaming instance.
-    slot_of: InstanceSlots,
+    slot_of: IdTable,
     placed_count: usize,
     slots: Vec<Option<ShadingSlot>>,
     free_slots: Vec<u32>,
@@ -134,24 +134,25 @@ pub struct WorldBridge {
     proxy_bounds: Vec<Aabb>,
     /// Each resident leaf's landmark list, and each listed instance's leaf.
     proxy_landmarks: FxHashMap<ProxyId, Arc<[(LevelId, Instance)]>>,
-    landmark_leaf: FxHashMap<WorldInstanceId, ProxyId>,
+    landmark_leaf: IdTable,
     /// Landmarks waiting for their mesh's registration (its first resident LOD).
     pending_landmarks: FxHashMap<WorldMeshId, Vec<(WorldInstanceId, u32)>>,
 }
 
-/// Which slot each placed streaming instance holds: a table indexed by id for the ids a baked
-/// world hands out (dense from 0), a map for the rest (glTF levels' ids count from 2^31). At
-/// 10x density about 350,000 instances are placed at once and thousands come and go a frame:
-/// in a map of every placed instance each placement or removal was a probe into a table of
-/// tens of MB, and the map's growth rehashed it on the frame path (frames of up to 98 ms early
-/// in a lavapipe run); the table costs one read or write of four bytes.
+/// A `u32` per streaming instance id (a placed instance's slot, a listed landmark's proxy
+/// leaf): a table indexed by id for the ids a baked world hands out (dense from 0), a map for
+/// the rest (glTF levels' ids count from 2^31). At 10x density about 350,000 instances are
+/// placed at once and thousands come and go a frame: in a map of every placed instance each
+/// placement or removal was a probe into a table of tens of MB, and the map's growth rehashed
+/// it on the frame path (frames of up to 98 ms early in a lavapipe run); the table costs one
+/// read or write of four bytes.
 #[derive(Debug, Default)]
-struct InstanceSlots {
+struct IdTable {
     dense: Vec<u32>,
     sparse: FxHashMap<WorldInstanceId, u32>,
 }
 
-impl InstanceSlots {
+impl IdTable {
     /// Ids below this go to the table (64 MB at most); a baked world's ids are below its
     /// instance count.
     const DENSE_IDS: u32 = 1 << 24;
@@ -166,15 +167,16 @@ impl InstanceSlots {
         }
     }
 
-    fn insert(&mut self, id: WorldInstanceId, slot: u32) {
+    fn insert(&mut self, id: WorldInstanceId, value: u32) {
+        debug_assert_ne!(value, Self::NONE, "u32::MAX marks a vacant id");
         if id.0 < Self::DENSE_IDS {
             let i = id.0 as usize;
             if i >= self.dense.len() {
                 self.reserve(i + 1);
             }
-            self.dense[i] = slot;
+            self.dense[i] = value;
         } else {
-            self.sparse.insert(id, slot);
+            self.sparse.insert(id, value);
         }
     }
 
@@ -333,7 +335,7 @@ impl WorldBridge {
         }
         self.proxy_landmarks.insert(node, Arc::clone(landmarks));
         for (at, (level, inst)) in landmarks.iter().enumerate() {
-            self.landmark_leaf.insert(inst.id, node);
+            self.landmark_leaf.insert(inst.id, node.0);
             self.place_landmark(m, *level, inst, at as u32);
         }
     }
@@ -369,8 +371,8 @@ impl WorldBridge {
             // Where it was listed; the leaf's list may have been loaded again since.
             let Some((level, inst, at)) = self
                 .landmark_leaf
-                .get(&id)
-                .and_then(|n| self.proxy_landmarks.get(n))
+                .get(id)
+                .and_then(|n| self.proxy_landmarks.get(&ProxyId(n)))
                 .and_then(|list| match list.get(at as usize) {
                     Some(&(level, inst)) if inst.id == id => Some((level, inst, at)),
                     _ => list
@@ -388,7 +390,7 @@ impl WorldBridge {
     fn proxy_evicted<B: AsBackend>(&mut self, m: &AsManager<B>, node: ProxyId) {
         if let Some(list) = self.proxy_landmarks.remove(&node) {
             for (_, inst) in list.iter() {
-                self.landmark_leaf.remove(&inst.id);
+                self.landmark_leaf.remove(inst.id);
                 if self.placed_ref(inst.id).is_some_and(|p| p.far) {
                     self.remove_placed(m, inst.id);
                 }
@@ -721,7 +723,7 @@ impl WorldBridge {
     /// Its level unloaded: removes the instance, unless a resident proxy lists it as a
     /// landmark (then it stays, placed from the proxy).
     fn unplace<B: AsBackend>(&mut self, m: &AsManager<B>, id: WorldInstanceId) {
-        if self.landmark_leaf.contains_key(&id) {
+        if self.landmark_leaf.get(id).is_some() {
             if let Some(p) = self.placed_mut(id) {
                 p.far = true;
                 return;
@@ -863,6 +865,7 @@ impl WorldBridge {
     /// slot).
     pub fn reserve_instances(&mut self, ids: usize) {
         self.slot_of.reserve(ids);
+        self.landmark_leaf.reserve(ids);
     }
 
     fn placed_ref(&self, id: WorldInstanceId) -> Option<&Placed> {
