@@ -809,6 +809,9 @@ pub fn run_cached(
         summary.peak_memory_split = p.peak_split.clone();
     }
     report.rows = rows;
+    let st = world.stats();
+    (report.summary.lod_reads, report.summary.lod_reads_shared) =
+        (st.lod_reads, st.lod_reads_shared);
     if config.render_every > 0 {
         // Steady state: after the first tenth of the run.
         let from = config.frames / 10;

@@ -405,6 +405,11 @@ pub struct RunSummary {
     pub seconds: f64,
     /// Frame timing when frames were rendered on the frame path (`RunConfig::render_every`).
     pub frame_timing: Option<FrameTiming>,
+    /// Baked mesh LODs the loaders read from the mesh library (`StreamStats::lod_reads`).
+    pub lod_reads: u64,
+    /// LOD loads answered with a LOD still held instead of a read
+    /// (`StreamStats::lod_reads_shared`).
+    pub lod_reads_shared: u64,
 }
 
 /// Wall time per frame against the GPU time of its render passes, over the frames rendered on
@@ -583,6 +588,8 @@ impl RunReport {
                 validation_messages,
                 seconds,
                 frame_timing: None,
+                lod_reads: 0,
+                lod_reads_shared: 0,
             },
             rows: Vec::new(),
             files: Vec::new(),

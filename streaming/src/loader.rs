@@ -9,7 +9,8 @@ use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Weak};
 use std::thread::JoinHandle;
 
 use crossbeam::channel::{Receiver, Sender};
@@ -99,7 +100,7 @@ impl Done {
     }
 }
 
-/// What the loader threads share (read-only).
+/// What the loader threads share (read-only, but for the LOD cache and the counters).
 #[derive(Debug)]
 pub(crate) struct LoaderShared {
     pub dir: PathBuf,
@@ -107,6 +108,31 @@ pub(crate) struct LoaderShared {
     pub mesh_bounds: Vec<Aabb>,
     /// Test-only faults: the next loads of these levels fail (see `World::inject_load_fault`).
     pub faults: parking_lot::Mutex<Vec<(LevelId, LoadFault, u32)>>,
+    /// Each baked mesh's LODs as last read, while anyone (the world, a BLAS manager) still
+    /// holds them: see [`shared_lod`].
+    pub lods: LodCache,
+}
+
+/// A weak reference per (mesh, LOD) read from the mesh library, by mesh id (a lock each).
+#[derive(Debug, Default)]
+pub(crate) struct LodCache {
+    meshes: Vec<parking_lot::Mutex<Vec<Weak<MeshLod>>>>,
+    /// LOD reads from the file, and loads answered from a LOD still held.
+    pub reads: AtomicU64,
+    pub shared: AtomicU64,
+}
+
+impl LodCache {
+    pub fn new(manifest: &Manifest) -> Self {
+        Self {
+            meshes: manifest
+                .meshes
+                .iter()
+                .map(|m| parking_lot::Mutex::new((0..m.lods.len()).map(|_| Weak::new()).collect()))
+                .collect(),
+            ..Self::default()
+        }
+    }
 }
 
 /// A fault for the next loads of a level (tests of the retry path; see
@@ -206,9 +232,7 @@ fn worker(shared: &LoaderShared, jobs: &Receiver<Job>, results: &Sender<Done>) {
             }
             Job::Lod { mesh, lod, ticket } => {
                 let _span = tracing::trace_span!("load_lod", mesh = mesh.0, lod).entered();
-                let result = guarded(shared.lib_path(), || {
-                    read_lod(shared, mesh, lod).map(Arc::new)
-                });
+                let result = guarded(shared.lib_path(), || shared_lod(shared, mesh, lod));
                 Done::Lod {
                     mesh,
                     lod,
@@ -294,7 +318,7 @@ fn load_level(shared: &LoaderShared, level: LevelId, source: &LevelSource) -> Re
                 .into_iter()
                 .map(|m| {
                     let last = shared.manifest.meshes[m.0 as usize].lods.len() - 1;
-                    (m, last, read_lod(shared, m, last).map(Arc::new))
+                    (m, last, shared_lod(shared, m, last))
                 })
                 .collect();
             Ok(LoadedLevel::Baked {
@@ -368,6 +392,33 @@ fn load_gltf_level(path: &Path, placement: &Mat4) -> Result<LoadedLevel> {
         });
     }
     Ok(LoadedLevel::Gltf { meshes, instances })
+}
+
+/// One LOD of a baked mesh: the one read last if anyone still holds it, else read from the
+/// mesh library. A level load brings the coarsest LOD of each of its meshes, and most are
+/// resident already (shared by the levels around): reading and decoding them again cost the
+/// loaders a file open and a decode each, and the world's thread then freed the copy, memory
+/// that another thread's allocator arena had handed out (about 0.7 ms a frame at 10x density
+/// on lavapipe, `docs/PROFILE.md`). Two loaders that miss at once both read; either copy is
+/// the file's.
+pub(crate) fn shared_lod(
+    shared: &LoaderShared,
+    mesh: WorldMeshId,
+    lod: usize,
+) -> Result<Arc<MeshLod>> {
+    let cell = shared.lods.meshes.get(mesh.0 as usize);
+    if let Some(held) = cell.and_then(|c| c.lock().get(lod).and_then(Weak::upgrade)) {
+        shared.lods.shared.fetch_add(1, Ordering::Relaxed);
+        return Ok(held);
+    }
+    let g = Arc::new(read_lod(shared, mesh, lod)?);
+    shared.lods.reads.fetch_add(1, Ordering::Relaxed);
+    if let Some(c) = cell {
+        if let Some(w) = c.lock().get_mut(lod) {
+            *w = Arc::downgrade(&g);
+        }
+    }
+    Ok(g)
 }
 
 /// Reads one LOD chunk from the mesh library.
@@ -444,6 +495,7 @@ mod tests {
             },
             mesh_bounds: Vec::new(),
             faults: parking_lot::Mutex::new(Vec::new()),
+            lods: LodCache::default(),
         });
         let pool = LoaderPool::new(shared, 2).expect("pool");
         for k in 0..20 {

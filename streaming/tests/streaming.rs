@@ -295,3 +295,119 @@ fn two_cameras_keep_two_areas_loaded() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// What `a_lod_is_read_again_only_once_nobody_holds_it` holds: the resident LODs, and (in
+/// `kept`) some the world evicted.
+#[derive(Default)]
+struct Holder {
+    held: HashMap<(WorldMeshId, u8), std::sync::Arc<rtstream_streaming::MeshLod>>,
+    kept: HashMap<(WorldMeshId, u8), std::sync::Arc<rtstream_streaming::MeshLod>>,
+    arrivals: u64,
+    shared_arrivals: u64,
+}
+
+impl Holder {
+    fn eat(&mut self, events: Vec<WorldEvent>, keep_evicted: bool) {
+        for e in events {
+            match e {
+                WorldEvent::MeshLodLoaded {
+                    mesh,
+                    lod,
+                    geometry,
+                    ..
+                } => {
+                    self.arrivals += 1;
+                    if let Some(old) = self.kept.get(&(mesh, lod)) {
+                        assert!(
+                            std::sync::Arc::ptr_eq(old, &geometry),
+                            "{mesh:?} LOD {lod} read again while held"
+                        );
+                        self.shared_arrivals += 1;
+                    }
+                    self.held.insert((mesh, lod), geometry);
+                }
+                WorldEvent::MeshLodEvicted { mesh, lod } => {
+                    let g = self
+                        .held
+                        .remove(&(mesh, lod))
+                        .expect("evicted a resident LOD");
+                    if keep_evicted {
+                        self.kept.insert((mesh, lod), g);
+                    }
+                }
+                WorldEvent::LoadFailed { error, .. } => panic!("unexpected failure: {error}"),
+                _ => {}
+            }
+        }
+    }
+}
+
+/// The loaders read a LOD from the mesh library only when nobody holds the one read before: a
+/// level's coarsest LODs, shared with the levels around it, arrive as the copy already held,
+/// and a LOD that was let go everywhere is read again (the loaders keep nothing alive).
+#[test]
+fn a_lod_is_read_again_only_once_nobody_holds_it() {
+    let (_world, dir) = common::baked_small("lod_reads", 6);
+    let config = StreamConfig {
+        loader_threads: 1,
+        ..StreamConfig::within(1000.0, 1500.0).with_mesh_budget(1 << 30)
+    };
+    let mut w = World::open(&dir, config).expect("open");
+    let mut h = Holder::default();
+    let home = [StreamFocus::from(Vec3::ZERO)];
+    for f in 0..3 {
+        h.eat(common::settle(&mut w, f, &home), true);
+    }
+    let st = w.stats();
+    assert!(st.lod_reads_shared > 0, "levels share meshes: {st:?}");
+    assert!(
+        st.lod_reads <= h.arrivals,
+        "one loader: a LOD is read only when it arrives ({} reads, {} arrivals)",
+        st.lod_reads,
+        h.arrivals
+    );
+
+    // Away (levels stay loaded, finer LODs go; this test keeps them), then back: what comes
+    // back is the copy kept, not a new read.
+    let away = [StreamFocus::from(Vec3::new(1100.0, 0.0, 0.0))];
+    for f in 3..6 {
+        h.eat(common::settle(&mut w, f, &away), true);
+    }
+    assert!(!h.kept.is_empty(), "finer LODs evicted away from them");
+    let (reads_away, arrivals_away) = (w.stats().lod_reads, h.arrivals);
+    for f in 6..9 {
+        h.eat(common::settle(&mut w, f, &home), true);
+    }
+    assert!(h.shared_arrivals > 0, "evicted LODs came back");
+    let back = h.arrivals - arrivals_away;
+    assert!(
+        w.stats().lod_reads - reads_away <= back - h.shared_arrivals,
+        "a kept LOD was read again"
+    );
+
+    // The levels unload far away (the far-field proxies' landmark LODs stay) and nobody holds
+    // what the world evicted: coming back reads every LOD that arrives.
+    h.kept.clear();
+    let resident = h.held.len();
+    let gone = [StreamFocus::from(Vec3::new(1.0e5, 0.0, 1.0e5))];
+    for f in 9..12 {
+        h.eat(common::settle(&mut w, f, &gone), false);
+    }
+    assert!(
+        h.held.len() < resident / 2,
+        "most LODs evicted: {} of {resident} still resident",
+        h.held.len()
+    );
+    let (reads_gone, arrivals_gone) = (w.stats().lod_reads, h.arrivals);
+    for f in 12..15 {
+        h.eat(common::settle(&mut w, f, &home), false);
+    }
+    let again = h.arrivals - arrivals_gone;
+    assert!(again > 0);
+    assert_eq!(
+        w.stats().lod_reads - reads_gone,
+        again,
+        "each LOD that nobody held is read once"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

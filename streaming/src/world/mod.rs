@@ -30,6 +30,7 @@
 //! and the loader threads (`loader.rs`) are already apart.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -271,6 +272,7 @@ impl World {
         let shared = Arc::new(LoaderShared {
             dir: dir.clone(),
             mesh_bounds: m.meshes.iter().map(|e| e.bounds).collect(),
+            lods: crate::loader::LodCache::new(&m),
             manifest: m,
             faults: parking_lot::Mutex::new(Vec::new()),
         });
@@ -400,6 +402,14 @@ impl World {
             in_flight_jobs: self.in_flight,
             load_retries: self.load_retries,
             loader_threads_alive: self.pool.alive(),
+            lod_reads: self
+                .manifest
+                .as_ref()
+                .map_or(0, |m| m.lods.reads.load(Relaxed)),
+            lod_reads_shared: self
+                .manifest
+                .as_ref()
+                .map_or(0, |m| m.lods.shared.load(Relaxed)),
         };
         for l in &self.levels {
             match &l.state {

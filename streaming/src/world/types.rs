@@ -223,6 +223,11 @@ pub struct StreamStats {
     pub in_flight_jobs: usize,
     /// Loader threads running.
     pub loader_threads_alive: usize,
+    /// Baked mesh LODs read from the mesh library since the world opened.
+    pub lod_reads: u64,
+    /// LOD loads (a level's coarsest LODs, LOD streaming's finer ones) answered with the LOD
+    /// read before, still held by the world or a BLAS manager: no read, no second copy.
+    pub lod_reads_shared: u64,
 }
 
 /// Deformed positions of one skinned instance for one frame.
