@@ -54,6 +54,19 @@ fn loaded(lod: u8, error: f32, g: &Arc<MeshLod>) -> WorldEvent {
     }
 }
 
+/// `LevelLoaded` (`load`) or `LevelUnloaded` of `instances`.
+fn level_event(level: LevelId, bounds: Aabb, instances: Arc<[Instance]>, load: bool) -> WorldEvent {
+    if load {
+        WorldEvent::LevelLoaded {
+            level,
+            bounds,
+            instances,
+        }
+    } else {
+        WorldEvent::LevelUnloaded { level, instances }
+    }
+}
+
 fn frame(m: &mut AsManager<ModelBackend>, f: u64) {
     let cams = [Viewpoint::new(Vec3::ZERO, Vec3::Z)];
     m.update(FrameInput {
@@ -382,18 +395,7 @@ fn a_kept_shading_table_sees_reassigned_slots_and_changed_geometry_under_unmoved
                 )
             })
             .collect();
-        if load {
-            WorldEvent::LevelLoaded {
-                level: LevelId(id),
-                bounds,
-                instances,
-            }
-        } else {
-            WorldEvent::LevelUnloaded {
-                level: LevelId(id),
-                instances,
-            }
-        }
+        level_event(LevelId(id), bounds, instances, load)
     };
     bridge.apply(&m, &[level(0, 0, true)]);
     let slots: Vec<u32> = bridge
@@ -536,18 +538,7 @@ fn baked_and_dynamic_ids_place_and_leave_alike() {
                 )
             })
             .collect();
-        if load {
-            WorldEvent::LevelLoaded {
-                level: LevelId(lv),
-                bounds,
-                instances,
-            }
-        } else {
-            WorldEvent::LevelUnloaded {
-                level: LevelId(lv),
-                instances,
-            }
-        }
+        level_event(LevelId(lv), bounds, instances, load)
     };
     bridge.apply(&m, &[level(0, true), level(1, true), level(0, true)]);
     frame(&mut m, 0);
