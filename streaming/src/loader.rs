@@ -398,9 +398,9 @@ fn load_gltf_level(path: &Path, placement: &Mat4) -> Result<LoadedLevel> {
 /// mesh library. A level load brings the coarsest LOD of each of its meshes, and most are
 /// resident already (shared by the levels around): reading and decoding them again cost the
 /// loaders a file open and a decode each, and the world's thread then freed the copy, memory
-/// that another thread's allocator arena had handed out (about 0.7 ms a frame at 10x density
-/// on lavapipe, `docs/PROFILE.md`). Two loaders that miss at once both read; either copy is
-/// the file's.
+/// that another thread's allocator arena had handed out (`docs/PROFILE.md`, "The bridge's id
+/// table and the loaders' shared LODs"). Two loaders that miss at once both read; either copy
+/// is the file's.
 pub(crate) fn shared_lod(
     shared: &LoaderShared,
     mesh: WorldMeshId,
