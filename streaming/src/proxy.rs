@@ -2,10 +2,24 @@
 //!
 //! A quadtree over the level grid: one node per 2x2 block of levels (depth 1, the leaves), 4x4
 //! (depth 2), 8x8 (depth 3) and 16x16 (depth 4); partial blocks at the map's edge are fine. A
-//! leaf merges the static opaque instances' coarsest LODs of its levels (world space; skinned
-//! and non-opaque instances are left out) and simplifies the result to a triangle budget with
-//! meshoptimizer; a parent merges its children's proxies and simplifies again, so errors only
-//! grow up the tree. Each node records its geometric error in metres.
+//! node is made of the static opaque instances of its levels (world space; skinned and
+//! non-opaque instances are left out), to a triangle budget, in one of two ways
+//! ([`ProxyMethod`]):
+//! - **Select** (the default): every instance keeps its own shape at the coarsest LOD of its
+//!   chain within an error `E`, and is left out when its bounding radius is within `E` (at that
+//!   size it is missing, not misshapen); `E` is the smallest error at which the node fits its
+//!   budget. In the default world a leaf's few tall buildings keep their exact boxes while its
+//!   small, dense props (a 774-triangle LOD on a 3 m statue) go, where simplifying the whole
+//!   merge had cut every building down to a blob. Nodes deeper than
+//!   [`ProxyConfig::select_depth`] cover too many terrain tiles to keep each one whole: they
+//!   select to `SIMPLIFY_HEADROOM` times the budget and simplify the merge the rest of the way.
+//! - **Simplify**: merge each instance's coarsest LOD within [`ProxyConfig::source_error`]
+//!   and simplify the merge to the budget with meshoptimizer's sloppy simplifier; a parent merges
+//!   its children's proxies and simplifies again.
+//!
+//! Each node records its geometric error in metres, never less than its children's, so errors
+//! only grow up the tree. Side by side on the fly-through (`docs/RESULTS.md`, "Proxies that
+//! keep their buildings"), Select halves the error beyond r2 at the same memory.
 //!
 //! A leaf also lists its **landmarks**: the static opaque instances whose bounding sphere is at
 //! least [`ProxyConfig::landmark_radius`]. Streaming loads levels only within its load radius;
@@ -105,6 +119,30 @@ impl ProxyTree {
     }
 }
 
+/// How a node's geometry is made of its instances (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ProxyMethod {
+    /// Each instance at its own LOD, the smallest ones left out, to the budget.
+    Select,
+    /// The instances' LODs merged and simplified to the budget (sloppy simplification).
+    Simplify,
+}
+
+impl ProxyMethod {
+    /// A short name (bake stamps, reports).
+    pub fn name(self) -> &'static str {
+        match self {
+            ProxyMethod::Select => "select",
+            ProxyMethod::Simplify => "simplify",
+        }
+    }
+}
+
+/// How far past the budget a node deeper than [`ProxyConfig::select_depth`] selects before
+/// simplifying the merge to the budget. (On the default fly-through, 2, 4 and 12 scored alike:
+/// 0.44, 0.43 and 0.46 % hit mismatch at a 1° keep angle.)
+const SIMPLIFY_HEADROOM: u64 = 4;
+
 /// How proxies are built.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ProxyConfig {
@@ -112,7 +150,14 @@ pub struct ProxyConfig {
     pub max_depth: u8,
     /// Triangle budget of every node.
     pub triangles: u32,
-    /// Leaves merge each instance's coarsest LOD whose error is at most this (metres).
+    /// How a node's geometry is made.
+    pub method: ProxyMethod,
+    /// With [`ProxyMethod::Select`]: the deepest nodes that select to the budget alone (deeper
+    /// ones simplify after selecting). 2: the 4x4 blocks; the default world's 8x8 blocks have
+    /// 64 terrain tiles, too many to keep whole in the budget.
+    pub select_depth: u8,
+    /// With [`ProxyMethod::Simplify`]: leaves merge each instance's coarsest LOD whose error
+    /// is at most this (metres).
     pub source_error: f32,
     /// Leaves list the static opaque instances with a bounding sphere at least this large
     /// (metres) as landmarks. 4 m subtends 0.5° (the manager's default far keep angle) out to
@@ -127,6 +172,8 @@ impl Default for ProxyConfig {
         Self {
             max_depth: 4,
             triangles: 768,
+            method: ProxyMethod::Select,
+            select_depth: 2,
             source_error: 1.0,
             landmark_radius: 4.0,
             threads: std::thread::available_parallelism().map_or(2, |n| n.get()),
@@ -266,33 +313,49 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
                             else {
                                 continue;
                             };
-                            parts.push((&**g, inst.transform));
+                            if cfg.method == ProxyMethod::Simplify {
+                                parts.push((&**g, inst.transform));
+                            }
                             bounds = bounds.union(inst.aabb);
                             err = err.max(g.error * inst.max_scale());
                         }
                     }
-                    (
-                        bounds,
-                        simplify(merge(&parts), cfg.triangles, err),
-                        landmarks,
-                    )
+                    let g = match cfg.method {
+                        ProxyMethod::Simplify => simplify(merge(&parts), cfg.triangles, err),
+                        ProxyMethod::Select => select_node(world, members, cfg, depth),
+                    };
+                    (bounds, g, landmarks)
                 } else {
-                    let parts: Vec<(&MeshLod, glam::Mat4)> = members
-                        .iter()
-                        .map(|&c| (&*geometry[c as usize], glam::Mat4::IDENTITY))
-                        .collect();
                     let bounds = members
                         .iter()
                         .fold(Aabb::EMPTY, |b, &c| b.union(nodes[c as usize].bounds));
+                    // Never finer than a child: errors only grow up the tree (the cut refines
+                    // a node into its children).
                     let err = members
                         .iter()
                         .map(|&c| nodes[c as usize].error)
                         .fold(0.0f32, f32::max);
-                    (
-                        bounds,
-                        simplify(merge(&parts), cfg.triangles, err),
-                        Vec::new(),
-                    )
+                    let g = match cfg.method {
+                        ProxyMethod::Simplify => {
+                            let parts: Vec<(&MeshLod, glam::Mat4)> = members
+                                .iter()
+                                .map(|&c| (&*geometry[c as usize], glam::Mat4::IDENTITY))
+                                .collect();
+                            simplify(merge(&parts), cfg.triangles, err)
+                        }
+                        ProxyMethod::Select => {
+                            let levels: Vec<u32> = members
+                                .iter()
+                                .flat_map(|&c| nodes[c as usize].levels.iter().map(|l| l.0))
+                                .collect();
+                            let g = select_node(world, &levels, cfg, depth);
+                            MeshLod {
+                                error: g.error.max(err),
+                                ..g
+                            }
+                        }
+                    };
+                    (bounds, g, Vec::new())
                 }
             });
         let mut level_ids = Vec::new();
@@ -357,6 +420,109 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
         },
         report,
     )
+}
+
+/// One instance as a node's proxy may show it: at one of its LODs, or left out.
+struct Source<'a> {
+    lods: &'a [Arc<MeshLod>],
+    scale: f32,
+    radius: f32,
+    transform: Mat4,
+}
+
+impl<'a> Source<'a> {
+    /// Its coarsest LOD within `e` metres (`None`: none is).
+    fn within(&self, e: f32) -> Option<&'a MeshLod> {
+        self.lods
+            .iter()
+            .rev()
+            .find(|g| g.error * self.scale <= e)
+            .map(|g| &**g)
+    }
+
+    /// Whether it is left out at error `e`: no larger than `e`.
+    fn left_out(&self, e: f32) -> bool {
+        self.radius <= e
+    }
+}
+
+/// The static opaque instances of `levels`.
+fn sources<'a>(world: &'a GeneratedWorld, levels: &[u32]) -> Vec<Source<'a>> {
+    levels
+        .iter()
+        .flat_map(|&l| &world.levels[l as usize].instances)
+        .filter(|i| i.material == MaterialClass::Opaque && i.motion == Motion::Static)
+        .map(|i| Source {
+            lods: &world.meshes[i.mesh.0 as usize].lods,
+            scale: i.max_scale(),
+            radius: i.sphere.radius,
+            transform: i.transform,
+        })
+        .collect()
+}
+
+/// Triangles of `sources` at error `e` (`None`: one can neither be left out nor has a LOD
+/// within `e`).
+fn triangles_at(sources: &[Source<'_>], e: f32) -> Option<u64> {
+    sources
+        .iter()
+        .filter(|s| !s.left_out(e))
+        .map(|s| s.within(e).map(|g| g.triangle_count() as u64))
+        .sum()
+}
+
+/// The smallest error at which `sources` fit in `budget` triangles (each at its coarsest LOD
+/// within it, left out when no larger), and their parts at it. The error is one of the LODs'
+/// errors or the radii, found by bisection (the triangles only fall as the error grows).
+fn select_within<'a>(sources: &[Source<'a>], budget: u64) -> (Vec<(&'a MeshLod, Mat4)>, f32) {
+    let mut errors: Vec<f32> = sources
+        .iter()
+        .flat_map(|s| s.lods.iter().map(|g| g.error * s.scale).chain([s.radius]))
+        .chain([0.0])
+        .collect();
+    errors.sort_by(f32::total_cmp);
+    errors.dedup();
+    let fits = |e: f32| triangles_at(sources, e).is_some_and(|t| t <= budget);
+    // The largest error leaves everything out, so it always fits.
+    let (mut lo, mut hi) = (0, errors.len() - 1);
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if fits(errors[mid]) {
+            hi = mid;
+        } else {
+            lo = mid + 1;
+        }
+    }
+    let e = errors[lo];
+    let parts = sources
+        .iter()
+        .filter(|s| !s.left_out(e))
+        .filter_map(|s| s.within(e).map(|g| (g, s.transform)))
+        .collect();
+    (parts, e)
+}
+
+/// A node's geometry by [`ProxyMethod::Select`] (see the module docs).
+fn select_node(world: &GeneratedWorld, levels: &[u32], cfg: &ProxyConfig, depth: u8) -> MeshLod {
+    let sources = sources(world, levels);
+    let budget = u64::from(cfg.triangles);
+    let headroom = if depth <= cfg.select_depth {
+        1
+    } else {
+        SIMPLIFY_HEADROOM
+    };
+    let (parts, e) = select_within(&sources, budget * headroom);
+    simplify(weld(merge(&parts)), cfg.triangles, e)
+}
+
+/// `g` with coincident vertices shared (a merge keeps each part's own).
+fn weld(g: MeshLod) -> MeshLod {
+    let (count, remap) = meshopt::generate_vertex_remap(&g.positions, Some(&g.indices));
+    MeshLod {
+        positions: meshopt::remap_vertex_buffer(&g.positions, count, &remap),
+        indices: meshopt::remap_index_buffer(Some(&g.indices), count, &remap),
+        ..g
+    }
 }
 
 fn parallel_map<T: Sync, R: Send>(
@@ -570,5 +736,94 @@ pub fn read_proxies(dir: &Path, levels: usize, meshes: usize) -> Result<Option<P
         Ok(bytes) => decode_proxies(&bytes, &path, levels, meshes).map(Some),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(source) => Err(StreamingError::Io { path, source }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand_xoshiro::rand_core::{RngCore, SeedableRng};
+
+    /// A LOD of `tris` triangles (over one shared vertex triple) with `error` metres.
+    fn lod(tris: usize, error: f32) -> Arc<MeshLod> {
+        Arc::new(MeshLod {
+            positions: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            indices: (0..tris).flat_map(|_| [0, 1, 2]).collect(),
+            error,
+            skin: None,
+        })
+    }
+
+    fn source(lods: &[Arc<MeshLod>], radius: f32) -> Source<'_> {
+        Source {
+            lods,
+            scale: 1.0,
+            radius,
+            transform: Mat4::IDENTITY,
+        }
+    }
+
+    #[test]
+    fn select_keeps_the_large_and_leaves_out_the_small() {
+        // A tall building whose coarse LOD is exact, and ten 3 m props of 774 triangles: what
+        // a default-world leaf holds (streaming/src/proxy.rs module docs).
+        let building = [lod(1296, 0.0), lod(44, 0.03)];
+        let prop = [lod(774, 0.5)];
+        let mut sources = vec![source(&building, 20.0)];
+        sources.extend((0..10).map(|_| source(&prop, 3.0)));
+        let (parts, e) = select_within(&sources, 768);
+        assert_eq!(e, 3.0, "the props are left out, at their radius");
+        assert_eq!(parts.len(), 1);
+        assert_eq!(
+            parts[0].0.triangle_count(),
+            44,
+            "the building keeps its exact box"
+        );
+        // With room for the props, they stay, at the smallest error that fits.
+        let (parts, e) = select_within(&sources, 44 + 10 * 774);
+        assert_eq!((parts.len(), e), (11, 0.5));
+    }
+
+    #[test]
+    fn select_finds_the_smallest_error_that_fits() {
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(7);
+        let mut chains = Vec::new();
+        for _ in 0..60 {
+            let mut tris = 8 + (rng.next_u32() % 2000) as usize;
+            let mut error = 0.0;
+            let mut chain = Vec::new();
+            for _ in 0..1 + rng.next_u32() % 6 {
+                chain.push(lod(tris, error));
+                tris = (tris / 2).max(2);
+                error += (rng.next_u32() % 400) as f32 / 100.0;
+            }
+            chains.push((chain, (rng.next_u32() % 3000) as f32 / 100.0));
+        }
+        let sources: Vec<Source<'_>> = chains.iter().map(|(c, r)| source(c, *r)).collect();
+        for budget in [0, 10, 100, 768, 3000, 20_000, 1_000_000] {
+            let (parts, e) = select_within(&sources, budget);
+            let tris: u64 = parts.iter().map(|(g, _)| g.triangle_count() as u64).sum();
+            assert!(tris <= budget, "budget {budget}: {tris} triangles");
+            assert_eq!(Some(tris), triangles_at(&sources, e));
+            // No smaller error of any LOD or radius fits.
+            let smaller = sources
+                .iter()
+                .flat_map(|s| s.lods.iter().map(|g| g.error).chain([s.radius]))
+                .filter(|&x| x < e);
+            for x in smaller {
+                assert!(
+                    triangles_at(&sources, x).is_none_or(|t| t > budget),
+                    "budget {budget}: {x} < {e} fits too"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn weld_shares_coincident_vertices() {
+        let a = lod(1, 0.0);
+        let g = weld(merge(&[(&*a, Mat4::IDENTITY), (&*a, Mat4::IDENTITY)]));
+        assert_eq!(g.positions.len(), 3);
+        assert_eq!(g.indices, vec![0, 1, 2, 0, 1, 2]);
     }
 }
