@@ -5,17 +5,16 @@
 //! node is made of the static opaque instances of its levels (world space; skinned and
 //! non-opaque instances are left out), to a triangle budget, in one of two ways
 //! ([`ProxyMethod`]):
-//! - **Select**: every instance keeps its own shape at the coarsest LOD of its
-//!   chain within an error `E`, and is left out when its bounding radius is within `E` (at that
-//!   size it is missing, not misshapen); `E` is the smallest error at which the node fits its
-//!   budget. In the default world a leaf's few tall buildings keep their exact boxes while its
+//! - **Select**: every instance keeps its own shape at the coarsest LOD of its chain within an
+//!   error `E`, and is left out when its bounding radius is within `E` (at that size it is
+//!   missing, not misshapen); `E` is the smallest error at which the node fits its budget. In the default world a leaf's few tall buildings keep their exact boxes while its
 //!   small, dense props (a 774-triangle LOD on a 3 m statue) go, where simplifying the whole
 //!   merge had cut every building down to a blob. Nodes deeper than
 //!   [`ProxyConfig::select_depth`] cover too many terrain tiles to keep each one whole: they
 //!   select to `SIMPLIFY_HEADROOM` times the budget and simplify the merge the rest of the way.
-//! - **Simplify** (the default): merge each instance's coarsest LOD within [`ProxyConfig::source_error`]
-//!   and simplify the merge to the budget with meshoptimizer's sloppy simplifier; a parent merges
-//!   its children's proxies and simplifies again.
+//! - **Simplify** (the default): merge each instance's coarsest LOD within
+//!   [`ProxyConfig::source_error`] and simplify the merge to the budget with meshoptimizer's
+//!   sloppy simplifier; a parent merges its children's proxies and simplifies again.
 //!
 //! Each node records its geometric error in metres, never less than its children's, so errors
 //! only grow up the tree. Side by side on the fly-through (`docs/RESULTS.md`, "Proxies that
