@@ -232,10 +232,12 @@ pub struct FarFieldConfig {
     /// This angle alone decides landmarks (the culling angle is the near field's). Candidates
     /// are indexed in coarse cells sorted by size, so the per-frame cost follows the landmarks
     /// near enough to qualify, not the world's size.
-    /// Default 0.5° (`docs/RESULTS.md` charts 0.25–4°). In a world ten times as dense as the
-    /// default one, 1° scores 0.11 % hit mismatch against the full world with 40,068 TLAS
-    /// records instead of 104,293 (`docs/RESULTS.md`, "At ten times the density"): dense
-    /// worlds should set 1°.
+    /// Default 0.75°: with the proxies that keep their buildings (`ProxyMethod::Select` in
+    /// `rtstream-streaming`), the default fly-through at 1080p on an H100 scores 0.27 % hit
+    /// mismatch against the full world with 9,072 TLAS records, against 0.16 % with 14,184 at
+    /// 0.5° and 0.47 % with 7,012 at 1° (`docs/RESULTS.md`, "Proxies that keep their
+    /// buildings"; older charts there cover 0.25–4°). In a world ten times as dense, 0.75°
+    /// scores 0.03 % with 62,428 records and 1° 0.08 % with 41,123: dense worlds can set 1°.
     pub keep_angle: f32,
     /// Landmarks farther than this from every camera (to their bounding sphere) are left to the
     /// proxies: a landmark draw distance. How many landmarks qualify grows with how far the
@@ -264,7 +266,7 @@ impl Default for FarFieldConfig {
             refine_ahead: 0.75,
             build_share: 0.5,
             memory_share: 0.5,
-            keep_angle: 0.5f32.to_radians(),
+            keep_angle: 0.75f32.to_radians(),
             keep_range: 3000.0,
             incremental_detail: true,
         }
