@@ -329,7 +329,7 @@ pub fn prepare_world(preset: &WorldPreset, dir: &Path) -> Result<GeneratedWorld>
     // The stamp names the baked format's version too: a bake of an older format is redone here
     // (reading it would be a `FormatError::Version`), never left for the user to delete.
     let stamp = format!(
-        "{} seed={} size={} grid={} instances={} proxies={}x{}/{}/{}{} landmarks={} v{} format={}\n",
+        "{} seed={} size={} grid={} instances={} proxies={}x{}/{}/{}-d{} landmarks={} v{} format={}\n",
         preset.name,
         preset.seed,
         preset.size_m,

@@ -302,23 +302,24 @@ pub fn build_proxies(world: &GeneratedWorld, cfg: &ProxyConfig) -> (Proxies, Pro
                                 });
                             }
                             let mesh = &world.meshes[inst.mesh.0 as usize];
+                            if mesh.lods.is_empty() {
+                                continue;
+                            }
+                            bounds = bounds.union(inst.aabb);
+                            if cfg.method != ProxyMethod::Simplify {
+                                continue; // `select_node` picks each instance's LOD
+                            }
                             // The coarsest LOD still within the leaf's source error: the very
                             // coarsest LODs of tall buildings are pyramids, not what a skyline is.
                             let scale = inst.max_scale();
-                            let Some(g) = mesh
+                            let g = mesh
                                 .lods
                                 .iter()
                                 .rev()
                                 .find(|g| g.error * scale <= cfg.source_error)
-                                .or(mesh.lods.first())
-                            else {
-                                continue;
-                            };
-                            if cfg.method == ProxyMethod::Simplify {
-                                parts.push((&**g, inst.transform));
-                            }
-                            bounds = bounds.union(inst.aabb);
-                            err = err.max(g.error * inst.max_scale());
+                                .unwrap_or(&mesh.lods[0]);
+                            parts.push((&**g, inst.transform));
+                            err = err.max(g.error * scale);
                         }
                     }
                     let g = match cfg.method {
