@@ -1,8 +1,9 @@
 //! The far-field hand-over, rendered: a slow walk on lavapipe, every frame scored against the
 //! full-world ground truth. The geometric mismatch between r2 and 1 km stays low over the walk
-//! (a hole left by a hand-over raises it), the frames where a group's proxy gives way to its
-//! detail (or back) score as the others do, none grossly worse, and stepping into one changes
-//! the image no more than the walk's ordinary frame-to-frame change. The memory budget holds
+//! (a hole left by a hand-over raises it); on the frames where a group's proxy gives way to its
+//! detail (or back) it never exceeds twice its mean over the frames around them, nor on average
+//! the other frames' by half, and stepping into one changes the image no more than the walk's
+//! ordinary frame-to-frame change. The memory budget holds
 //! with the proxies in it.
 
 mod common;
@@ -25,7 +26,7 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
     let mut c = RunConfig {
         policies: vec![PolicyKind::Managed],
         eval_every: 1,
-        size: (128, 72),
+        size: (256, 144),
         all_geometry_reference: false,
         // About 1.5 m a frame along the path's diagonal.
         path_span: (0.25, 0.45),
@@ -94,38 +95,51 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
         "the far band is scored (proxies are not exact)"
     );
     // The level: a hand-over that dropped a near group's part beyond r2, or left a hole until
-    // detail arrived, raises the whole walk (such a hole measured 1.8 %; the walk is 0.06-0.08 %).
+    // detail arrived, raises the whole walk (such a hole measured 1.8 % at 128x72; the walk is about 0.08 %).
     assert!(
         walk_mean <= 0.002,
         "r2-1 km mismatch {:.3} % over the walk",
         100.0 * walk_mean
     );
-    // At 128x72 the far band holds 3-13 mismatched pixels a frame, and one group's pop for a
-    // frame adds about 5 (measured by forcing one): single frames are at the noise floor, so
-    // the hand-over frames are compared with the others as a whole, and each against a gross
-    // bound. (`as-manager` far_tests check at every frame that no group shows twice or not at
-    // all.)
+    // The far band's level moves along the path with what lies beyond r2 (18 to 67 mismatched
+    // pixels a frame at this size on ordinary frames), so "twice its mean" is taken around each
+    // hand-over frame: the ordinary frames within `NEAR` frames of it. At 128x72 a frame held
+    // 3-13 such pixels and single frames were at the noise floor (one hand-over frame reached
+    // 2.6x its neighbours with 13 pixels; at this size the same frame is 0.7x); a group's
+    // forced pop for one frame added about 5 pixels there. (`as-manager` far_tests check at
+    // every frame that no group shows twice or not at all.)
+    const NEAR: u64 = 8;
+    for (i, r) in rows.iter().enumerate() {
+        if r.frame < START_UP || !is_handover(i) {
+            continue;
+        }
+        let around: Vec<f64> = rows
+            .iter()
+            .enumerate()
+            .filter(|(j, o)| {
+                o.frame >= START_UP && !is_handover(*j) && o.frame.abs_diff(r.frame) <= NEAR
+            })
+            .map(|(_, o)| far_band(o))
+            .collect();
+        assert!(
+            !around.is_empty(),
+            "frame {}: no ordinary frame near it",
+            r.frame
+        );
+        assert!(
+            far_band(r) <= 2.0 * mean(&around),
+            "frame {}: r2-1 km mismatch {:.3} % on a hand-over frame, {:.3} % around it",
+            r.frame,
+            100.0 * far_band(r),
+            100.0 * mean(&around)
+        );
+    }
     assert!(
         mean(&handover) <= 1.5 * mean(&other),
         "hand-over frames average {:.3} %, the others {:.3} %",
         100.0 * mean(&handover),
         100.0 * mean(&other)
     );
-    for (r, &b) in rows
-        .iter()
-        .enumerate()
-        .filter(|(i, r)| r.frame >= START_UP && is_handover(*i))
-        .map(|(_, r)| r)
-        .zip(&handover)
-    {
-        assert!(
-            b <= 3.0 * walk_mean,
-            "frame {}: r2-1 km mismatch {:.3} % on a hand-over frame, walk mean {:.3} %",
-            r.frame,
-            100.0 * b,
-            100.0 * walk_mean
-        );
-    }
     // No systematic step up into a hand-over: on average it changes the image no more than
     // the walk's ordinary frame-to-frame change.
     assert!(
