@@ -56,7 +56,6 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
     // and proxies); the far band is 3-5x its walking level until then. A hand-over during that
     // backlog is not a pop, so the comparisons below start after it.
     const START_UP: u64 = 10;
-    let walking: Vec<&&FrameRow> = rows.iter().filter(|r| r.frame >= START_UP).collect();
     let is_handover =
         |i: usize| i > 0 && rows[i - 1].far_groups_covered != rows[i].far_groups_covered;
     let (mut handover, mut other) = (Vec::new(), Vec::new());
@@ -72,7 +71,7 @@ fn a_slow_walk_across_r2_hands_over_without_popping() {
         }
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    let walk_mean = walking.iter().map(|r| far_band(r)).sum::<f64>() / walking.len() as f64;
+    let walk_mean = mean(&[handover.as_slice(), &other].concat());
     eprintln!(
         "{} hand-over frames after the start-up; r2-1 km mismatch: walk mean {:.3} %, hand-over \
          frames {:.3} % (worst {:.3} %), others {:.3} %; mean step into a hand-over {:+.3} %, \
