@@ -9,7 +9,8 @@
 //! worlds (`docs/PROFILE.md`, "What the far field costs with camera speed").
 //!
 //! With `FRAME_COST_DUMP=path`, every measured frame's figures go to `path`, one line a frame:
-//! `update` µs, landmark looks, landmark waits, BLAS builds, releases, TLAS records.
+//! `update` µs, landmark looks, landmark waits, BLAS builds, releases, TLAS records; with
+//! `--phases`, a header line (`# update_us ...`) names them and each phase's µs follows.
 
 use std::time::Instant;
 
@@ -60,10 +61,51 @@ struct Args {
     /// 4 km map for 10x density).
     #[arg(long)]
     instances: Option<usize>,
+    /// Times the manager's phases (its `tracing` spans) in every measured frame and reports
+    /// each one's median and mean, µs (two clock reads a span: about 20 spans a frame).
+    #[arg(long)]
+    phases: bool,
+}
+
+/// Per frame, the wall time of each span by name (µs), summed over its entries.
+#[derive(Default)]
+struct PhaseTimes(parking_lot::Mutex<std::collections::BTreeMap<&'static str, f64>>);
+
+/// A `tracing` layer adding each span's time between enter and exit into `PhaseTimes`.
+struct PhaseLayer(std::sync::Arc<PhaseTimes>);
+
+/// When the span was last entered (kept in the span's extensions).
+struct Entered(Instant);
+
+impl<S> tracing_subscriber::Layer<S> for PhaseLayer
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+{
+    fn on_enter(&self, id: &tracing::span::Id, ctx: tracing_subscriber::layer::Context<'_, S>) {
+        if let Some(span) = ctx.span(id) {
+            span.extensions_mut().replace(Entered(Instant::now()));
+        }
+    }
+
+    fn on_exit(&self, id: &tracing::span::Id, ctx: tracing_subscriber::layer::Context<'_, S>) {
+        let Some(span) = ctx.span(id) else { return };
+        let Some(Entered(t)) = span.extensions_mut().remove::<Entered>() else {
+            return;
+        };
+        let us = t.elapsed().as_secs_f64() * 1e6;
+        *self.0 .0.lock().entry(span.name()).or_default() += us;
+    }
 }
 
 fn main() {
     let args = Args::parse();
+    let phase_times = args.phases.then(|| {
+        use tracing_subscriber::layer::SubscriberExt;
+        let times = std::sync::Arc::new(PhaseTimes::default());
+        let subscriber = tracing_subscriber::registry().with(PhaseLayer(times.clone()));
+        tracing::subscriber::set_global_default(subscriber).expect("the only subscriber");
+        times
+    });
     let params = if args.million {
         SynthParams::million()
     } else {
@@ -114,7 +156,11 @@ fn main() {
     let (mut times, mut cpu) = (Vec::new(), Vec::new());
     let (mut looks, mut waits, mut other) = (Vec::new(), Vec::new(), Vec::new());
     let mut caches = rtstream_as_manager::synth::CacheEvictor::new(args.evict_mb);
-    for f in 300..300 + args.frames {
+    let mut phases: std::collections::BTreeMap<&'static str, Vec<f64>> = Default::default();
+    if let Some(p) = &phase_times {
+        p.0.lock().clear();
+    }
+    for (n, f) in (300..300 + args.frames).enumerate() {
         let c = cameras(f);
         caches.evict();
         let t = Instant::now();
@@ -130,20 +176,46 @@ fn main() {
         looks.push(st.landmarks_examined as f64);
         waits.push(st.landmarks_waited as f64);
         other.push((st.builds, st.releases, st.tlas_instances));
+        if let Some(p) = &phase_times {
+            // A phase that did not run this frame counts 0 (every phase has a sample a frame).
+            for (name, us) in std::mem::take(&mut *p.0.lock()) {
+                phases.entry(name).or_insert_with(|| vec![0.0; n]).push(us);
+            }
+            for v in phases.values_mut() {
+                v.resize(n + 1, 0.0);
+            }
+        }
     }
+
+    let phases: Vec<(&str, Vec<f64>)> = phases.into_iter().collect();
     if let Ok(path) = std::env::var("FRAME_COST_DUMP") {
-        // One line a frame: µs, landmark looks, landmark waits, builds, releases, TLAS records.
-        let text: String = (0..times.len())
-            .map(|i| {
-                let (t, l, w, b) = (times[i], looks[i], waits[i], &other[i]);
-                format!("{t:.1} {l} {w} {} {} {}\n", b.0, b.1, b.2)
-            })
-            .collect();
+        // One line a frame: µs, landmark looks, landmark waits, builds, releases, TLAS records,
+        // then (with `--phases`) each phase's µs in the order of the header line.
+        let mut text = String::new();
+        if !phases.is_empty() {
+            let names: Vec<&str> = phases.iter().map(|(n, _)| *n).collect();
+            text += &format!(
+                "# update_us landmark_looks landmark_waits blas_builds releases tlas_records {}\n",
+                names.join(" ")
+            );
+        }
+        for i in 0..times.len() {
+            let (t, l, w, b) = (times[i], looks[i], waits[i], &other[i]);
+            text += &format!("{t:.1} {l} {w} {} {} {}", b.0, b.1, b.2);
+            for (_, v) in &phases {
+                text += &format!(" {:.2}", v[i]);
+            }
+            text.push('\n');
+        }
         std::fs::write(path, text).unwrap();
     }
     let t = Samples::new(times);
     let cpu = Samples::new(cpu);
     let (l, w) = (Samples::new(looks), Samples::new(waits));
+    let phases: Vec<(&str, Samples)> = phases
+        .into_iter()
+        .map(|(name, v)| (name, Samples::new(v)))
+        .collect();
     if args.json {
         let out = serde_json::json!({
             "world": if args.million { "million" } else { "default" },
@@ -167,6 +239,14 @@ fn main() {
             "instances": instances,
             "landmark_looks_per_frame": { "mean": l.mean(), "median": l.median() },
             "landmark_waits_per_frame": { "mean": w.mean(), "median": w.median() },
+            "phases_us": phases
+                .iter()
+                .map(|(name, s)| (name.to_string(), serde_json::json!({
+                    "median": s.median(),
+                    "mean": s.mean(),
+                    "p99": s.percentile(0.99),
+                })))
+                .collect::<serde_json::Map<_, _>>(),
         });
         println!("{out}");
         return;
@@ -194,4 +274,12 @@ fn main() {
         w.mean(),
         w.median()
     );
+    for (name, s) in &phases {
+        println!(
+            "phase {name:>14}: median {:.1} us, mean {:.1} us, p99 {:.1} us",
+            s.median(),
+            s.mean(),
+            s.percentile(0.99)
+        );
+    }
 }
