@@ -130,6 +130,7 @@ impl<B: AsBackend> AsManager<B> {
         if self.tables.meshes[slot].is_none() {
             self.live_meshes += 1;
         }
+        self.tables.mesh_log.note(id.index);
         self.tables.meshes[slot] = Some(MeshState {
             kind: desc.kind,
             nlods: desc.lods.len() as u8,
@@ -164,6 +165,7 @@ impl<B: AsBackend> AsManager<B> {
         }
         let errors_before = m.errors;
         let tris = geometry.triangles();
+        self.tables.mesh_log.note(mesh);
         m.buildable = (m.buildable & !(1 << lod)) | (u8::from(geometry.is_buildable()) << lod);
         let d = Arc::make_mut(&mut m.desc);
         d.lods[lod].geometry = geometry;
@@ -210,6 +212,7 @@ impl<B: AsBackend> AsManager<B> {
         self.floors.retain(|&m| m != id.index);
         self.tables.meshes[id.index as usize] = None;
         self.live_meshes -= 1;
+        self.tables.mesh_log.note(id.index);
         insts
     }
 

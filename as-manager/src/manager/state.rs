@@ -255,20 +255,113 @@ pub(crate) struct Tables {
     /// one's place; removal swaps the last one in). Not `entries`' own order: that is slot
     /// order, and the passes' decisions depend on this one.
     pub active: Vec<EntryKey>,
+    /// The meshes whose LODs' data or BLASes changed, for the landmark set.
+    pub mesh_log: MeshLog,
+}
+
+/// Meshes whose LOD data or BLASes changed (registered, a LOD's data replaced, removed; a BLAS
+/// built, compacted, released or rolled back), kept for the landmark set's two steps while it
+/// is active. What its pairs resolve to and which BLAS address they show change only so: each
+/// step looks at the pairs of the meshes logged since it last ran instead of at every pair
+/// every frame (about 260 pairs in the default world, each scan 1 µs of the far field's
+/// frame; `docs/PROFILE.md`, "The pair scans by event").
+#[derive(Debug, Default)]
+pub(crate) struct MeshLog {
+    on: bool,
+    /// For the residency step (which selections' resolution changed), and whether it looks
+    /// at every pair instead (just started, or the log overflowed).
+    resolve: Vec<u32>,
+    resolve_all: bool,
+    /// For the cull step (which shown BLAS addresses changed).
+    cull: Vec<u32>,
+    cull_all: bool,
+}
+
+/// Log entries a step may have waiting before it looks at every pair instead (a frame that
+/// registers or changes thousands of meshes).
+const MESH_LOG_CAP: usize = 4096;
+
+/// Which pairs a step of the landmark set looks at.
+#[derive(Debug, PartialEq, Eq)]
+pub(crate) enum Logged {
+    /// Every pair.
+    All,
+    /// The pairs of these meshes (sorted, each once).
+    Meshes,
+}
+
+impl MeshLog {
+    /// The landmark set is active: log from now on (its steps look at every pair once).
+    pub fn start(&mut self) {
+        if !self.on {
+            self.on = true;
+            self.resolve_all = true;
+            self.cull_all = true;
+        }
+    }
+
+    /// The landmark set is inactive: nothing to log.
+    pub fn stop(&mut self) {
+        *self = Self::default();
+    }
+
+    pub fn note(&mut self, mesh: u32) {
+        if !self.on {
+            return;
+        }
+        for (list, all) in [
+            (&mut self.resolve, &mut self.resolve_all),
+            (&mut self.cull, &mut self.cull_all),
+        ] {
+            if *all {
+                continue;
+            }
+            if list.len() >= MESH_LOG_CAP {
+                list.clear();
+                *all = true;
+            } else {
+                list.push(mesh);
+            }
+        }
+    }
+
+    /// The residency step's meshes into `out` (cleared first), and whether it looks at all.
+    pub fn take_resolve(&mut self, out: &mut Vec<u32>) -> Logged {
+        Self::take(&mut self.resolve, &mut self.resolve_all, out)
+    }
+
+    /// The cull step's meshes into `out` (cleared first), and whether it looks at all.
+    pub fn take_cull(&mut self, out: &mut Vec<u32>) -> Logged {
+        Self::take(&mut self.cull, &mut self.cull_all, out)
+    }
+
+    fn take(list: &mut Vec<u32>, all: &mut bool, out: &mut Vec<u32>) -> Logged {
+        out.clear();
+        if std::mem::take(all) {
+            list.clear();
+            return Logged::All;
+        }
+        out.append(list);
+        out.sort_unstable();
+        out.dedup();
+        Logged::Meshes
+    }
 }
 
 impl Tables {
-    /// Whether `key` names a live, built entry.
     /// A BLAS of `key`'s mesh was built, compacted, released or rolled back in `frame`.
     pub fn blas_changed(&mut self, key: EntryKey, frame: u64) {
         let Some(e) = self.entries.get(key) else {
             return;
         };
-        if let Some(Some(m)) = self.meshes.get_mut(e.mesh as usize) {
+        let mesh = e.mesh;
+        if let Some(Some(m)) = self.meshes.get_mut(mesh as usize) {
             m.blas_epoch = frame;
         }
+        self.mesh_log.note(mesh);
     }
 
+    /// Whether `key` names a live, built entry.
     pub fn built(&self, key: Option<EntryKey>) -> bool {
         key.and_then(|k| self.entries.get(k))
             .is_some_and(|e| e.state == EntryState::Built)

@@ -35,8 +35,10 @@ impl<B: AsBackend> AsManager<B> {
         self.landmarks.waited = 0;
         let Some(p) = self.landmark_params() else {
             self.far.flipped.clear();
+            self.tables.mesh_log.stop();
             return;
         };
+        self.tables.mesh_log.start();
         let _s = tracing::trace_span!("landmarks").entered();
         // Last frame's near and proxy records go; the landmarks' stay at the front.
         self.records.truncate(self.landmarks.len());
@@ -111,29 +113,30 @@ impl<B: AsBackend> AsManager<B> {
         // The marks every landmark would set on its target and shown entries.
         let frame = p.frame;
         let odo = landmarks.odo;
-        for pair in landmarks.pairs.iter().flatten() {
-            let (mesh, lod) = (pair.mesh, pair.lod as usize);
-            let Some(Some(m)) = tables.meshes.get(mesh as usize) else {
+        for pair in landmarks.pairs.iter_mut().flatten() {
+            if pair.targets == 0 && pair.showing.is_empty() {
                 continue;
-            };
-            let key = match m.lod_entry[lod] {
+            }
+            let (mesh, lod) = (pair.mesh, pair.lod as usize);
+            let key = match pair_entry(pair, tables) {
                 Some(k) => k,
                 None if pair.targets > 0 => {
                     // Released since (evicted): the targets ask for it again.
+                    let Some(Some(m)) = tables.meshes.get(mesh as usize) else {
+                        continue;
+                    };
                     let tris = m.lod_tris[lod];
                     let k = tables.new_entry(mesh, lod as u8, None, tris, frame);
                     tables.meshes[mesh as usize]
                         .as_mut()
                         .expect("live mesh")
                         .lod_entry[lod] = Some(k);
+                    pair.entry = Some(k);
                     k
                 }
                 None => continue,
             };
             let e = &mut tables.entries[key];
-            if pair.targets == 0 && pair.showing.is_empty() {
-                continue;
-            }
             e.last_keep = frame;
             if pair.targets == 0 {
                 continue;
@@ -174,24 +177,35 @@ impl<B: AsBackend> AsManager<B> {
                 _ => 0,
             }
         };
-        let entry_of = |tables: &Tables, mesh: u32, lod: u8| {
-            tables
-                .meshes
-                .get(mesh as usize)
-                .and_then(|m| m.as_ref())
-                .and_then(|m| m.lod_entry[lod as usize])
-        };
         // Pairs whose BLAS changed (built, compacted, released): their landmarks choose again.
+        // Only the pairs of the meshes logged since the last frame's step can have
+        // (`MeshLog`).
         let mut rechoose = std::mem::take(&mut landmarks.rechoose);
-        for pair in landmarks.pairs.iter_mut().flatten() {
+        let (mut meshes, mut pairs) = std::mem::take(&mut landmarks.log_scratch);
+        let logged = tables.mesh_log.take_cull(&mut meshes);
+        landmarks.logged_pairs(logged, &meshes, &mut pairs);
+        for &i in &pairs {
+            let pair = landmarks.pairs[i as usize].as_mut().expect("a live pair");
             if pair.showing.is_empty() {
                 continue;
             }
-            let address = address_of(tables, entry_of(tables, pair.mesh, pair.lod));
+            let address = address_of(tables, pair_entry(pair, tables));
             if address != pair.address {
                 pair.address = address;
                 rechoose.extend_from_slice(&pair.showing);
             }
+        }
+        landmarks.log_scratch = (meshes, pairs);
+        #[cfg(debug_assertions)]
+        for pair in landmarks.pairs.iter().flatten() {
+            let now = address_of(tables, mesh_entry(tables, pair.mesh, pair.lod));
+            debug_assert!(
+                pair.showing.is_empty() || now == pair.address,
+                "pair ({}, {}) shows {now:#x}, not {:#x}: a change to its mesh was not logged",
+                pair.mesh,
+                pair.lod,
+                pair.address
+            );
         }
         // Landmarks waiting for their target choose again only when a BLAS of their mesh was
         // built, compacted or released since their last choice (the choice reads nothing
@@ -317,11 +331,11 @@ impl<B: AsBackend> AsManager<B> {
         order.clear();
         landmarks.order_scratch = order;
         landmarks.rechoose = rechoose;
-        for pair in landmarks.pairs.iter().flatten() {
+        for pair in landmarks.pairs.iter_mut().flatten() {
             if pair.showing.is_empty() {
                 continue;
             }
-            let key = entry_of(tables, pair.mesh, pair.lod);
+            let key = pair_entry(pair, tables);
             if let Some(e) = key.and_then(|k| tables.entries.get_mut(k)) {
                 if pair.visible > 0 {
                     e.last_in_tlas = Some(frame);
@@ -333,4 +347,32 @@ impl<B: AsBackend> AsManager<B> {
         self.stats.landmark_instances = self.landmarks.len() as u32 - detail;
         self.stats.far_detail_instances = detail;
     }
+}
+
+/// The mesh's entry of `lod` (`None`: none, or the mesh is gone).
+fn mesh_entry(tables: &Tables, mesh: u32, lod: u8) -> Option<EntryKey> {
+    tables
+        .meshes
+        .get(mesh as usize)?
+        .as_ref()?
+        .lod_entry
+        .get(lod as usize)
+        .copied()
+        .flatten()
+}
+
+/// A pair's entry: the one it last found while that is still live (a static mesh's LOD has
+/// one entry, dropped with the mesh), else its mesh's now, kept for the next frame. The pair
+/// scans run every frame over every pair the landmarks use; this one reads no mesh state.
+fn pair_entry(pair: &mut PairUse, tables: &Tables) -> Option<EntryKey> {
+    if let Some(k) = pair.entry.filter(|&k| tables.entries.contains_key(k)) {
+        debug_assert_eq!(
+            mesh_entry(tables, pair.mesh, pair.lod),
+            Some(k),
+            "a pair's cached entry is its mesh's"
+        );
+        return Some(k);
+    }
+    pair.entry = mesh_entry(tables, pair.mesh, pair.lod);
+    pair.entry
 }

@@ -34,7 +34,7 @@ impl Landmarks {
     /// (duplicates allowed: the caller skips the ones seen this frame).
     pub(super) fn collect_due(
         &mut self,
-        tables: &Tables,
+        tables: &mut Tables,
         need_data: bool,
         groups_flipped: &mut Vec<u32>,
         out: &mut Vec<u32>,
@@ -67,24 +67,33 @@ impl Landmarks {
                 );
             }
         }
-        // Selections whose resolution changed (data or BLASes of the mesh came or went).
-        for p in self.pairs.iter_mut().flatten() {
-            if p.selecting.is_empty() && p.unusable.is_empty() {
-                continue;
-            }
-            let Some(Some(mesh)) = tables.meshes.get(p.mesh as usize) else {
-                continue;
-            };
-            let built = |l: usize| tables.built(mesh.lod_entry[l]);
-            let resolved = mesh
-                .with_data(p.lod as usize, need_data, built)
-                .map_or(NONE_LOD, |l| l as u8);
-            if resolved != p.resolved {
-                p.resolved = resolved;
-                out.extend_from_slice(&p.selecting);
-                out.append(&mut p.unusable);
+        // Selections whose resolution changed (data or BLASes of the mesh came or went): only
+        // the pairs of the meshes logged since the last frame can have (`MeshLog`).
+        let (mut meshes, mut pairs) = std::mem::take(&mut self.log_scratch);
+        let logged = tables.mesh_log.take_resolve(&mut meshes);
+        self.logged_pairs(logged, &meshes, &mut pairs);
+        for &i in &pairs {
+            let p = self.pairs[i as usize].as_mut().expect("a live pair");
+            if let Some(resolved) = selection_now(p, tables, need_data) {
+                if resolved != p.resolved {
+                    p.resolved = resolved;
+                    out.extend_from_slice(&p.selecting);
+                    out.append(&mut p.unusable);
+                }
             }
         }
+        #[cfg(debug_assertions)]
+        for p in self.pairs.iter().flatten() {
+            let now = selection_now(p, tables, need_data);
+            debug_assert!(
+                now.is_none_or(|r| r == p.resolved),
+                "pair ({}, {}) resolves to {now:?}, not {}: a change to its mesh was not logged",
+                p.mesh,
+                p.lod,
+                p.resolved
+            );
+        }
+        self.log_scratch = (meshes, pairs);
         // Stale entries are skipped by the caller (the events looked at first may make more).
         self.queue.pop_due(self.odo, queued);
     }
@@ -207,6 +216,22 @@ impl Landmarks {
         self.waited += 1;
         true
     }
+}
+
+/// What a pair's selection resolves to now (`None`: nothing to check: no landmark selects it
+/// and no candidate waits for it, or its mesh is gone).
+fn selection_now(p: &PairUse, tables: &Tables, need_data: bool) -> Option<u8> {
+    if p.selecting.is_empty() && p.unusable.is_empty() {
+        return None;
+    }
+    let Some(Some(mesh)) = tables.meshes.get(p.mesh as usize) else {
+        return None;
+    };
+    let built = |l: usize| tables.built(mesh.lod_entry[l]);
+    Some(
+        mesh.with_data(p.lod as usize, need_data, built)
+            .map_or(NONE_LOD, |l| l as u8),
+    )
 }
 
 /// Whether `c` is in front of some camera (a half-space test, as the build priority's).

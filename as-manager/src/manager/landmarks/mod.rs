@@ -58,7 +58,7 @@ use rustc_hash::FxHashMap;
 
 use glam::Vec3;
 
-use super::state::{InstanceHot, NO_GROUP};
+use super::state::{EntryKey, InstanceHot, NO_GROUP};
 use crate::record::TlasInstance;
 use queue::{Due, DueQueue};
 
@@ -144,6 +144,8 @@ struct PairUse {
     /// Landmarks showing its BLAS (slots), and the BLAS address their records hold.
     showing: Vec<u32>,
     address: u64,
+    /// Its mesh's entry of this LOD as last found (checked on use: `frame::pair_entry`).
+    entry: Option<EntryKey>,
     /// Of `showing`, those not culled (what marks the entry as in the TLAS).
     visible: u32,
     /// Lower bound of the nearest target's surface distance: min over targets, at their last
@@ -167,6 +169,7 @@ impl PairUse {
             unusable: Vec::new(),
             showing: Vec::new(),
             address: 0,
+            entry: None,
             visible: 0,
             min_key: 0.0,
             in_view: false,
@@ -254,6 +257,8 @@ pub(crate) struct Landmarks {
     waited_unlooked: Vec<u32>,
     scratch: Vec<u32>,
     queued_scratch: Vec<Due>,
+    /// The steps' scratch lists for the mesh log: meshes, pair indices.
+    log_scratch: (Vec<u32>, Vec<u32>),
     /// Candidates looked at this frame.
     pub examined: u32,
     /// Queued candidates found still inside their band this frame (they only waited again).
@@ -298,6 +303,7 @@ impl Default for Landmarks {
             #[cfg(test)]
             waited_unlooked: Vec::new(),
             scratch: Vec::new(),
+            log_scratch: (Vec::new(), Vec::new()),
             queued_scratch: Vec::new(),
             examined: 0,
             waited: 0,

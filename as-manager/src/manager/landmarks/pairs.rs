@@ -2,11 +2,32 @@
 //! the landmark records at the front of the manager's records.
 
 use super::*;
+use crate::manager::state::Logged;
+use crate::mesh::MAX_LODS;
 
 impl Landmarks {
     #[track_caller]
     pub(super) fn pair(&mut self, i: u32) -> &mut PairUse {
         self.pairs[i as usize].as_mut().expect("a live pair")
+    }
+
+    /// The pairs a step looks at for a mesh log (`MeshLog`): every live pair, or those of the
+    /// logged meshes; in index order (the order a scan of every pair visits them), into `out`.
+    pub(super) fn logged_pairs(&self, logged: Logged, meshes: &[u32], out: &mut Vec<u32>) {
+        out.clear();
+        match logged {
+            Logged::All => out
+                .extend((0..self.pairs.len() as u32).filter(|&i| self.pairs[i as usize].is_some())),
+            Logged::Meshes => {
+                for &m in meshes {
+                    out.extend(
+                        (0..MAX_LODS as u8)
+                            .filter_map(|l| self.pair_index.get(&pair_key(m, l)).copied()),
+                    );
+                }
+                out.sort_unstable();
+            }
+        }
     }
 
     /// The pair of (mesh, LOD), created when missing.
