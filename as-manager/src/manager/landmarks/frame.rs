@@ -82,6 +82,7 @@ impl<B: AsBackend> AsManager<B> {
         };
         drop(collect);
         let looks = tracing::trace_span!("looks").entered();
+        landmarks.warm(&due, &queued);
         // Events name instances (slots) and come first; then the queue's live entries, due by
         // travel alone: a look only if the distance left the last look's band (a look at an
         // event makes the candidate's queued entry stale).

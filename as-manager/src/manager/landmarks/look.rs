@@ -98,6 +98,30 @@ impl Landmarks {
         self.queue.pop_due(self.odo, queued);
     }
 
+    /// Reads, ahead of the looks, what they read first: each queue entry's stamp and, for the
+    /// events and the live entries, the candidate. The reads are independent of each other, so
+    /// the core overlaps their cache misses, where the looks, one after another, would wait for
+    /// each in turn. Decides nothing.
+    pub(super) fn warm(&self, due: &[u32], queued: &[Due]) {
+        let mut acc = 0u64;
+        for &slot in due {
+            if let Some(c) = self
+                .index
+                .get(slot as usize)
+                .and_then(|&ci| self.cands.get(ci as usize))
+            {
+                acc ^= c.seen;
+            }
+        }
+        for e in queued {
+            let live = self.stamps.get(e.ci as usize) == Some(&e.stamp);
+            if live {
+                acc ^= self.cands.get(e.ci as usize).map_or(0, |c| c.seen);
+            }
+        }
+        std::hint::black_box(acc);
+    }
+
     /// A fresh stamp for a candidate's queue entry (never 0, which a new candidate holds).
     pub(super) fn bump_stamp(&mut self) -> u32 {
         self.next_stamp = self.next_stamp.wrapping_add(1).max(1);
