@@ -506,7 +506,8 @@ impl<B: AsBackend> AsManager<B> {
             // most of it), the far field is covered coarsely first instead of finely near the
             // cameras and not at all farther out.
             let leaves = n.leaves.max(1) as f32;
-            let key = self.request_proxy(mesh, dist / leaves.sqrt(), frame);
+            let cached = self.proxy_key(i);
+            let key = self.request_proxy(mesh, cached, dist / leaves.sqrt(), frame);
             if let Some(Some(n)) = self.far.nodes.get_mut(i as usize) {
                 n.proxy_entry = key;
             }
@@ -526,15 +527,22 @@ impl<B: AsBackend> AsManager<B> {
 
     /// Requests a proxy's BLAS this frame; `dist` orders its build and eviction among the
     /// proxies (`far_prepare` passes a coverage-weighted distance).
-    /// Returns the proxy's entry (`None`: its mesh is gone).
-    fn request_proxy(&mut self, mesh: u32, dist: f32, frame: u64) -> Option<EntryKey> {
-        let Some(Some(m)) = self.tables.meshes.get(mesh as usize) else {
-            return None;
-        };
-        let tris = m.lod_tris[0];
-        let key = match m.lod_entry[0] {
+    /// `known` is the node's entry when it has one (`proxy_key`): then the mesh's state is
+    /// not read. Returns the proxy's entry (`None`: its mesh is gone).
+    fn request_proxy(
+        &mut self,
+        mesh: u32,
+        known: Option<EntryKey>,
+        dist: f32,
+        frame: u64,
+    ) -> Option<EntryKey> {
+        let key = match known {
             Some(key) => key,
             None => {
+                let Some(Some(m)) = self.tables.meshes.get(mesh as usize) else {
+                    return None;
+                };
+                let tris = m.lod_tris[0];
                 let key = self.tables.new_entry(mesh, 0, None, tris, frame);
                 self.tables.meshes[mesh as usize]
                     .as_mut()
