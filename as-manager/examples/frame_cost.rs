@@ -38,6 +38,8 @@ struct Args {
     #[arg(long)]
     far: bool,
     /// The far field's keep angle, degrees (0: no landmarks; default: the configuration's).
+    /// The landmark set still looks at the near leaves' detail beyond r2 at any angle (about
+    /// 7.8 looks a frame on the default world) unless `--no-incremental-detail`.
     #[arg(long)]
     keep_angle: Option<f32>,
     /// Frames measured after the 300 warm-up frames.
