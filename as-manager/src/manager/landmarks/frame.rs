@@ -239,6 +239,7 @@ impl<B: AsBackend> AsManager<B> {
             }
         }
         order.append(&mut rechoose);
+        landmarks.warm_members(&order, grid);
         for &slot in &order {
             let Some(c) = landmarks.cand(slot) else {
                 continue;

@@ -122,6 +122,21 @@ impl Landmarks {
         std::hint::black_box(acc);
     }
 
+    /// `warm`'s counterpart for the cull step's choices: reads each listed landmark's
+    /// candidate, member and grid entry ahead of the choices, whose reads would otherwise
+    /// wait one after another. Decides nothing.
+    pub(super) fn warm_members(&self, slots: &[u32], grid: &GridIndex<InstanceHot>) {
+        let mut acc = 0u64;
+        for &slot in slots {
+            let Some(c) = self.cand(slot) else {
+                continue;
+            };
+            acc ^= self.members.get(c.member as usize).map_or(0, |m| m.chosen);
+            acc ^= grid.get(slot).map_or(0, |g| u64::from(g.data.lod_target));
+        }
+        std::hint::black_box(acc);
+    }
+
     /// A fresh stamp for a candidate's queue entry (never 0, which a new candidate holds).
     pub(super) fn bump_stamp(&mut self) -> u32 {
         self.next_stamp = self.next_stamp.wrapping_add(1).max(1);
