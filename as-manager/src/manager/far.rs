@@ -538,18 +538,7 @@ impl<B: AsBackend> AsManager<B> {
     ) -> Option<EntryKey> {
         let key = match known {
             Some(key) => key,
-            None => {
-                let Some(Some(m)) = self.tables.meshes.get(mesh as usize) else {
-                    return None;
-                };
-                let tris = m.lod_tris[0];
-                let key = self.tables.new_entry(mesh, 0, None, tris, frame);
-                self.tables.meshes[mesh as usize]
-                    .as_mut()
-                    .expect("live")
-                    .lod_entry[0] = Some(key);
-                key
-            }
+            None => self.tables.new_lod_entry(mesh, 0, frame)?,
         };
         let e = &mut self.tables.entries[key];
         e.last_request = frame;
@@ -576,7 +565,7 @@ impl<B: AsBackend> AsManager<B> {
         let cached = n
             .proxy_entry
             .filter(|&k| self.tables.entries.get(k).is_some_and(|e| e.mesh == mesh));
-        let through_mesh = || self.tables.meshes.get(mesh as usize)?.as_ref()?.lod_entry[0];
+        let through_mesh = || self.tables.lod_entry(mesh, 0);
         debug_assert!(
             cached.is_none() || cached == through_mesh(),
             "a node's cached proxy entry is its mesh's"

@@ -361,6 +361,29 @@ impl Tables {
         self.mesh_log.note(mesh);
     }
 
+    /// The entry of a mesh's LOD (`None`: none yet, or the mesh is gone).
+    pub fn lod_entry(&self, mesh: u32, lod: u8) -> Option<EntryKey> {
+        self.meshes
+            .get(mesh as usize)?
+            .as_ref()?
+            .lod_entry
+            .get(lod as usize)
+            .copied()
+            .flatten()
+    }
+
+    /// A new entry for a static mesh's LOD, recorded as that LOD's entry (`None`: the mesh is
+    /// gone).
+    pub fn new_lod_entry(&mut self, mesh: u32, lod: u8, frame: u64) -> Option<EntryKey> {
+        let tris = self.meshes.get(mesh as usize)?.as_ref()?.lod_tris[lod as usize];
+        let key = self.new_entry(mesh, lod, None, tris, frame);
+        self.meshes[mesh as usize]
+            .as_mut()
+            .expect("live mesh")
+            .lod_entry[lod as usize] = Some(key);
+        Some(key)
+    }
+
     /// Whether `key` names a live, built entry.
     pub fn built(&self, key: Option<EntryKey>) -> bool {
         key.and_then(|k| self.entries.get(k))

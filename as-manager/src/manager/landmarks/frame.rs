@@ -118,20 +118,13 @@ impl<B: AsBackend> AsManager<B> {
             if pair.targets == 0 && pair.showing.is_empty() {
                 continue;
             }
-            let (mesh, lod) = (pair.mesh, pair.lod as usize);
             let key = match pair_entry(pair, tables) {
                 Some(k) => k,
                 None if pair.targets > 0 => {
                     // Released since (evicted): the targets ask for it again.
-                    let Some(Some(m)) = tables.meshes.get(mesh as usize) else {
+                    let Some(k) = tables.new_lod_entry(pair.mesh, pair.lod, frame) else {
                         continue;
                     };
-                    let tris = m.lod_tris[lod];
-                    let k = tables.new_entry(mesh, lod as u8, None, tris, frame);
-                    tables.meshes[mesh as usize]
-                        .as_mut()
-                        .expect("live mesh")
-                        .lod_entry[lod] = Some(k);
                     pair.entry = Some(k);
                     k
                 }
@@ -199,7 +192,7 @@ impl<B: AsBackend> AsManager<B> {
         landmarks.log_scratch = (meshes, pairs);
         #[cfg(debug_assertions)]
         for pair in landmarks.pairs.iter().flatten() {
-            let now = address_of(tables, mesh_entry(tables, pair.mesh, pair.lod));
+            let now = address_of(tables, tables.lod_entry(pair.mesh, pair.lod));
             debug_assert!(
                 pair.showing.is_empty() || now == pair.address,
                 "pair ({}, {}) shows {now:#x}, not {:#x}: a change to its mesh was not logged",
@@ -351,30 +344,18 @@ impl<B: AsBackend> AsManager<B> {
     }
 }
 
-/// The mesh's entry of `lod` (`None`: none, or the mesh is gone).
-fn mesh_entry(tables: &Tables, mesh: u32, lod: u8) -> Option<EntryKey> {
-    tables
-        .meshes
-        .get(mesh as usize)?
-        .as_ref()?
-        .lod_entry
-        .get(lod as usize)
-        .copied()
-        .flatten()
-}
-
 /// A pair's entry: the one it last found while that is still live (a static mesh's LOD has
 /// one entry, dropped with the mesh), else its mesh's now, kept for the next frame. The pair
 /// scans run every frame over every pair the landmarks use; this one reads no mesh state.
 fn pair_entry(pair: &mut PairUse, tables: &Tables) -> Option<EntryKey> {
     if let Some(k) = pair.entry.filter(|&k| tables.entries.contains_key(k)) {
         debug_assert_eq!(
-            mesh_entry(tables, pair.mesh, pair.lod),
+            tables.lod_entry(pair.mesh, pair.lod),
             Some(k),
             "a pair's cached entry is its mesh's"
         );
         return Some(k);
     }
-    pair.entry = mesh_entry(tables, pair.mesh, pair.lod);
+    pair.entry = tables.lod_entry(pair.mesh, pair.lod);
     pair.entry
 }

@@ -105,13 +105,7 @@ impl Landmarks {
     pub(super) fn warm(&self, due: &[u32], queued: &[Due]) {
         let mut acc = 0u64;
         for &slot in due {
-            if let Some(c) = self
-                .index
-                .get(slot as usize)
-                .and_then(|&ci| self.cands.get(ci as usize))
-            {
-                acc ^= c.seen;
-            }
+            acc ^= self.cand(slot).map_or(0, |c| c.seen);
         }
         for e in queued {
             let live = self.stamps.get(e.ci as usize) == Some(&e.stamp);
@@ -526,7 +520,6 @@ impl Landmarks {
         };
         // Next time `current` is this LOD: the selection holds between its switch points.
         let (lod_lo, lod_hi) = x.lod.stable_band(mesh.errors(), cand.scale, lodi, surface);
-        let tris = mesh.lod_tris[lodi];
         // The band in centre distance: the kind's limits and the LOD's switch points. A
         // surface distance clamped at 0 is the same for every centre distance below the
         // radius.
@@ -577,11 +570,7 @@ impl Landmarks {
         }
         // Its target entry exists from now on (as the residency pass creates it).
         if mesh.lod_entry[lodi].is_none() {
-            let key = x.tables.new_entry(mesh_ix, lodi as u8, None, tris, frame);
-            x.tables.meshes[mesh_ix as usize]
-                .as_mut()
-                .expect("live mesh")
-                .lod_entry[lodi] = Some(key);
+            x.tables.new_lod_entry(mesh_ix, lodi as u8, frame);
         }
         let target = self.pair_of(mesh_ix, lodi as u8);
         let sel_pair = self.pair_of(mesh_ix, selected as u8);
